@@ -1,0 +1,395 @@
+"""The ``tcf-hil`` command line. Commands stay thin: they parse options and call the library.
+
+Exit status: 0 success, 1 bad input or configuration (one ``Error:`` line naming the file or
+key), 2 usage error, 4 internal error (rerun with ``--traceback`` to see it).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import sys
+import traceback
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from tcf_hil import __version__
+from tcf_hil.errors import InputError, TcfHilError
+
+console = Console()
+err_console = Console(stderr=True)
+
+
+def _floats(n: int, names: str) -> Callable[[click.Context, click.Parameter, Any], Any]:
+    def convert(_ctx: click.Context, param: click.Parameter, value: Any) -> Any:
+        if value is None:
+            return None
+        try:
+            parts = tuple(float(v) for v in str(value).split(","))
+        except ValueError as err:
+            raise click.BadParameter(f"{value!r}: expected {n} comma-separated numbers "
+                                     f"({names})", param=param) from err
+        if len(parts) != n:
+            raise click.BadParameter(f"{value!r}: expected {n} comma-separated numbers "
+                                     f"({names})", param=param)
+        return parts
+    return convert
+
+
+class _Group(click.Group):
+    def list_commands(self, ctx: click.Context) -> list[str]:  # keep the teaching order
+        return list(self.commands)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"],
+                                           "max_content_width": 100})
+@click.version_option(__version__, prog_name="tcf-hil")
+@click.option("--traceback", is_flag=True, help="Show the full traceback of an internal error.")
+@click.pass_context
+def cli(ctx: click.Context, traceback: bool) -> None:
+    """tcf-hil: a hardware-in-the-loop test bench for forest-harvester lidar software.
+
+    \b
+    Start here:
+      tcf-hil demo                          the main job (today: offline Experiment 1)
+      tcf-hil scenario list                 the paper's Forests I-X
+      tcf-hil forest generate forest-v --out forest-v/
+      tcf-hil score ground_truth.json observed.json --plots plots/
+    """
+    ctx.obj = {"traceback": traceback}
+
+
+# ----------------------------------------------------------------------------- demo
+
+
+@cli.command()
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Run directory (default ./runs/<UTC time stamp>/).")
+@click.option("--seed", type=click.IntRange(min=0), default=None,
+              help="Override the presets' seeds.")
+def demo(out: Path | None, seed: int | None) -> None:
+    """Run the main job end to end and print the score table.
+
+    The live bridge (emulated OS0-64 and CANopen harvester on the wire) is not built yet, so
+    the demo runs the offline Experiment 1 path: Forests V and VI are generated, their stem
+    surfaces sampled (1000 points per stem, as the paper), the stem algorithm run with the
+    tuned and the paper presets, and the result scored against the exact ground truth.
+    """
+    out = out or Path("runs") / _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+    console.print("[bold]tcf-hil demo[/]: the live bridge (lidar and CAN on the wire) is not "
+                  "built yet; running the [bold]offline Experiment 1[/] path instead "
+                  "(surface-sampled Forests V and VI -> stem algorithm -> evaluation).")
+    _experiment1(out, seed, ("tuned", "paper"), write_pcd=True)
+
+
+# ------------------------------------------------------------------------- scenario
+
+
+@cli.group(cls=_Group)
+def scenario() -> None:
+    """List and show scenarios (the Forest I-X presets or your own TOML files)."""
+
+
+@scenario.command("list")
+def scenario_list() -> None:
+    """List the presets with their plot, stems, distribution and terrain."""
+    from tcf_hil.scenario import list_presets
+
+    t = Table(title="Scenario presets (paper, section 2.2)")
+    for col in ("name", "plot (m)", "stems", "distribution", "terrain", "seed"):
+        t.add_column(col)
+    for s in list_presets():
+        t.add_row(s.name, f"{s.plot.size_m[0]:g} x {s.plot.size_m[1]:g}", str(s.stems.count),
+                  s.distribution.kind, s.terrain.kind, str(s.seed))
+    console.print(t)
+    console.print("Show one fully resolved: [bold]tcf-hil scenario show forest-v[/]. "
+                  "Start your own"
+                  " from a preset with [bold]extends = \"forest-v\"[/] in a TOML file.")
+
+
+@scenario.command("show")
+@click.argument("name")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Override the seed.")
+def scenario_show(name: str, seed: int | None) -> None:
+    """Print the fully resolved TOML of a preset or scenario file NAME."""
+    from tcf_hil.scenario import load_scenario, scenario_to_toml
+
+    click.echo(scenario_to_toml(load_scenario(name, seed=seed)), nl=False)
+
+
+# --------------------------------------------------------------------------- forest
+
+
+@cli.group(cls=_Group)
+def forest() -> None:
+    """Generate synthetic forests (SFC) and surface-sampled point clouds."""
+
+
+@forest.command("generate")
+@click.argument("scenario_name", metavar="PRESET_OR_TOML")
+@click.option("--seed", type=click.IntRange(min=0), default=None,
+              help="Random seed (default: the scenario's). Same scenario + seed = same bytes.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Output directory.")
+@click.option("--no-meshes", is_flag=True, help="Skip stems.ply and terrain.ply.")
+def forest_generate(scenario_name: str, seed: int | None, out: Path, no_meshes: bool) -> None:
+    """Generate a forest: ground_truth.json, stems.ply, terrain.ply and map.png in --out.
+
+    stems.ply has a per-face stem_id (the ground-truth id); coordinates are world metres.
+    """
+    from tcf_hil.forest import generate_forest
+    from tcf_hil.forest.output import write_forest
+    from tcf_hil.scenario import load_scenario
+
+    scn = load_scenario(scenario_name, seed=seed)
+    with console.status(f"generating {scn.name} ({scn.stems.count} stems)"):
+        f = generate_forest(scn)
+        paths = write_forest(f, out, meshes=not no_meshes)
+    counts = {c: int(np.sum(f.classes == c)) for c in ("S", "C", "X")}
+    console.print(f"{scn.name}, seed {f.seed}: {len(f.stems)} stems "
+                  f"(S {counts['S']}, C {counts['C']}, X {counts['X']}), terrain "
+                  f"{'flat' if f.terrain.is_flat else 'rolling'}")
+    for p in paths:
+        console.print(f"  wrote {p}")
+
+
+@forest.command("sample")
+@click.argument("scenario_name", metavar="PRESET_OR_TOML")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Random seed.")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="Output .pcd file (binary; x y z float64, stem_id uint32, 0 = terrain).")
+@click.option("--points-per-stem", type=click.IntRange(min=0), default=None,
+              help="Surface points per stem (default: scenario, paper 1000).")
+@click.option("--terrain-density", type=click.FloatRange(min=0), default=None,
+              help="Terrain points per m² (default: scenario).")
+@click.option("--ground-truth", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write the ground truth JSON here.")
+@click.option("--float32", is_flag=True,
+              help="x y z as float32 (for open3d's legacy reader; loses precision far from 0).")
+def forest_sample(scenario_name: str, seed: int | None, out: Path, points_per_stem: int | None,
+                  terrain_density: float | None, ground_truth: Path | None,
+                  float32: bool) -> None:
+    """Surface-sample a forest (the paper's point clouds without lidar) into a PCD file."""
+    from tcf_hil._io import write_bytes_atomic, write_json_atomic
+    from tcf_hil.forest import generate_forest
+    from tcf_hil.forest import ground_truth as gt_doc
+    from tcf_hil.forest.sampling import sample_surfaces
+    from tcf_hil.scenario import load_scenario
+
+    scn = load_scenario(scenario_name, seed=seed)
+    with console.status(f"sampling {scn.name}"):
+        f = generate_forest(scn)
+        cloud = sample_surfaces(f, points_per_stem, terrain_density)
+        write_bytes_atomic(out, cloud.to_pcd(float32=float32))
+        if ground_truth is not None:
+            write_json_atomic(ground_truth, gt_doc(f))
+    console.print(f"wrote {out}: {len(cloud)} points "
+                  f"({int(np.sum(cloud.stem_id > 0))} on stems)")
+
+
+# --------------------------------------------------------------------------- detect
+
+
+def read_cloud(path: Path) -> np.ndarray:
+    """x, y, z of a PCD file as an (n, 3) float64 array; InputError names file and field."""
+    from protocols.pcd import PcdError, decode_pcd
+
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise InputError(str(path), "", f"cannot read file ({err.strerror or err})") from err
+    try:
+        fields = decode_pcd(data)
+    except PcdError as err:
+        raise InputError(str(path), "", f"not a valid PCD file: {err}") from err
+    for k in ("x", "y", "z"):
+        if k not in fields:
+            raise InputError(str(path), f"FIELDS.{k}",
+                             f"the cloud has no {k} field (has: {', '.join(fields)})")
+    xyz = np.column_stack([fields[k].astype(np.float64) for k in ("x", "y", "z")])
+    bad = ~np.all(np.isfinite(xyz), axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(str(path), f"point {i}", f"coordinates {xyz[i].tolist()} are not finite")
+    return xyz
+
+
+@cli.command()
+@click.argument("cloud", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="Observed-forest JSON to write.")
+@click.option("--preset", type=click.Choice(["tuned", "paper"]), default="tuned",
+              show_default=True, help="paper: exactly the published algorithm; tuned: refined.")
+@click.option("--curve-threshold", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="maxcurve (m) from which a stem is C (default 0.05, as the scenarios).")
+@click.option("--other-threshold", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="maxcurve (m) from which a stem is X (default 0.25).")
+def detect(cloud: Path, out: Path, preset: str, curve_threshold: float | None,
+           other_threshold: float | None) -> None:
+    """Run the reference stem algorithm on a PCD point cloud and write the observed JSON."""
+    from tcf_hil._io import write_json_atomic
+    from tcf_hil.sic import identify_stems, stem_params
+
+    over: dict[str, Any] = {}
+    if curve_threshold is not None:
+        over["curve_threshold_m"] = curve_threshold
+    if other_threshold is not None:
+        over["other_threshold_m"] = other_threshold
+    try:
+        prm = stem_params(preset, **over)
+    except ValueError as err:
+        raise click.BadParameter(str(err)) from err
+    xyz = read_cloud(cloud)
+    with console.status(f"stem algorithm on {len(xyz)} points"):
+        doc = identify_stems(xyz, prm)
+    write_json_atomic(out, doc)
+    console.print(f"wrote {out}: {doc['total_objects_count']} stems")
+
+
+# ---------------------------------------------------------------------------- score
+
+
+@cli.command()
+@click.argument("gt", metavar="GT.json", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("observed", metavar="OBSERVED.json",
+                type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--match", "match_method", type=click.Choice(["greedy", "optimal"]),
+              default="greedy", show_default=True,
+              help="greedy: nearest pairs first (paper); optimal: minimum total distance.")
+@click.option("--max-distance", type=click.FloatRange(min=0, min_open=True), default=1.0,
+              show_default=True, help="Matching radius d in the x-y plane (m).")
+@click.option("--weights", callback=_floats(4, "S,C,X,N"), default="1,1,1,1",
+              show_default=True, help="Class weights by ground-truth row.")
+@click.option("--credits", callback=_floats(3, "E,A,N"), default="1,0,0", show_default=True,
+              help="Credits for exact, almost and no match.")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path),
+              default=None, help="Write every metric to this JSON file.")
+@click.option("--plots", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Write em_heatmap.png and matched_positions.png into this directory.")
+def score(gt: Path, observed: Path, match_method: str, max_distance: float,
+          weights: tuple[float, ...], credits: tuple[float, ...], json_out: Path | None,
+          plots: Path | None) -> None:
+    """Score an observed forest (SIC output) against the ground truth.
+
+    Any document with objects[].cp and class (S/C/X) or quality (1/2/3) can be scored as
+    either side; h, dbh and maxcurve are used when present.
+    """
+    from tcf_hil._io import write_json_atomic
+    from tcf_hil.evaluation import EvalConfig, evaluate, metrics_table, write_plots
+    from tcf_hil.stems_json import load_stems
+
+    try:
+        cfg = EvalConfig(match=match_method, max_distance_m=max_distance,  # type: ignore[arg-type]
+                         weights=weights, credits=credits)  # type: ignore[arg-type]
+    except ValueError as err:
+        raise click.BadParameter(str(err)) from err
+    g = load_stems(gt, "observed")
+    o = load_stems(observed, "observed")
+    ev = evaluate(g, o, cfg)
+    console.print(metrics_table(ev, f"{observed.name} vs {gt.name} ({match_method}, "
+                                    f"d = {max_distance:g} m)"))
+    if json_out is not None:
+        write_json_atomic(json_out, ev.metrics)
+        console.print(f"wrote {json_out}")
+    if plots is not None:
+        for p in write_plots(ev, g, o, plots, observed.stem):
+            console.print(f"wrote {p}")
+
+
+# ----------------------------------------------------------------------- experiment
+
+
+@cli.group(cls=_Group)
+def experiment() -> None:
+    """The paper's experiments."""
+
+
+def _experiment1(out: Path, seed: int | None, presets: Sequence[str], write_pcd: bool) -> None:
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from tcf_hil.experiments import run_experiment1
+
+    steps = 2 * (2 + len(presets))
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"),
+                  TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(),
+                  console=console, transient=True) as prog:
+        task = prog.add_task("experiment 1", total=steps)
+
+        def step(msg: str) -> None:
+            prog.update(task, description=msg, advance=1)
+
+        rows = run_experiment1(out, presets=presets, seed=seed, write_pcd=write_pcd,
+                               progress=step)
+    t = Table(title="Experiment 1 (paper Table 6): surface-sampled stems, no lidar; "
+                    "ours (paper)")
+    t.add_column("forest", no_wrap=True)
+    for col in ("SIC", "stems", "found", "acc. %", "miscl. %", "missed %", "pos RMSE", "SIC s"):
+        t.add_column(col, justify="right")
+
+    def p(v: float, ref: float | None) -> str:
+        return f"{v:.1f}" if ref is None else f"{v:.1f} ({ref:.1f})"
+
+    for r in rows:
+        t.add_row(r.forest, r.preset, str(r.stems), str(r.observed),
+                  p(r.accuracy_percent, r.paper_accuracy_percent),
+                  p(r.misclassified_percent, r.paper_misclassified_percent),
+                  p(r.missed_of_total_percent, r.paper_missed_percent),
+                  f"{r.position_rmse_m:.3f} m", f"{r.sic_seconds:.1f}")
+    console.print(t)
+    console.print(f"Results, plots and clouds: [bold]{out}[/] "
+                  f"(summary: {out / 'experiment1.json'})")
+
+
+@experiment.command("1")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("experiment1"), show_default=True, help="Output directory.")
+@click.option("--seed", type=click.IntRange(min=0), default=None,
+              help="Override the presets' seeds.")
+@click.option("--preset", "presets", type=click.Choice(["tuned", "paper"]), multiple=True,
+              help="SIC preset(s) to run (default: both).")
+@click.option("--no-pcd", is_flag=True, help="Do not write the sampled clouds.")
+def experiment_1(out: Path, seed: int | None, presets: tuple[str, ...], no_pcd: bool) -> None:
+    """Experiment 1: Forests V and VI surface-sampled, stem algorithm, paper Table 6 beside ours."""
+    _experiment1(out, seed, presets or ("tuned", "paper"), write_pcd=not no_pcd)
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point: maps errors to exit codes (see the module docstring)."""
+    args = sys.argv[1:] if argv is None else argv
+    try:
+        cli.main(args=args, prog_name="tcf-hil", standalone_mode=False)
+    except click.exceptions.Abort:
+        err_console.print("Aborted.")
+        return 1
+    except click.ClickException as err:
+        err.show()
+        return err.exit_code
+    except click.exceptions.Exit as err:
+        return err.exit_code
+    except TcfHilError as err:
+        click.echo(f"Error: {err}", err=True)
+        return 1
+    except KeyboardInterrupt:
+        click.echo("Interrupted.", err=True)
+        return 130
+    except Exception:
+        if "--traceback" in args:
+            traceback.print_exc()
+        else:
+            exc = sys.exc_info()[1]
+            click.echo(f"Internal error: {type(exc).__name__}: {exc} "
+                       "(rerun with --traceback and report it)", err=True)
+        return 4
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,52 @@
+"""The exception tree of tcf-hil.
+
+::
+
+    TcfHilError
+     ├── ConfigError      a scenario or option is invalid (names key, value, what is allowed)
+     └── InputError       an input file is unreadable or breaks its schema (names file and field)
+
+The CLI maps every ``TcfHilError`` to exit status 1 and a one-line ``Error: ...`` message.
+"""
+
+from __future__ import annotations
+
+
+class TcfHilError(Exception):
+    """Root of every error tcf-hil raises on purpose."""
+
+
+class ConfigError(TcfHilError, ValueError):
+    """A configuration value is invalid.
+
+    Args:
+        key: dotted key, e.g. ``stems.count``.
+        value: the offending value.
+        allowed: what would have been accepted.
+        source: file the value came from, if any.
+    """
+
+    def __init__(self, key: str, value: object, allowed: str, source: str | None = None) -> None:
+        self.key = key
+        self.value = value
+        self.allowed = allowed
+        self.source = source
+        where = f"{source}: " if source else ""
+        super().__init__(f"{where}{key} = {value!r} is invalid; allowed: {allowed}")
+
+
+class InputError(TcfHilError, ValueError):
+    """An input document is unreadable or invalid.
+
+    Args:
+        path: file name (or ``<stdin>``/``<memory>``).
+        field: JSON path of the bad field, e.g. ``objects[3].cp[1]``; empty for the whole file.
+        problem: what is wrong and what was expected.
+    """
+
+    def __init__(self, path: str, field: str, problem: str) -> None:
+        self.path = path
+        self.field = field
+        self.problem = problem
+        at = f" at {field}" if field else ""
+        super().__init__(f"{path}{at}: {problem}")

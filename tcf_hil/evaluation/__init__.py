@@ -1,0 +1,29 @@
+"""Experimental evaluation (EE): matching, evaluation matrix, weighted score, metrics, plots."""
+
+from tcf_hil.evaluation._match import candidate_pairs, match
+from tcf_hil.evaluation._metrics import (
+    CASES,
+    LABELS,
+    EvalConfig,
+    Evaluation,
+    default_case_table,
+    evaluate,
+    evaluation_matrix,
+    weighted_score,
+)
+from tcf_hil.evaluation._report import metrics_table, write_plots
+
+__all__ = [
+    "CASES",
+    "LABELS",
+    "EvalConfig",
+    "Evaluation",
+    "candidate_pairs",
+    "default_case_table",
+    "evaluate",
+    "evaluation_matrix",
+    "match",
+    "metrics_table",
+    "weighted_score",
+    "write_plots",
+]

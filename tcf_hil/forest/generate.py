@@ -1,0 +1,266 @@
+"""Synthetic forest creation (SFC): scenario + seed -> terrain, stems and exact ground truth."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from protocols.stems import QUALITY_BY_CLASS
+from tcf_hil.errors import ConfigError
+from tcf_hil.forest.placement import place_stems
+from tcf_hil.forest.stems import BREAST_HEIGHT_M, StemSet
+from tcf_hil.forest.terrain import Terrain
+from tcf_hil.scenario import CLASSES, Scenario
+
+FloatArray = NDArray[np.float64]
+
+QUALITY = QUALITY_BY_CLASS
+"""Paper quality codes: 1 straight, 2 curved, 3 other."""
+
+# Independent random streams, so changing the stem count leaves the terrain alone.
+_STREAM_TERRAIN, _STREAM_PLACE, _STREAM_STEMS, _STREAM_FIX = 1, 2, 3, 4
+_CLEARANCE_M = 0.02  # stems keep at least this gap between their surfaces
+
+
+def _rng(seed: int, stream: int) -> np.random.Generator:
+    return np.random.default_rng([seed, stream])
+
+
+def class_counts(mix: dict[str, float], n: int) -> dict[str, int]:
+    """Split ``n`` stems by the shares in ``mix`` (largest remainder; exact total)."""
+    total = sum(mix.values())
+    if n == 0 or total <= 0:
+        return {c: 0 for c in mix}
+    raw = {c: n * v / total for c, v in mix.items()}
+    out = {c: math.floor(v) for c, v in raw.items()}
+    rest = n - sum(out.values())
+    for c in sorted(raw, key=lambda c: (-(raw[c] - out[c]), list(mix).index(c)))[:rest]:
+        out[c] += 1
+    return out
+
+
+def classify(maxcurve: Any, curve_threshold_m: float, other_threshold_m: float) -> Any:
+    """Class labels from maxcurve: S below the curve threshold, X at or above the other
+    threshold, C between. Works on scalars and arrays."""
+    mc = np.asarray(maxcurve, dtype=np.float64)
+    out = np.where(mc >= other_threshold_m, "X", np.where(mc >= curve_threshold_m, "C", "S"))
+    return str(out) if out.ndim == 0 else out
+
+
+def _draw_dbh(scn: Scenario, n: int, rng: np.random.Generator) -> FloatArray:
+    d = scn.stems.dbh
+    if d.kind == "fixed":
+        return np.full(n, d.mean_m)
+    if d.kind == "uniform":
+        return rng.uniform(d.min_m, d.max_m, n)
+    out = np.empty(n)
+    todo = np.arange(n)
+    for _ in range(100):  # truncated distribution by redrawing outliers
+        if d.kind == "normal":
+            v = rng.normal(d.mean_m, d.sd_m, len(todo))
+        else:
+            sigma2 = math.log(1.0 + (d.sd_m / d.mean_m) ** 2)
+            v = rng.lognormal(math.log(d.mean_m) - sigma2 / 2, math.sqrt(sigma2), len(todo))
+        out[todo] = v
+        todo = todo[(v < d.min_m) | (v > d.max_m)]
+        if len(todo) == 0:
+            break
+    return np.clip(out, d.min_m, d.max_m)
+
+
+def _unit_perp(axis: FloatArray, angle: FloatArray) -> FloatArray:
+    """Unit vectors perpendicular to ``axis`` at azimuth-like ``angle`` around it."""
+    ref = np.where(np.abs(axis[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(ref, axis)
+    e1 /= np.linalg.norm(e1, axis=1)[:, None]
+    e2 = np.cross(axis, e1)
+    return np.cos(angle)[:, None] * e1 + np.sin(angle)[:, None] * e2
+
+
+def _axes(lean_deg: FloatArray, azimuth: FloatArray) -> FloatArray:
+    lean = np.radians(lean_deg)
+    return np.stack([np.sin(lean) * np.cos(azimuth), np.sin(lean) * np.sin(azimuth),
+                     np.cos(lean)], axis=1)
+
+
+@dataclass
+class Forest:
+    """A generated forest in local coordinates (world = local + ``scenario.plot.origin_m``)."""
+
+    scenario: Scenario
+    seed: int
+    terrain: Terrain
+    stems: StemSet
+    classes: NDArray[np.str_]
+    lean_deg: FloatArray
+    _volume: FloatArray | None = field(default=None, repr=False)
+
+    @property
+    def origin(self) -> FloatArray:
+        return np.asarray(self.scenario.plot.origin_m, dtype=np.float64)
+
+    @property
+    def ids(self) -> NDArray[np.int64]:
+        return np.arange(1, len(self.stems) + 1)
+
+    @property
+    def volume(self) -> FloatArray:
+        if self._volume is None:
+            self._volume = self.stems.volume()
+        return self._volume
+
+    def positions(self) -> FloatArray:
+        """Stem positions (n, 3), local: centre line at breast height in x, y; ground z."""
+        n = len(self.stems)
+        if n == 0:
+            return np.zeros((0, 3))
+        c = self.stems.centre(np.arange(n), np.full(n, BREAST_HEIGHT_M))
+        c[:, 2] = self.stems.base[:, 2]
+        return c
+
+    def bounds(self, margin_m: float | None = None) -> tuple[float, float, float, float]:
+        """Local (xmin, ymin, xmax, ymax) of the plot plus the terrain margin."""
+        m = self.scenario.terrain.margin_m if margin_m is None else margin_m
+        w, h = self.scenario.plot.size_m
+        return (-w / 2 - m, -h / 2 - m, w / 2 + m, h / 2 + m)
+
+
+def _conflicts(stems: StemSet, step: float = 0.1) -> list[tuple[int, int]]:
+    """Pairs of stems whose surfaces come closer than the clearance (sampled centre lines)."""
+    n = len(stems)
+    if n < 2:
+        return []
+    reach = stems.max_reach()
+    pairs = cKDTree(stems.base[:, :2]).query_pairs(2.0 * float(reach.max()) + _CLEARANCE_M,
+                                                    output_type="ndarray")
+    if len(pairs) == 0:
+        return []
+    d = np.hypot(*(stems.base[pairs[:, 0], :2] - stems.base[pairs[:, 1], :2]).T)
+    pairs = pairs[d < reach[pairs[:, 0]] + reach[pairs[:, 1]] + _CLEARANCE_M]
+    out = []
+    for i, j in pairs:
+        si = np.arange(-stems.below[i], stems.length[i] + step, step)
+        sj = np.arange(-stems.below[j], stems.length[j] + step, step)
+        ci = stems.centre(np.full(len(si), i), si)
+        cj = stems.centre(np.full(len(sj), j), sj)
+        ri = stems.radius(np.full(len(si), i), si)
+        rj = stems.radius(np.full(len(sj), j), sj)
+        dist = np.linalg.norm(ci[:, None, :] - cj[None, :, :], axis=2)
+        if np.any(dist < ri[:, None] + rj[None, :] + _CLEARANCE_M + step):
+            out.append((int(i), int(j)))
+    return out
+
+
+def generate_forest(scn: Scenario, seed: int | None = None) -> Forest:
+    """Generate terrain and stems for ``scn``; the same scenario and seed give the same forest.
+
+    Raises:
+        ConfigError: if the stems cannot be placed as configured.
+    """
+    seed = scn.seed if seed is None else seed
+    st = scn.stems
+    terrain = Terrain.generate(scn.terrain, _rng(seed, _STREAM_TERRAIN))
+    xy = place_stems(scn, _rng(seed, _STREAM_PLACE))
+    n = len(xy)
+    rng = _rng(seed, _STREAM_STEMS)
+    counts = class_counts({c: getattr(st.class_mix, c) for c in CLASSES}, n)
+    classes = np.array([c for c in CLASSES for _ in range(counts[c])], dtype="<U1")
+    classes = classes[rng.permutation(n)] if n else classes
+    height = rng.uniform(st.height_m[0], st.height_m[1], n)
+    dbh = _draw_dbh(scn, n, rng)
+    sweep = np.zeros(n)
+    for c in CLASSES:
+        lo, hi = getattr(st.sweep_m, c)
+        m = classes == c
+        sweep[m] = rng.uniform(lo, hi, int(m.sum()))
+    peak = rng.uniform(0.35, 0.65, n)
+    lean = rng.uniform(st.lean_deg[0], st.lean_deg[1], n)
+    lean_az = rng.uniform(0.0, 2.0 * math.pi, n)
+    bend_ang = rng.uniform(0.0, 2.0 * math.pi, n)
+
+    base = np.column_stack([xy, terrain.height(xy[:, 0], xy[:, 1])]) if n else np.zeros((0, 3))
+    axis = _axes(lean, lean_az)
+    stems = StemSet(
+        base=base, axis=axis, bend=_unit_perp(axis, bend_ang),
+        length=height / axis[:, 2], sweep=sweep, peak=peak, r_bh=dbh / 2.0,
+        r_top=np.full(n, st.top_diameter_m / 2.0), taper=np.full(n, st.taper_exponent),
+        below=np.full(n, st.below_ground_m))
+
+    # Stems never intersect: turn a conflicting stem's bend (and lean) until it is clear.
+    fix = _rng(seed, _STREAM_FIX)
+    for _attempt in range(40):
+        bad = sorted({j for _, j in _conflicts(stems)})
+        if not bad:
+            break
+        ix = np.asarray(bad)
+        lean_az[ix] = fix.uniform(0.0, 2.0 * math.pi, len(ix))
+        axis[ix] = _axes(lean[ix], lean_az[ix])
+        stems.bend[ix] = _unit_perp(axis[ix], fix.uniform(0.0, 2.0 * math.pi, len(ix)))
+        stems.length[ix] = height[ix] / axis[ix, 2]
+    else:
+        raise ConfigError("distribution.min_spacing_m", scn.distribution.min_spacing_m,
+                          "a larger spacing: stems intersect after 40 re-draws "
+                          "(or reduce stems.lean_deg / stems.sweep_m)")
+    return Forest(scenario=scn, seed=seed, terrain=terrain, stems=stems, classes=classes,
+                  lean_deg=lean)
+
+
+def _r(v: float, nd: int = 4) -> float:
+    return round(float(v), nd)
+
+
+def ground_truth(forest: Forest) -> dict[str, Any]:
+    """The ground-truth document (paper's Algorithm 1 / Table 3 fields plus geometry)."""
+    scn = forest.scenario
+    st = forest.stems
+    origin = forest.origin
+    pos = forest.positions()
+    vol = forest.volume
+    objects = []
+    for i in range(len(st)):
+        cl, radii = st.centerline(i)
+        cls = str(forest.classes[i])
+        objects.append({
+            "id": i + 1,
+            "name": f"tree_{i + 1}",
+            "h": _r(st.height[i]),
+            "dbh": _r(2.0 * st.r_bh[i]),
+            "maxcurve": _r(st.sweep[i]),
+            "quality": QUALITY[cls],
+            "class": cls,
+            "cp": [_r(v) for v in pos[i] + origin],
+            "d": _r(math.hypot(pos[i, 0], pos[i, 1])),
+            "base": [_r(v) for v in st.base[i] + origin],
+            "centerline": [[_r(v) for v in p + origin] for p in cl],
+            "radii": [_r(v, 5) for v in radii],
+            "volume": _r(vol[i], 5),
+            "lean_deg": _r(forest.lean_deg[i], 3),
+        })
+    return {
+        "timestamp": scn.timestamp,
+        "total_objects_count": len(objects),
+        "scenario": {"name": scn.name, "seed": forest.seed},
+        "classification": {
+            "classes": list(CLASSES),
+            "quality_codes": QUALITY,
+            "curve_threshold_m": scn.stems.curve_threshold_m,
+            "other_threshold_m": scn.stems.other_threshold_m,
+            "rule": "S if maxcurve < curve_threshold_m, X if maxcurve >= other_threshold_m, "
+                    "else C",
+        },
+        "conventions": {
+            "cp": "centre line at breast height (1.3 m along the stem) in x, y; ground z at "
+                  "the stem base",
+            "d": "horizontal distance of cp from the plot centre (local origin)",
+            "h": "vertical height from base to top",
+            "maxcurve": "maximum distance of the centre line from its base-to-top chord",
+        },
+        "plot": {"size_m": list(scn.plot.size_m), "origin": [float(v) for v in origin]},
+        "terrain": forest.terrain.to_doc(tuple(float(v) for v in origin)),  # type: ignore[arg-type]
+        "objects": objects,
+    }

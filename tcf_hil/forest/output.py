@@ -1,0 +1,54 @@
+"""Write a generated forest: ground truth JSON, stem and terrain meshes (PLY), map.png."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import trimesh
+
+from tcf_hil._io import write_bytes_atomic, write_json_atomic
+from tcf_hil.forest.generate import Forest, ground_truth
+from tcf_hil.forest.mesh import stem_mesh, terrain_mesh
+from tcf_hil.plots import forest_map
+
+def _ply(mesh: trimesh.Trimesh) -> bytes:
+    data = mesh.export(file_type="ply")
+    assert isinstance(data, bytes)
+    return data
+
+
+FILES = ("ground_truth.json", "stems.ply", "terrain.ply", "map.png")
+
+
+def write_forest(forest: Forest, out_dir: str | Path, *, meshes: bool = True) -> list[Path]:
+    """Write the forest's files into ``out_dir`` (each atomically); returns their paths.
+
+    ``stems.ply`` carries a per-face ``stem_id`` (1-based, the ground-truth ``id``).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    scn = forest.scenario
+    written = []
+    gt = ground_truth(forest)
+    write_json_atomic(out / "ground_truth.json", gt)
+    written.append(out / "ground_truth.json")
+    if meshes:
+        sm = stem_mesh(forest.stems, scn.stems.tolerance_mm / 1000.0, forest.origin)
+        write_bytes_atomic(out / "stems.ply", _ply(sm))
+        tm = terrain_mesh(forest.terrain, forest.bounds(), scn.terrain.tolerance_mm / 1000.0,
+                          forest.origin)
+        write_bytes_atomic(out / "terrain.ply", _ply(tm))
+        written += [out / "stems.ply", out / "terrain.ply"]
+    pos = forest.positions()
+    w, h = scn.plot.size_m
+    pad = 2.0
+    bounds = (-w / 2 - pad, -h / 2 - pad, w / 2 + pad, h / 2 + pad)
+    terrain = None
+    if not forest.terrain.is_flat:
+        terrain = forest.terrain.grid(bounds, 0.05, max_vertices=40_000)
+    png = forest_map(pos[:, :2], list(forest.classes), 2.0 * forest.stems.r_bh,
+                     f"{scn.name} (seed {forest.seed}): {len(pos)} stems", bounds,
+                     track=(scn.track.start_m, scn.track.end_m), terrain=terrain)
+    write_bytes_atomic(out / "map.png", png)
+    written.append(out / "map.png")
+    return written

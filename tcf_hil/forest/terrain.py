@@ -1,0 +1,142 @@
+"""Terrain: flat, or rolling as a sum of random plane waves over several octaves.
+
+The height at any (x, y) is a closed formula (written into the ground truth, so any consumer
+can evaluate it without our code)::
+
+    z(x, y) = elevation + sum_i a_i * cos(kx_i * x + ky_i * y + phase_i)
+
+in local plot coordinates (metres; world = local + scenario origin). Each octave halves the
+wavelength and multiplies the amplitude by the persistence, like Blender's Clouds/Musgrave
+textures the paper displaced its plane with; the sum is smooth (C-infinity), so slopes and
+curvatures are exact too.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tcf_hil.scenario import TerrainConfig
+
+FloatArray = NDArray[np.float64]
+
+_CHUNK = 1 << 18
+
+
+@dataclass(frozen=True)
+class Terrain:
+    """A terrain heightfield.
+
+    Attributes:
+        elevation_m: mean height.
+        waves: (n, 4) float64 rows of (kx rad/m, ky rad/m, amplitude m, phase rad); empty = flat.
+    """
+
+    elevation_m: float
+    waves: FloatArray
+
+    @classmethod
+    def flat(cls, elevation_m: float = 0.0) -> Terrain:
+        return cls(float(elevation_m), np.zeros((0, 4)))
+
+    @classmethod
+    def generate(cls, cfg: TerrainConfig, rng: np.random.Generator) -> Terrain:
+        """Draw a terrain from its configuration (flat ignores the generator)."""
+        if cfg.kind == "flat" or cfg.amplitude_m == 0.0:
+            return cls.flat(cfg.elevation_m)
+        rows = []
+        for octave in range(cfg.octaves):
+            lam = cfg.wavelength_m / 2.0**octave
+            weight = cfg.persistence**octave
+            for _ in range(cfg.waves_per_octave):
+                wl = lam * rng.uniform(0.8, 1.25)
+                ang = rng.uniform(0.0, 2.0 * math.pi)
+                k = 2.0 * math.pi / wl
+                rows.append((k * math.cos(ang), k * math.sin(ang), weight,
+                             rng.uniform(0.0, 2.0 * math.pi)))
+        waves = np.array(rows, dtype=np.float64)
+        # Normalise so that the RMS height is amplitude/sqrt(2), as for one cosine.
+        waves[:, 2] *= cfg.amplitude_m / math.sqrt(float(np.sum(waves[:, 2] ** 2)))
+        return cls(float(cfg.elevation_m), waves)
+
+    @property
+    def is_flat(self) -> bool:
+        return len(self.waves) == 0
+
+    def height(self, x: Any, y: Any) -> FloatArray:
+        """Ground height at local (x, y); arrays broadcast, float64 throughout."""
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        shape = np.broadcast_shapes(x.shape, y.shape)
+        if self.is_flat:
+            return np.full(shape, self.elevation_m)
+        xf = np.broadcast_to(x, shape).ravel()
+        yf = np.broadcast_to(y, shape).ravel()
+        out = np.empty(xf.shape)
+        kx, ky, a, ph = self.waves.T
+        for i in range(0, len(xf), _CHUNK):
+            arg = np.multiply.outer(xf[i:i + _CHUNK], kx) + np.multiply.outer(yf[i:i + _CHUNK], ky)
+            arg += ph
+            out[i:i + _CHUNK] = self.elevation_m + np.cos(arg) @ a
+        return out.reshape(shape)
+
+    def gradient(self, x: Any, y: Any) -> tuple[FloatArray, FloatArray]:
+        """(dz/dx, dz/dy) at local (x, y)."""
+        x = np.atleast_1d(np.asarray(x, dtype=np.float64))
+        y = np.atleast_1d(np.asarray(y, dtype=np.float64))
+        if self.is_flat:
+            z = np.zeros(np.broadcast_shapes(x.shape, y.shape))
+            return z, z.copy()
+        kx, ky, a, ph = self.waves.T
+        s = -np.sin(np.multiply.outer(x, kx) + np.multiply.outer(y, ky) + ph)
+        return s @ (a * kx), s @ (a * ky)
+
+    def max_curvature(self) -> float:
+        """An upper bound of |second derivative| in any direction (1/m)."""
+        if self.is_flat:
+            return 0.0
+        k2 = self.waves[:, 0] ** 2 + self.waves[:, 1] ** 2
+        return float(np.sum(np.abs(self.waves[:, 2]) * k2))
+
+    def grid_spacing(self, tolerance_m: float, max_spacing_m: float = 25.0) -> float:
+        """Grid spacing whose linear interpolation stays within ``tolerance_m`` of the surface."""
+        kappa = self.max_curvature()
+        if kappa == 0.0:
+            return max_spacing_m
+        # Triangle interpolation error <= h^2 * kappa / 8 along an edge; diagonals are sqrt(2)h.
+        return min(max_spacing_m, math.sqrt(8.0 * tolerance_m / kappa) / math.sqrt(2.0))
+
+    def grid(self, bounds: tuple[float, float, float, float], tolerance_m: float,
+             max_vertices: int = 4_000_000) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Vertex grid (xs, ys, z[ny, nx]) over ``bounds`` (xmin, ymin, xmax, ymax)."""
+        x0, y0, x1, y1 = bounds
+        h = self.grid_spacing(tolerance_m)
+        nx = max(2, math.ceil((x1 - x0) / h) + 1)
+        ny = max(2, math.ceil((y1 - y0) / h) + 1)
+        if nx * ny > max_vertices:
+            scale = math.sqrt(nx * ny / max_vertices)
+            nx, ny = max(2, int(nx / scale)), max(2, int(ny / scale))
+        xs = np.linspace(x0, x1, nx)
+        ys = np.linspace(y0, y1, ny)
+        z = self.height(xs[None, :], ys[:, None])
+        return xs, ys, z
+
+    def to_doc(self, origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, Any]:
+        """The terrain as ground-truth JSON: enough to evaluate the height anywhere."""
+        return {
+            "kind": "flat" if self.is_flat else "waves",
+            "formula": "z = origin[2] + elevation_m + sum(a * cos(kx * (x - origin[0]) "
+                       "+ ky * (y - origin[1]) + phase) for kx, ky, a, phase in waves)",
+            "origin": [float(v) for v in origin_m],
+            "elevation_m": self.elevation_m,
+            "waves": [[float(v) for v in row] for row in self.waves],
+        }
+
+    @classmethod
+    def from_doc(cls, doc: dict[str, Any]) -> Terrain:
+        waves = np.asarray(doc.get("waves", []), dtype=np.float64).reshape(-1, 4)
+        return cls(float(doc["elevation_m"]), waves)

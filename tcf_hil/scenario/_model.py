@@ -1,0 +1,149 @@
+"""Typed, frozen scenario objects.
+
+Every field carries its unit in its name and its limits in ``metadata``; the loader in
+:mod:`tcf_hil.scenario._load` validates a TOML document against these classes, so this file is
+the one place that says what a scenario may contain.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+"""Stem classes: S straight, C curved (sweep), X other (crooked beyond the C limit)."""
+
+
+def _f(default: Any, doc: str, **limits: Any) -> Any:
+    """A dataclass field with its documentation and limits (ge, gt, le) as metadata."""
+    return field(default=default, metadata={"doc": doc, **limits})
+
+
+@dataclass(frozen=True, slots=True)
+class PlotConfig:
+    size_m: tuple[float, float] = _f(
+        (100.0, 100.0), "plot extent along x and y, centred on the local origin", gt=0.0)
+    origin_m: tuple[float, float, float] = _f(
+        (0.0, 0.0, 0.0), "geographic origin (e.g. UTM easting, northing, height) added to "
+        "every world coordinate written out")
+
+
+@dataclass(frozen=True, slots=True)
+class TerrainConfig:
+    kind: Literal["flat", "rolling"] = _f("flat", "terrain shape")
+    elevation_m: float = _f(0.0, "mean ground height")
+    amplitude_m: float = _f(
+        1.0, "rolling: height of a typical bump (RMS height is amplitude/sqrt 2)",
+        ge=0.0, le=100.0)
+    wavelength_m: float = _f(
+        40.0, "rolling: wavelength of the largest octave", gt=0.5, le=10000.0)
+    octaves: int = _f(4, "rolling: number of noise octaves", ge=1, le=10)
+    persistence: float = _f(
+        0.5, "rolling: amplitude ratio between octaves", gt=0.0, le=1.0)
+    waves_per_octave: int = _f(
+        6, "rolling: random plane waves summed per octave", ge=1, le=64)
+    margin_m: float = _f(
+        20.0, "terrain mesh extends this far beyond the plot", ge=0.0, le=1000.0)
+    tolerance_mm: float = _f(
+        20.0, "terrain mesh: maximum height error between grid vertices", gt=0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class DbhConfig:
+    kind: Literal["fixed", "normal", "uniform", "lognormal"] = _f(
+        "normal", "DBH distribution")
+    mean_m: float = _f(0.25, "mean DBH (fixed: the value)", gt=0.0, le=3.0)
+    sd_m: float = _f(0.02, "standard deviation (normal, lognormal)", ge=0.0)
+    min_m: float = _f(0.12, "smallest DBH (also uniform's low end)", gt=0.0)
+    max_m: float = _f(0.45, "largest DBH (also uniform's high end)", gt=0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class ClassMix:
+    S: float = _f(0.5, "share (or count) of straight stems", ge=0.0)
+    C: float = _f(0.4, "share (or count) of curved stems", ge=0.0)
+    X: float = _f(0.1, "share (or count) of other (crooked) stems", ge=0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class SweepConfig:
+    S: tuple[float, float] = _f(
+        (0.0, 0.02), "maxcurve range drawn for S stems, m", ge=0.0)
+    C: tuple[float, float] = _f(
+        (0.08, 0.20), "maxcurve range drawn for C stems, m", ge=0.0)
+    X: tuple[float, float] = _f(
+        (0.30, 0.50), "maxcurve range drawn for X stems, m", ge=0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class StemsConfig:
+    count: int = _f(550, "number of stems", ge=0, le=10_000_000)
+    height_m: tuple[float, float] = _f(
+        (11.0, 27.0), "stem height range (uniform)", gt=1.5, le=150.0)
+    dbh: DbhConfig = field(default_factory=DbhConfig, metadata={"doc": "DBH distribution"})
+    taper_exponent: float = _f(
+        0.8, "radius ~ (distance to top)^exponent; 1 is a cone", gt=0.0, le=3.0)
+    top_diameter_m: float = _f(0.03, "diameter at the top", ge=0.0, le=1.0)
+    class_mix: ClassMix = field(default_factory=ClassMix,
+                                metadata={"doc": "class shares; normalised to count"})
+    curve_threshold_m: float = _f(
+        0.05, "maxcurve at or above this is curved (C)", gt=0.0)
+    other_threshold_m: float = _f(
+        0.25, "maxcurve at or above this is other (X)", gt=0.0)
+    sweep_m: SweepConfig = field(default_factory=SweepConfig,
+                                 metadata={"doc": "maxcurve drawn per class"})
+    lean_deg: tuple[float, float] = _f(
+        (0.0, 0.0), "lean from vertical, uniform range (paper: upright)", ge=0.0, le=30.0)
+    tolerance_mm: float = _f(
+        2.0, "stem mesh: maximum chord error (sets sides and ring spacing)",
+        gt=0.01, le=100.0)
+    below_ground_m: float = _f(
+        0.5, "stem meshes reach this far below the base (no gap on slopes)", ge=0.0, le=5.0)
+
+
+@dataclass(frozen=True, slots=True)
+class DistributionConfig:
+    kind: Literal["even", "uneven", "clustered"] = _f(
+        "even", "even: grid with jitter; uneven: random with minimum spacing; "
+        "clustered: Matérn cluster process with minimum spacing")
+    jitter_m: float = _f(0.3, "even: uniform jitter around grid points", ge=0.0)
+    min_spacing_m: float = _f(
+        1.0, "uneven, clustered: minimum distance between stem bases", ge=0.0)
+    clusters: int = _f(0, "clustered: number of clusters (0: one per 40 stems)", ge=0)
+    cluster_radius_m: float = _f(8.0, "clustered: cluster radius", gt=0.0)
+    edge_margin_m: float = _f(0.5, "stems stay this far inside the plot edge", ge=0.0)
+    corridor_half_width_m: float = _f(
+        2.0, "no stems within this distance of the sensor track (the strip road)", ge=0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class TrackConfig:
+    start_m: tuple[float, float, float] = _f(
+        (0.0, -50.0, 2.0), "sensor start (x, y, height above ground)")
+    end_m: tuple[float, float, float] = _f(
+        (0.0, 50.0, 2.0), "sensor end (x, y, height above ground)")
+    speed_m_s: float = _f(1.0, "driving speed", gt=0.0, le=30.0)
+
+
+@dataclass(frozen=True, slots=True)
+class SamplingConfig:
+    points_per_stem: int = _f(1000, "surface points per stem (paper: 1000)", ge=0, le=10_000_000)
+    terrain_density_per_m2: float = _f(
+        10.0, "terrain points per square metre of plot", ge=0.0, le=10_000.0)
+
+
+@dataclass(frozen=True, slots=True)
+class Scenario:
+    name: str = _f("custom", "scenario name")
+    description: str = _f("", "free text")
+    seed: int = _f(0, "default random seed (--seed overrides)", ge=0, le=2**63 - 1)
+    timestamp: str = _f(
+        "20250213_035113", "timestamp written into ground truth (fixed: outputs are "
+        "byte-identical per scenario and seed)")
+    plot: PlotConfig = field(default_factory=PlotConfig, metadata={"doc": "plot"})
+    terrain: TerrainConfig = field(default_factory=TerrainConfig, metadata={"doc": "terrain"})
+    stems: StemsConfig = field(default_factory=StemsConfig, metadata={"doc": "stems"})
+    distribution: DistributionConfig = field(default_factory=DistributionConfig,
+                                             metadata={"doc": "stem placement"})
+    track: TrackConfig = field(default_factory=TrackConfig, metadata={"doc": "sensor track"})
+    sampling: SamplingConfig = field(default_factory=SamplingConfig,
+                                     metadata={"doc": "surface sampling (no lidar)"})
