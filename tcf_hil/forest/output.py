@@ -11,6 +11,7 @@ from tcf_hil.forest.generate import Forest, ground_truth
 from tcf_hil.forest.mesh import stem_mesh, terrain_mesh
 from tcf_hil.plots import forest_map
 
+
 def _ply(mesh: trimesh.Trimesh) -> bytes:
     data = mesh.export(file_type="ply")
     assert isinstance(data, bytes)

@@ -1,5 +1,6 @@
 """Scenarios: TOML files validated into frozen objects, and the paper's Forest I–X presets."""
 
+from protocols.stems import CLASSES
 from tcf_hil.scenario._load import (
     PRESET_NAMES,
     list_presets,
@@ -9,7 +10,6 @@ from tcf_hil.scenario._load import (
     scenario_to_dict,
     scenario_to_toml,
 )
-from protocols.stems import CLASSES
 from tcf_hil.scenario._model import (
     ClassMix,
     DbhConfig,

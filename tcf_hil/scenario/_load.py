@@ -18,8 +18,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin
 
-from tcf_hil.errors import ConfigError
 from protocols.stems import CLASSES
+from tcf_hil.errors import ConfigError
 from tcf_hil.scenario._model import Scenario
 
 T = TypeVar("T")
