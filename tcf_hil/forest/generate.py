@@ -130,8 +130,13 @@ class Forest:
         return (-w / 2 - m, -h / 2 - m, w / 2 + m, h / 2 + m)
 
 
-def _conflicts(stems: StemSet, step: float = 0.1) -> list[tuple[int, int]]:
-    """Pairs of stems whose surfaces come closer than the clearance (sampled centre lines)."""
+def _conflicts(stems: StemSet, step: float = 0.1,
+               only: NDArray[np.int64] | None = None) -> list[tuple[int, int]]:
+    """Pairs of stems whose surfaces come closer than the clearance (sampled centre lines).
+
+    Args:
+        only: check just the pairs that involve these stems.
+    """
     n = len(stems)
     if n < 2:
         return []
@@ -142,17 +147,29 @@ def _conflicts(stems: StemSet, step: float = 0.1) -> list[tuple[int, int]]:
         return []
     d = np.hypot(*(stems.base[pairs[:, 0], :2] - stems.base[pairs[:, 1], :2]).T)
     pairs = pairs[d < reach[pairs[:, 0]] + reach[pairs[:, 1]] + _CLEARANCE_M]
+    if only is not None:
+        mark = np.zeros(n, dtype=bool)
+        mark[only] = True
+        pairs = pairs[mark[pairs[:, 0]] | mark[pairs[:, 1]]]
+    cache: dict[int, tuple[FloatArray, FloatArray, cKDTree]] = {}
+
+    def samples(i: int) -> tuple[FloatArray, FloatArray, cKDTree]:
+        if i not in cache:
+            s = np.arange(-stems.below[i], stems.length[i] + step, step)
+            c = stems.centre(np.full(len(s), i), s)
+            cache[i] = (c, stems.radius(np.full(len(s), i), s), cKDTree(c))
+        return cache[i]
+
     out = []
-    for i, j in pairs:
-        si = np.arange(-stems.below[i], stems.length[i] + step, step)
-        sj = np.arange(-stems.below[j], stems.length[j] + step, step)
-        ci = stems.centre(np.full(len(si), i), si)
-        cj = stems.centre(np.full(len(sj), j), sj)
-        ri = stems.radius(np.full(len(si), i), si)
-        rj = stems.radius(np.full(len(sj), j), sj)
-        dist = np.linalg.norm(ci[:, None, :] - cj[None, :, :], axis=2)
-        if np.any(dist < ri[:, None] + rj[None, :] + _CLEARANCE_M + step):
-            out.append((int(i), int(j)))
+    for i, j in pairs.tolist():
+        ci, ri, _ = samples(i)
+        _, rj, tj = samples(j)
+        # Radii change slowly along a stem, so the nearest sample pair decides; the extra
+        # step covers the sampling gap.
+        dist, k = tj.query(ci, distance_upper_bound=float(ri.max() + rj.max()) + 1.0)
+        hit = np.isfinite(dist)
+        if np.any(dist[hit] < ri[hit] + rj[k[hit]] + _CLEARANCE_M + step):
+            out.append((i, j))
     return out
 
 
@@ -193,11 +210,12 @@ def generate_forest(scn: Scenario, seed: int | None = None) -> Forest:
 
     # Stems never intersect: turn a conflicting stem's bend (and lean) until it is clear.
     fix = _rng(seed, _STREAM_FIX)
+    changed: NDArray[np.int64] | None = None
     for _attempt in range(40):
-        bad = sorted({j for _, j in _conflicts(stems)})
+        bad = sorted({j for _, j in _conflicts(stems, only=changed)})
         if not bad:
             break
-        ix = np.asarray(bad)
+        ix = changed = np.asarray(bad)
         lean_az[ix] = fix.uniform(0.0, 2.0 * math.pi, len(ix))
         axis[ix] = _axes(lean[ix], lean_az[ix])
         stems.bend[ix] = _unit_perp(axis[ix], fix.uniform(0.0, 2.0 * math.pi, len(ix)))

@@ -1,10 +1,12 @@
 """Meshes from a geometric tolerance: stems as closed tubes, terrain as a grid.
 
-Stem tessellation: the polygon inscribed in a circle of radius r with n sides has a chord
-error (sagitta) of r(1 - cos(pi/n)); n is the smallest count that keeps it within the
-tolerance at the stem's largest radius. Rings are spaced so that the straight segments between
-them stay within the tolerance of the curved, tapered surface (|C''| + |r''|) * ds² / 8 <= tol,
-and never more than ``max_ring_step_m`` apart.
+Stem tessellation splits the tolerance between the two directions, so their sum is bounded:
+the polygon inscribed in a circle of radius r with n sides has a chord error (sagitta) of
+r(1 - cos(pi/n)); n is the smallest count that keeps it within 3/4 of the tolerance at the
+stem's largest radius. Rings are spaced so that the straight segments between them stay within
+1/4 of it from the curved, tapered surface, (|C''| + |r''|) * ds² / 8, and never more than
+``max_ring_step_m`` apart. Points of the mesh are then within the tolerance of the true
+surface: inside it on a straight stretch, possibly outside on the inner side of a bend.
 """
 
 from __future__ import annotations
@@ -48,10 +50,13 @@ def ring_positions(stems: StemSet, i: int, tolerance_m: float,
     return np.unique(np.concatenate([s, [0.0]]))
 
 
+_RADIAL_SHARE = 0.75
+
+
 def _tube(stems: StemSet, i: int, tolerance_m: float) -> tuple[FloatArray, NDArray[np.int64]]:
-    s = ring_positions(stems, i, tolerance_m)
+    s = ring_positions(stems, i, (1.0 - _RADIAL_SHARE) * tolerance_m)
     idx = np.full(len(s), i)
-    n = sides_for(float(stems.radius(idx[:1], s[:1])[0]), tolerance_m)
+    n = sides_for(float(stems.radius(idx[:1], s[:1])[0]), _RADIAL_SHARE * tolerance_m)
     c = stems.centre(idx, s)
     t = stems.tangent(idx, s)
     b = np.broadcast_to(stems.binormal[i], t.shape)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
+import numpy as np
 import trimesh
+from plyfile import PlyData, PlyElement
 
 from tcf_hil._io import write_bytes_atomic, write_json_atomic
 from tcf_hil.forest.generate import Forest, ground_truth
@@ -12,10 +15,23 @@ from tcf_hil.forest.mesh import stem_mesh, terrain_mesh
 from tcf_hil.plots import forest_map
 
 
-def _ply(mesh: trimesh.Trimesh) -> bytes:
-    data = mesh.export(file_type="ply")
-    assert isinstance(data, bytes)
-    return data
+def mesh_ply(mesh: trimesh.Trimesh) -> bytes:
+    """Binary little-endian PLY with float64 vertices (trimesh writes float32, which loses
+    metres at UTM-sized coordinates) and every face attribute as an int32 face property."""
+    verts = np.empty(len(mesh.vertices), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    for k, name in enumerate("xyz"):
+        verts[name] = mesh.vertices[:, k]
+    extra = [(name, "<i4") for name in mesh.face_attributes]
+    faces = np.empty(len(mesh.faces), dtype=[("vertex_indices", "<i4", (3,)), *extra])
+    faces["vertex_indices"] = mesh.faces
+    for name, _ in extra:
+        faces[name] = mesh.face_attributes[name]
+    doc = PlyData([PlyElement.describe(verts, "vertex"),
+                   PlyElement.describe(faces, "face", len_types={"vertex_indices": "u1"})],
+                  text=False, byte_order="<", comments=["tcf-hil"])
+    buf = io.BytesIO()
+    doc.write(buf)
+    return buf.getvalue()
 
 
 FILES = ("ground_truth.json", "stems.ply", "terrain.ply", "map.png")
@@ -35,10 +51,10 @@ def write_forest(forest: Forest, out_dir: str | Path, *, meshes: bool = True) ->
     written.append(out / "ground_truth.json")
     if meshes:
         sm = stem_mesh(forest.stems, scn.stems.tolerance_mm / 1000.0, forest.origin)
-        write_bytes_atomic(out / "stems.ply", _ply(sm))
+        write_bytes_atomic(out / "stems.ply", mesh_ply(sm))
         tm = terrain_mesh(forest.terrain, forest.bounds(), scn.terrain.tolerance_mm / 1000.0,
                           forest.origin)
-        write_bytes_atomic(out / "terrain.ply", _ply(tm))
+        write_bytes_atomic(out / "terrain.ply", mesh_ply(tm))
         written += [out / "stems.ply", out / "terrain.ply"]
     pos = forest.positions()
     w, h = scn.plot.size_m

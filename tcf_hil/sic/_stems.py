@@ -70,8 +70,10 @@ PRESETS: dict[str, StemParams] = {
                         merge_fragments=False),
     # Default: centre from the breast-height circle fit, height above the local ground,
     # fragments (a sparse stem top that broke off) merged back onto the stem below them,
-    # scipy's KD-tree (same graph, faster).
-    "tuned": StemParams(),
+    # a 0.5 m ground band (on slopes a 1 m cell spans more than 0.2 m, and the ground points
+    # left over bridge neighbouring stems into one cluster), scipy's KD-tree (same graph,
+    # faster).
+    "tuned": StemParams(ground_threshold_m=0.5),
 }
 
 

@@ -1,0 +1,155 @@
+"""The reference stem algorithm: circle fits, ground filter, clustering, whole-forest runs."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from tcf_hil.evaluation import evaluate
+from tcf_hil.forest import Forest, generate_forest, ground_truth
+from tcf_hil.forest.sampling import sample_surfaces
+from tcf_hil.scenario import scenario_from_dict
+from tcf_hil.sic import (
+    cluster_points,
+    fit_circle,
+    fit_circle_algebraic,
+    identify_stems,
+    remove_ground,
+    stem_params,
+)
+from tcf_hil.stems_json import stem_table
+
+
+def _arc(cx: float, cy: float, r: float, deg: float, n: int, noise: float,
+         seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0, math.radians(deg), n)
+    rr = r + rng.normal(0, noise, n)
+    return np.column_stack([cx + rr * np.cos(a), cy + rr * np.sin(a)])
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(-1e6, 1e6), st.floats(-1e6, 1e6), st.floats(0.03, 0.9))
+def test_full_circle_is_exact(cx: float, cy: float, r: float) -> None:
+    c = fit_circle(_arc(cx, cy, r, 360.0, 50, 0.0), r_max=1.0)
+    assert c is not None
+    assert c.r == pytest.approx(r, abs=1e-6)
+    assert math.hypot(c.cx - cx, c.cy - cy) < 1e-6
+    assert c.arc_deg > 300
+
+
+@pytest.mark.parametrize("deg", [60.0, 90.0, 180.0])
+def test_partial_arcs_stay_sane(deg: float) -> None:
+    """One-sided scans: with 2 mm noise the radius error stays bounded and the centre lies
+    behind the visible arc (on the far side from a sensor looking at it)."""
+    errs = []
+    for seed in range(30):
+        pts = _arc(0.0, 0.0, 0.15, deg, 80, 0.002, seed)
+        c = fit_circle(pts, r_max=0.75)
+        assert c is not None
+        assert 0.01 <= c.r <= 0.75
+        errs.append(abs(c.r - 0.15))
+    bound = {60.0: 0.06, 90.0: 0.03, 180.0: 0.005}[deg]
+    assert float(np.median(errs)) < bound
+
+
+def test_degenerate_inputs_give_none() -> None:
+    assert fit_circle(np.zeros((2, 2))) is None
+    assert fit_circle_algebraic(np.column_stack([np.arange(5.0), np.arange(5.0)])) is None
+
+
+def test_robust_fit_resists_outliers() -> None:
+    pts = _arc(1.0, 2.0, 0.2, 360.0, 100, 0.001)
+    pts[:8] += 0.3  # branches / noise
+    c = fit_circle(pts)
+    assert c is not None and abs(c.r - 0.2) < 0.01
+    k = fit_circle_algebraic(pts)
+    assert k is not None and abs(k.r - 0.2) > abs(c.r - 0.2)
+
+
+def test_ground_filter_is_the_papers_rule() -> None:
+    rng = np.random.default_rng(1)
+    g = np.column_stack([rng.uniform(0, 10, (5000, 2)), rng.uniform(0, 0.3, 5000)])
+    mask, cell, zmin = remove_ground(g, 1.0, 0.2)
+    # Ground iff at most 0.20 m above the minimum of its own 1 x 1 m cell.
+    ij = np.floor(g[:, :2] - g[:, :2].min(0)).astype(int)
+    for k in range(0, 5000, 97):
+        same = np.all(ij == ij[k], axis=1)
+        assert mask[k] == (g[k, 2] <= g[same, 2].min() + 0.2)
+        assert zmin[cell[k]] == g[same, 2].min()
+
+
+def test_sklearn_and_scipy_give_the_same_clusters() -> None:
+    rng = np.random.default_rng(2)
+    pts = np.vstack([rng.normal(c, 0.15, (300, 3)) for c in ([0, 0, 0], [2, 0, 0], [2, 0.5, 0])])
+    a = cluster_points(pts, 0.3, "scipy")
+    b = cluster_points(pts, 0.3, "sklearn")
+    # Same partition (labels may be numbered differently).
+    pairs = set(zip(a.tolist(), b.tolist(), strict=True))
+    assert len(pairs) == len(set(a.tolist())) == len(set(b.tolist()))
+    assert len(set(a.tolist())) < 10
+
+
+def _score(f: Forest, preset: str, **kw: object) -> dict:
+    cloud = sample_surfaces(f)
+    s = f.scenario.stems
+    doc = identify_stems(cloud.xyz, stem_params(preset, curve_threshold_m=s.curve_threshold_m,
+                                                other_threshold_m=s.other_threshold_m, **kw))
+    return evaluate(stem_table(ground_truth(f), "gt", "ground_truth"),
+                    stem_table(doc, "obs")).metrics
+
+
+def test_finds_and_measures_every_stem(forest_iv: Forest) -> None:
+    m = _score(forest_iv, "tuned")
+    assert m["missed"] == 0 and m["false_positives"] == 0
+    assert m["position_rmse_m"] < 0.01
+    assert m["dbh_rmse_m"] < 0.005
+    assert m["height_rmse_m"] < 0.5
+    assert m["evaluation_score_percent"] > 90.0
+
+
+def test_paper_preset_uses_mean_centre_and_extent_height(forest_ii: Forest) -> None:
+    cloud = sample_surfaces(forest_ii)
+    paper = identify_stems(cloud.xyz, stem_params("paper"))["objects"]
+    tuned = identify_stems(cloud.xyz, stem_params("tuned"))["objects"]
+    assert len(paper) >= len(forest_ii.stems)
+    # The paper's height is max z - min z of the cluster after ground removal: shorter than
+    # the tuned height above the local ground.
+    hp = np.median([o["h"] for o in paper])
+    ht = np.median([o["h"] for o in tuned])
+    assert hp < ht
+
+
+def test_utm_origin_gives_the_same_answer() -> None:
+    base = {"stems": {"count": 20}, "plot": {"size_m": [30.0, 30.0]},
+            "terrain": {"kind": "rolling"},
+            "track": {"start_m": [0.0, -15.0, 2.0], "end_m": [0.0, 15.0, 2.0]}}
+    origin = [500_000.0, 6_900_000.0, 120.0]
+    a = generate_forest(scenario_from_dict(base), 2)
+    b = generate_forest(scenario_from_dict(
+        {**base, "plot": {"size_m": [30.0, 30.0], "origin_m": origin}}), 2)
+    oa = identify_stems(sample_surfaces(a).xyz)["objects"]
+    ob = identify_stems(sample_surfaces(b).xyz)["objects"]
+    assert len(oa) == len(ob) == 20
+    for x, y in zip(oa, ob, strict=True):
+        np.testing.assert_allclose(np.subtract(y["cp"], x["cp"]), origin, atol=1e-3)
+        assert x["class"] == y["class"]
+        assert x["dbh"] == pytest.approx(y["dbh"], abs=1e-3)
+
+
+def test_empty_and_ground_only_clouds() -> None:
+    assert identify_stems(np.zeros((0, 3)))["objects"] == []
+    g = np.column_stack([np.random.default_rng(0).uniform(0, 20, (2000, 2)), np.zeros(2000)])
+    doc = identify_stems(g)
+    assert doc["total_objects_count"] == 0
+
+
+def test_bad_parameters_are_refused() -> None:
+    with pytest.raises(ValueError, match="cluster_radius_m"):
+        stem_params("tuned", cluster_radius_m=0.0)
+    with pytest.raises(ValueError, match="unknown SIC preset"):
+        stem_params("fast")
