@@ -21,7 +21,7 @@ from rich.table import Table
 from tcf_hil import __version__
 from tcf_hil.errors import InputError, TcfHilError
 
-console = Console()
+console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
 
 

@@ -210,7 +210,7 @@ def test_impossible_spacing_is_a_clear_config_error() -> None:
     s = scenario_from_dict({"plot": {"size_m": [10.0, 10.0]},
                             "stems": {"count": 500},
                             "distribution": {"kind": "uneven", "min_spacing_m": 1.0}})
-    with pytest.raises(ConfigError, match="distribution.min_spacing_m"):
+    with pytest.raises(ConfigError, match=r"distribution\.min_spacing_m"):
         generate_forest(s)
 
 

@@ -86,7 +86,7 @@ def test_terrain_mesh_within_tolerance(forest_iv: Forest) -> None:
     err = np.abs(pts[:, 2] - forest_iv.terrain.height(pts[:, 0], pts[:, 1]))
     assert err.max() <= tol
     x0, y0, x1, y1 = forest_iv.bounds()
-    assert mesh.bounds[0][0] == x0 and mesh.bounds[1][1] == y1
+    np.testing.assert_array_equal(mesh.bounds[:, :2], [[x0, y0], [x1, y1]])
 
 
 def test_volume_matches_the_mesh(forest_ii: Forest) -> None:

@@ -1,0 +1,139 @@
+"""The CLI as a new user meets it: real console script for the demo, in-process for the rest."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocols.pcd import decode_pcd
+from tcf_hil.cli import main
+from tcf_hil.scenario import load_scenario, scenario_from_dict
+
+
+def run(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(args)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_help_teaches(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = run(["--help"], capsys)
+    assert code == 0
+    for word in ("demo", "scenario", "forest", "score", "experiment", "detect"):
+        assert word in out
+    code, out, _ = run(["score", "--help"], capsys)
+    assert code == 0 and "--weights" in out and "greedy" in out
+
+
+def test_scenario_list_and_show(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = run(["scenario", "list"], capsys)
+    assert code == 0
+    assert "forest-i" in out and "forest-x" in out and "1100" in out
+    code, out, _ = run(["scenario", "show", "forest-vii", "--seed", "5"], capsys)
+    assert code == 0
+    s = scenario_from_dict(tomllib.loads(out))
+    assert s == load_scenario("forest-vii", seed=5)
+
+
+def test_unknown_scenario_is_one_clear_line(capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = run(["scenario", "show", "forest-xi"], capsys)
+    assert code == 1
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error:") and "forest-xi" in lines[0]
+
+
+def test_bad_scenario_file_names_file_and_key(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    p = tmp_path / "bad.toml"
+    p.write_text('[distribution]\nkind = "random"\n')
+    out_dir = tmp_path / "out"
+    code, _, err = run(["forest", "generate", str(p), "--out", str(out_dir)], capsys)
+    assert code == 1
+    assert str(p) in err and "distribution.kind" in err and "'even'" in err
+    assert not out_dir.exists() or not any(out_dir.iterdir())
+
+
+def test_forest_generate_writes_all_files_deterministically(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d in (a, b):
+        code, out, _ = run(["forest", "generate", "forest-i", "--seed", "7", "--out", str(d)],
+                           capsys)
+        assert code == 0
+    assert "S 1, C 9, X 0" in out
+    names = sorted(p.name for p in a.iterdir())
+    assert names == ["ground_truth.json", "map.png", "stems.ply", "terrain.ply"]
+    for n in names:
+        assert (a / n).read_bytes() == (b / n).read_bytes()
+    gt = json.loads((a / "ground_truth.json").read_text())
+    assert gt["scenario"] == {"name": "forest-i", "seed": 7}
+    assert (a / "map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not list(a.glob(".*part"))  # no temporaries left behind
+
+
+def test_sample_detect_score_pipeline(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cloud, gt, obs = tmp_path / "c.pcd", tmp_path / "gt.json", tmp_path / "obs.json"
+    code, _, _ = run(["forest", "sample", "forest-ii", "--out", str(cloud),
+                      "--points-per-stem", "800", "--ground-truth", str(gt)], capsys)
+    assert code == 0
+    f = decode_pcd(cloud.read_bytes())
+    assert f["x"].dtype == np.float64 and int(np.sum(f["stem_id"] > 0)) == 24 * 800
+    code, out, _ = run(["detect", str(cloud), "--out", str(obs)], capsys)
+    assert code == 0 and "24 stems" in out
+    code, out, _ = run(["score", str(gt), str(obs), "--json", str(tmp_path / "s.json")], capsys)
+    assert code == 0
+    m = json.loads((tmp_path / "s.json").read_text())
+    assert m["total_matches"] == 24 and m["missed"] == 0
+
+
+def test_detect_rejects_a_cloud_without_z(tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    from protocols.pcd import encode_pcd
+
+    p = tmp_path / "flat.pcd"
+    p.write_bytes(encode_pcd({"x": np.zeros(3), "y": np.zeros(3)}))
+    code, _, err = run(["detect", str(p), "--out", str(tmp_path / "o.json")], capsys)
+    assert code == 1 and "flat.pcd" in err and "FIELDS.z" in err
+    assert not (tmp_path / "o.json").exists()
+    p.write_bytes(b"garbage")
+    code, _, err = run(["detect", str(p), "--out", str(tmp_path / "o.json")], capsys)
+    assert code == 1 and "not a valid PCD" in err
+
+
+def test_internal_errors_exit_4_not_0(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    import tcf_hil.forest
+
+    def boom(*_a: object, **_k: object) -> None:
+        raise RuntimeError("synthetic bug")
+
+    monkeypatch.setattr(tcf_hil.forest, "generate_forest", boom)
+    code, _, err = run(["forest", "generate", "forest-i", "--out", str(tmp_path)], capsys)
+    assert code == 4 and "synthetic bug" in err and "--traceback" in err
+
+
+def test_demo_through_the_console_script(tmp_path: Path) -> None:
+    """The README's main command, as installed: the real `tcf-hil` script in a new process."""
+    exe = shutil.which("tcf-hil") or f"{sys.executable} -m tcf_hil.cli"
+    proc = subprocess.run([*exe.split(), "demo"], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=600, env=dict(os.environ, COLUMNS="160"))
+    assert proc.returncode == 0, proc.stderr
+    assert "offline Experiment 1" in proc.stdout
+    runs = list((tmp_path / "runs").iterdir())
+    assert len(runs) == 1
+    summary = json.loads((runs[0] / "experiment1.json").read_text())
+    rows = {(r["forest"], r["preset"]): r for r in summary["rows"]}
+    assert set(rows) == {(f, p) for f in ("forest-v", "forest-vi") for p in ("tuned", "paper")}
+    assert rows[("forest-v", "paper")]["paper_accuracy_percent"] == 90.9
+    assert rows[("forest-v", "tuned")]["accuracy_percent"] > 90.0
+    for f in ("forest-v", "forest-vi"):
+        assert (runs[0] / f / "cloud.pcd").stat().st_size > 1_000_000
+        assert (runs[0] / f / "tuned" / "em_heatmap.png").exists()
