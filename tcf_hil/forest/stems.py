@@ -112,14 +112,21 @@ class StemSet:
         return np.abs((self.r_bh[idx] - self.r_top[idx]) * p * (p - 1.0)
                       * rem ** (p - 2.0) / (L - BREAST_HEIGHT_M) ** p)
 
-    def volume(self, samples: int = 2001) -> FloatArray:
-        """Above-ground wood volume per stem (m³): integral of pi r² along the arc length."""
+    def volume(self, samples: int = 513, chunk: int = 2048) -> FloatArray:
+        """Above-ground wood volume per stem (m³): integral of pi r² along the arc length
+        (trapezoid rule; the integrand is smooth, 513 samples agree with 4097 to 1e-5)."""
         n = len(self)
+        out = np.empty(n)
         u = np.linspace(0.0, 1.0, samples)
-        s = (u[None, :] * self.length[:, None]).ravel()
-        idx = np.repeat(np.arange(n), samples)
-        g = (math.pi * self.radius(idx, s) ** 2 * self.speed(idx, s)).reshape(n, samples)
-        return np.trapezoid(g, dx=1.0, axis=1) * self.length / (samples - 1)
+        for a in range(0, n, chunk):
+            idx_rows = np.arange(a, min(n, a + chunk))
+            m = len(idx_rows)
+            s = (u[None, :] * self.length[idx_rows, None]).ravel()
+            idx = np.repeat(idx_rows, samples)
+            g = (math.pi * self.radius(idx, s) ** 2 * self.speed(idx, s)).reshape(m, samples)
+            out[idx_rows] = (np.trapezoid(g, dx=1.0, axis=1) * self.length[idx_rows]
+                             / (samples - 1))
+        return out
 
     def centerline(self, i: int, max_step_m: float = 0.5) -> tuple[FloatArray, FloatArray]:
         """Centre-line polyline base -> top with vertices at most ``max_step_m`` apart (along

@@ -161,31 +161,35 @@ def merge_fragments(local: FloatArray, members: list[NDArray[np.int64]],
     return [np.concatenate(g) for g in groups.values()]
 
 
-def _centre_line_curve(zs: FloatArray, cs: FloatArray) -> float:
-    """Maximum deviation from the chord of a smoothed centre line through slice centres."""
-    if len(zs) < 3:
+def centre_line_curve(zs: FloatArray, cs: FloatArray, base: FloatArray | None = None,
+                      top: FloatArray | None = None) -> float:
+    """maxcurve: the largest distance of the centre line from its chord.
+
+    The centre line is the slice centres ``cs`` (k, 2) at heights ``zs`` (k,), lightly
+    smoothed (a running median of three, which keeps a real bow and drops a single bad fit),
+    with the stem's ``base`` and ``top`` points (x, y, z) as its ends when given: slices
+    thin out near the top, and a chord between the outermost slices alone would cut the
+    bow short.
+    """
+    pts = np.column_stack([cs, zs]) if len(zs) else np.zeros((0, 3))
+    if len(pts) >= 3:
+        sm = pts.copy()
+        for k in (0, 1):
+            col = pts[:, k]
+            sm[1:-1, k] = np.median(np.stack([col[:-2], col[1:-1], col[2:]]), axis=0)
+        pts = sm
+    if base is not None:
+        pts = np.vstack([base[None, :], pts[pts[:, 2] > base[2]]])
+    if top is not None:
+        pts = np.vstack([pts[pts[:, 2] < top[2]], top[None, :]])
+    if len(pts) < 3:
         return 0.0
-    deg = min(4, len(zs) - 2)
-    zc = (zs - zs.mean()) / max(float(np.ptp(zs)), 1e-9)
-    zz = np.linspace(zc.min(), zc.max(), 64)
-    fx = np.polyval(np.polyfit(zc, cs[:, 0], deg), zz)
-    fy = np.polyval(np.polyfit(zc, cs[:, 1], deg), zz)
-    # Robust: refit once without slices far from the first fit.
-    res = np.hypot(cs[:, 0] - np.polyval(np.polyfit(zc, cs[:, 0], deg), zc),
-                   cs[:, 1] - np.polyval(np.polyfit(zc, cs[:, 1], deg), zc))
-    mad = float(np.median(np.abs(res - np.median(res)))) * 1.4826
-    ok = res <= np.median(res) + 3.0 * max(mad, 0.005)
-    if ok.sum() >= deg + 2 and not ok.all():
-        fx = np.polyval(np.polyfit(zc[ok], cs[ok, 0], deg), zz)
-        fy = np.polyval(np.polyfit(zc[ok], cs[ok, 1], deg), zz)
-    z = zz * max(float(np.ptp(zs)), 1e-9) + zs.mean()
-    line = np.column_stack([fx, fy, z])
-    a, b = line[0], line[-1]
+    a, b = pts[0], pts[-1]
     chord = b - a
     L = float(np.linalg.norm(chord))
-    if L == 0:
+    if L == 0.0:
         return 0.0
-    dev = np.linalg.norm(np.cross(line - a, chord / L), axis=1)
+    dev = np.linalg.norm(np.cross(pts - a, chord / L), axis=1)
     return float(dev.max())
 
 
@@ -222,7 +226,14 @@ def _tree_properties(p: FloatArray, ground_z: float, prm: StemParams) -> dict[st
             else:
                 cs.append(tuple(q.mean(axis=0)))
             zs.append(zc + ground_z)
-    out["maxcurve"] = _centre_line_curve(np.asarray(zs), np.asarray(cs).reshape(-1, 2))
+    base = top = None
+    if zs:
+        # Ends of the centre line: the lowest slice's centre carried down to the ground and
+        # the centre of the points in the top 0.3 m.
+        base = np.array([cs[0][0], cs[0][1], ground_z])
+        up = p[p[:, 2] >= zmax - 0.3]
+        top = np.array([*up[:, :2].mean(axis=0), zmax])
+    out["maxcurve"] = centre_line_curve(np.asarray(zs), np.asarray(cs).reshape(-1, 2), base, top)
     return out
 
 

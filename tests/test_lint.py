@@ -1,0 +1,31 @@
+"""The lint and type settings in pyproject.toml hold for the whole tree."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _tool(name: str) -> list[str]:
+    exe = shutil.which(name)
+    if exe is None:
+        pytest.fail(f"{name} is not installed; it is part of the [test] extra")
+    return [exe]
+
+
+def test_ruff_is_clean() -> None:
+    proc = subprocess.run([*_tool("ruff"), "check", "--no-cache", "."], cwd=ROOT,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_mypy_is_clean() -> None:
+    proc = subprocess.run([sys.executable, "-m", "mypy", "--no-incremental", "tcf_hil",
+                           "protocols", "emulators"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
