@@ -243,12 +243,15 @@ def ground_truth(forest: Forest) -> dict[str, Any]:
     s_all = frac * st.length[idx]
     cl_all = np.round(st.centre(idx, s_all) + origin, 4).tolist()
     r_all = np.round(st.radius(idx, s_all), 5).tolist()
-    r4 = lambda a: np.round(a, 4).tolist()  # noqa: E731
+    def r4(a: FloatArray) -> list[Any]:
+        out: list[Any] = np.round(a, 4).tolist()
+        return out
+
     h, dbh, mc = r4(st.height), r4(2.0 * st.r_bh), r4(st.sweep)
     cp, base = r4(pos + origin), r4(st.base + origin)
     d = r4(np.hypot(pos[:, 0], pos[:, 1]))
-    vol = np.round(forest.volume, 5).tolist()
-    lean = np.round(forest.lean_deg, 3).tolist()
+    vol: list[float] = np.round(forest.volume, 5).tolist()
+    lean: list[float] = np.round(forest.lean_deg, 3).tolist()
     objects = []
     for i in range(n):
         a, b = int(first[i]), int(first[i] + counts[i])
