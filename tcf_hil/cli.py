@@ -147,9 +147,10 @@ def forest_generate(scenario_name: str, seed: int | None, out: Path, no_meshes: 
     from tcf_hil.scenario import load_scenario
 
     scn = load_scenario(scenario_name, seed=seed)
-    with console.status(f"generating {scn.name} ({scn.stems.count} stems)"):
+    with console.status(f"generating {scn.name} ({scn.stems.count} stems)") as status:
         f = generate_forest(scn)
-        paths = write_forest(f, out, meshes=not no_meshes)
+        paths = write_forest(f, out, meshes=not no_meshes,
+                             progress=lambda name: status.update(f"{scn.name}: writing {name}"))
     counts = {c: int(np.sum(f.classes == c)) for c in ("S", "C", "X")}
     console.print(f"{scn.name}, seed {f.seed}: {len(f.stems)} stems "
                   f"(S {counts['S']}, C {counts['C']}, X {counts['X']}), terrain "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -37,25 +38,32 @@ def mesh_ply(mesh: trimesh.Trimesh) -> bytes:
 FILES = ("ground_truth.json", "stems.ply", "terrain.ply", "map.png")
 
 
-def write_forest(forest: Forest, out_dir: str | Path, *, meshes: bool = True) -> list[Path]:
+def write_forest(forest: Forest, out_dir: str | Path, *, meshes: bool = True,
+                 progress: Callable[[str], None] | None = None) -> list[Path]:
     """Write the forest's files into ``out_dir`` (each atomically); returns their paths.
 
     ``stems.ply`` carries a per-face ``stem_id`` (1-based, the ground-truth ``id``).
+    ``progress`` is called with the name of each file before it is built.
     """
+    say = progress or (lambda _name: None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scn = forest.scenario
     written = []
+    say("ground_truth.json")
     gt = ground_truth(forest)
     write_json_atomic(out / "ground_truth.json", gt)
     written.append(out / "ground_truth.json")
     if meshes:
+        say("stems.ply")
         sm = stem_mesh(forest.stems, scn.stems.tolerance_mm / 1000.0, forest.origin)
         write_bytes_atomic(out / "stems.ply", mesh_ply(sm))
+        say("terrain.ply")
         tm = terrain_mesh(forest.terrain, forest.bounds(), scn.terrain.tolerance_mm / 1000.0,
                           forest.origin)
         write_bytes_atomic(out / "terrain.ply", mesh_ply(tm))
         written += [out / "stems.ply", out / "terrain.ply"]
+    say("map.png")
     pos = forest.positions()
     w, h = scn.plot.size_m
     pad = 2.0
