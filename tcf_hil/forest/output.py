@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import io
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import trimesh
-from plyfile import PlyData, PlyElement
 
+from protocols.ply import encode_ply
 from tcf_hil._io import write_bytes_atomic, write_json_atomic
 from tcf_hil.forest.generate import Forest, ground_truth
 from tcf_hil.forest.mesh import stem_mesh, terrain_mesh
@@ -17,22 +16,11 @@ from tcf_hil.plots import forest_map
 
 
 def mesh_ply(mesh: trimesh.Trimesh) -> bytes:
-    """Binary little-endian PLY with float64 vertices (trimesh writes float32, which loses
-    metres at UTM-sized coordinates) and every face attribute as an int32 face property."""
-    verts = np.empty(len(mesh.vertices), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
-    for k, name in enumerate("xyz"):
-        verts[name] = mesh.vertices[:, k]
-    extra = [(name, "<i4") for name in mesh.face_attributes]
-    faces = np.empty(len(mesh.faces), dtype=[("vertex_indices", "<i4", (3,)), *extra])
-    faces["vertex_indices"] = mesh.faces
-    for name, _ in extra:
-        faces[name] = mesh.face_attributes[name]
-    doc = PlyData([PlyElement.describe(verts, "vertex"),
-                   PlyElement.describe(faces, "face", len_types={"vertex_indices": "u1"})],
-                  text=False, byte_order="<", comments=["tcf-hil"])
-    buf = io.BytesIO()
-    doc.write(buf)
-    return buf.getvalue()
+    """Binary PLY with float64 vertices (trimesh writes float32, which loses metres at
+    UTM-sized coordinates) and every face attribute as an int32 face property."""
+    return encode_ply(mesh.vertices, mesh.faces,
+                      {k: np.asarray(v) for k, v in mesh.face_attributes.items()},
+                      comments=["tcf-hil"])
 
 
 FILES = ("ground_truth.json", "stems.ply", "terrain.ply", "map.png")
