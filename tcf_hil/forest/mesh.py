@@ -53,57 +53,80 @@ def ring_positions(stems: StemSet, i: int, tolerance_m: float,
 _RADIAL_SHARE = 0.75
 
 
-def _tube(stems: StemSet, i: int, tolerance_m: float) -> tuple[FloatArray, NDArray[np.int64]]:
-    s = ring_positions(stems, i, (1.0 - _RADIAL_SHARE) * tolerance_m)
-    idx = np.full(len(s), i)
-    n = sides_for(float(stems.radius(idx[:1], s[:1])[0]), _RADIAL_SHARE * tolerance_m)
-    c = stems.centre(idx, s)
-    t = stems.tangent(idx, s)
-    b = np.broadcast_to(stems.binormal[i], t.shape)
-    u = np.cross(b, t)
-    r = stems.radius(idx, s)
-    th = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
-    ring = (np.cos(th)[None, :, None] * u[:, None, :] + np.sin(th)[None, :, None] * b[:, None, :])
-    verts = (c[:, None, :] + r[:, None, None] * ring).reshape(-1, 3)
-    m = len(s)
+def _tube_faces(m: int, n: int) -> NDArray[np.int64]:
+    """Faces of a closed tube of ``m`` rings with ``n`` sides; vertex ``m*n`` is the bottom
+    centre and ``m*n + 1`` the top centre."""
     k = np.arange(m - 1)[:, None] * n
     j = np.arange(n)[None, :]
     a0, a1 = k + j, k + (j + 1) % n
     b0, b1 = a0 + n, a1 + n
     side = np.concatenate([np.stack([a0, a1, b1], -1), np.stack([a0, b1, b0], -1)],
                           axis=1).reshape(-1, 3)
-    bottom_c, top_c = m * n, m * n + 1
     jj = np.arange(n)
-    bottom = np.stack([np.full(n, bottom_c), (jj + 1) % n, jj], -1)
-    top = np.stack([np.full(n, top_c), (m - 1) * n + jj, (m - 1) * n + (jj + 1) % n], -1)
-    verts = np.vstack([verts, c[0], c[-1]])
-    return verts, np.vstack([side, bottom, top]).astype(np.int64)
+    bottom = np.stack([np.full(n, m * n), (jj + 1) % n, jj], -1)
+    top = np.stack([np.full(n, m * n + 1), (m - 1) * n + jj, (m - 1) * n + (jj + 1) % n], -1)
+    return np.vstack([side, bottom, top]).astype(np.int64)
+
+
+def _tubes(stems: StemSet, ids: NDArray[np.int64], s: FloatArray, n: int) -> FloatArray:
+    """Vertices (k, m*n + 2, 3) of the tubes of stems ``ids`` with ring positions s (k, m)."""
+    k, m = s.shape
+    idx = np.repeat(ids, m)
+    sf = s.ravel()
+    c = stems.centre(idx, sf)
+    t = stems.tangent(idx, sf)
+    b = stems.binormal[idx]
+    u = np.cross(b, t)
+    r = stems.radius(idx, sf)
+    th = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    ring = (np.cos(th)[None, :, None] * u[:, None, :] + np.sin(th)[None, :, None] * b[:, None, :])
+    verts = (c[:, None, :] + r[:, None, None] * ring).reshape(k, m * n, 3)
+    c = c.reshape(k, m, 3)
+    return np.concatenate([verts, c[:, :1], c[:, -1:]], axis=1)
 
 
 def stem_mesh(stems: StemSet, tolerance_m: float,
               origin: FloatArray | None = None) -> trimesh.Trimesh:
     """All stems as one mesh; face attribute ``stem_id`` (1-based) tells which stem a face is.
 
+    Stems are meshed in batches that share a ring and side count (one vectorised pass per
+    batch); faces are ordered by stem id.
+
     Args:
         stems: the forest's stems (local coordinates).
-        tolerance_m: maximum chord error.
+        tolerance_m: maximum distance between the mesh and the true surface.
         origin: added to every vertex (world = local + origin), float64.
     """
-    verts, faces, ids = [], [], []
-    offset = 0
-    for i in range(len(stems)):
-        v, f = _tube(stems, i, tolerance_m)
-        verts.append(v)
-        faces.append(f + offset)
-        ids.append(np.full(len(f), i + 1, dtype=np.int32))
-        offset += len(v)
-    if not verts:
+    n_stems = len(stems)
+    if n_stems == 0:
         return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
-    vv = np.vstack(verts)
+    rings = [ring_positions(stems, i, (1.0 - _RADIAL_SHARE) * tolerance_m)
+             for i in range(n_stems)]
+    r0 = stems.radius(np.arange(n_stems), -stems.below)
+    sides = np.array([sides_for(float(r), _RADIAL_SHARE * tolerance_m) for r in r0])
+    ring_n = np.array([len(r) for r in rings])
+    nverts = ring_n * sides + 2
+    nfaces = 2 * (ring_n - 1) * sides + 2 * sides
+    v_off = np.concatenate([[0], np.cumsum(nverts)])
+    f_off = np.concatenate([[0], np.cumsum(nfaces)])
+    verts = np.empty((int(v_off[-1]), 3))
+    faces = np.empty((int(f_off[-1]), 3), dtype=np.int64)
+    stem_id = np.repeat(np.arange(1, n_stems + 1, dtype=np.int32), nfaces)
+    keys = ring_n * 100_000 + sides
+    for key in np.unique(keys):
+        ids = np.flatnonzero(keys == key)
+        m, n = int(ring_n[ids[0]]), int(sides[ids[0]])
+        s = np.stack([rings[i] for i in ids])
+        vv = _tubes(stems, ids, s, n)
+        tmpl = _tube_faces(m, n)
+        vrow = (v_off[ids][:, None] + np.arange(m * n + 2)[None, :]).ravel()
+        verts[vrow] = vv.reshape(-1, 3)
+        frow = (f_off[ids][:, None] + np.arange(len(tmpl))[None, :]).ravel()
+        faces[frow] = (tmpl[None, :, :] + v_off[ids][:, None, None]).reshape(-1, 3)
     if origin is not None:
-        vv = vv + origin
-    mesh = trimesh.Trimesh(vv, np.vstack(faces), process=False)
-    mesh.face_attributes["stem_id"] = np.concatenate(ids)
+        verts = verts + origin
+    mesh = trimesh.Trimesh(verts, faces, process=False)
+    mesh.face_attributes["stem_id"] = stem_id
     return mesh
 
 
