@@ -1,0 +1,263 @@
+"""Lidar packets: whole-frame vectorised encoding and validated decoding (sans-IO).
+
+Images are in the sensor's *staggered* layout: row u is beam u, column m is the column with
+measurement_id m, exactly as the packets carry them (ouster-sdk decodes only this layout).
+Encoding a frame is one transpose of each (H, W) image into the (packets, columns, pixels)
+view of a preallocated packet array; the CRC of all packets is computed in one call.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from protocols.ouster._crc import crc64_xz_rows
+from protocols.ouster._errors import (
+    CrcError,
+    MeasurementIdError,
+    PacketIdError,
+    PacketSizeError,
+    PacketTypeError,
+)
+from protocols.ouster._profiles import PROFILES, Field, Profile
+
+__all__ = ["LidarPacket", "PacketFormat", "decode_lidar_packet", "encode_lidar_frame",
+           "frame_from_packets"]
+
+CrcRows = Callable[[NDArray[np.uint8]], NDArray[np.uint64]]
+LEGACY_ENCODER_TICKS = 90112  # encoder counts per revolution (legacy column header)
+
+
+@dataclass(frozen=True, slots=True)
+class PacketFormat:
+    """Layout of one sensor's lidar packets, derived once from profile and frame geometry."""
+
+    profile: Profile
+    pixels_per_column: int = 64
+    columns_per_packet: int = 16
+    columns_per_frame: int = 1024
+
+    def __post_init__(self) -> None:
+        if self.columns_per_frame % self.columns_per_packet:
+            raise ValueError(f"columns_per_frame {self.columns_per_frame} is not a multiple "
+                             f"of columns_per_packet {self.columns_per_packet}")
+
+    @classmethod
+    def create(cls, profile: str, pixels_per_column: int = 64, columns_per_packet: int = 16,
+               columns_per_frame: int = 1024) -> PacketFormat:
+        if profile not in PROFILES:
+            raise KeyError(f"unknown lidar profile {profile!r}; known: {', '.join(PROFILES)}")
+        return cls(PROFILES[profile], pixels_per_column, columns_per_packet, columns_per_frame)
+
+    @property
+    def packet_bytes(self) -> int:
+        return self.profile.packet_bytes(self.pixels_per_column, self.columns_per_packet)
+
+    @property
+    def col_bytes(self) -> int:
+        return self.profile.col_bytes(self.pixels_per_column)
+
+    @property
+    def packets_per_frame(self) -> int:
+        return self.columns_per_frame // self.columns_per_packet
+
+    @property
+    def field_names(self) -> tuple[str, ...]:
+        return tuple(f.name for f in self.profile.fields)
+
+    def _columns(self, arr: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        """(packets, columns, col_bytes) view of a (packets, packet_bytes) array."""
+        h = self.profile.header_bytes
+        n = arr.shape[0]
+        body = arr[:, h:h + self.columns_per_packet * self.col_bytes]
+        return body.reshape(n, self.columns_per_packet, self.col_bytes)
+
+    def _pixels(self, cols: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        """(packets, columns, pixels, pixel_bytes) view."""
+        p = self.profile
+        a = p.col_header_bytes
+        px = cols[:, :, a:a + self.pixels_per_column * p.pixel_bytes]
+        return px.reshape(*cols.shape[:2], self.pixels_per_column, p.pixel_bytes)
+
+
+def _word_view(pix: NDArray[np.uint8], offset: int, dtype: str) -> NDArray[np.generic]:
+    size = np.dtype(dtype).itemsize
+    return pix[..., offset:offset + size].view(dtype)[..., 0]
+
+
+def _encode_value(f: Field, value: NDArray[np.integer]) -> NDArray[np.uint64]:
+    v = value.astype(np.uint64)
+    v = v << np.uint64(f.shift) if f.shift >= 0 else v >> np.uint64(-f.shift)
+    return v & np.uint64(f.mask)
+
+
+def _decode_value(f: Field, word: NDArray[np.generic]) -> NDArray[np.uint32]:
+    v = word.astype(np.uint64) & np.uint64(f.mask)
+    v = v >> np.uint64(f.shift) if f.shift >= 0 else v << np.uint64(-f.shift)
+    return v.astype(np.uint32)
+
+
+def encode_lidar_frame(fmt: PacketFormat, fields: Mapping[str, NDArray[np.integer]],
+                       timestamps_ns: NDArray[np.integer], *, frame_id: int, init_id: int,
+                       prod_sn: int, status: NDArray[np.integer] | None = None,
+                       crc_rows: CrcRows | None = None,
+                       out: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
+    """Encode one frame into a (packets_per_frame, packet_bytes) uint8 array.
+
+    Args:
+        fmt: the packet format.
+        fields: staggered (H, W) images by field name (RANGE in mm, ...); missing fields are 0.
+        timestamps_ns: (W,) column time stamps.
+        frame_id: 16 bits; init_id: 24 bits; prod_sn: 40 bits.
+        status: (W,) column status (default valid: 1, or 0xFFFFFFFF for LEGACY).
+        crc_rows: CRC-64/XZ of each row of a 2-D uint8 array (default: numpy tables; the
+            emulator passes a compiled one).
+        out: reuse this array (must have the right shape and dtype).
+    """
+    p = fmt.profile
+    H, W = fmt.pixels_per_column, fmt.columns_per_frame
+    P, C = fmt.packets_per_frame, fmt.columns_per_packet
+    if not 0 <= frame_id <= 0xFFFF or not 0 <= init_id < 1 << 24 or not 0 <= prod_sn < 1 << 40:
+        raise ValueError(f"frame_id {frame_id} (16 bit), init_id {init_id} (24 bit) or prod_sn "
+                         f"{prod_sn} (40 bit) out of range")
+    for name, img in fields.items():
+        if np.shape(img) != (H, W):
+            raise ValueError(f"field {name} has shape {np.shape(img)}; expected ({H}, {W})")
+        p.field(name)  # KeyError names the profile's fields
+    ts = np.asarray(timestamps_ns, dtype=np.uint64)
+    if ts.shape != (W,):
+        raise ValueError(f"timestamps_ns has shape {ts.shape}; expected ({W},)")
+    arr = out if out is not None else np.empty((P, fmt.packet_bytes), dtype=np.uint8)
+    arr[...] = 0
+    cols = fmt._columns(arr)
+    mid = np.arange(W, dtype=np.uint16).reshape(P, C)
+    _word_view(cols, 0, "<u8")[...] = ts.reshape(P, C)
+    _word_view(cols, 8, "<u2")[...] = mid
+    if p.legacy:
+        st = (np.full(W, 0xFFFFFFFF, np.uint32) if status is None
+              else np.asarray(status, np.uint32))
+        _word_view(cols, 10, "<u2")[...] = frame_id
+        _word_view(cols, 12, "<u4")[...] = (mid.astype(np.uint64) * LEGACY_ENCODER_TICKS // W)
+        _word_view(cols, fmt.col_bytes - 4, "<u4")[...] = st.reshape(P, C)
+    else:
+        st = np.ones(W, np.uint16) if status is None else np.asarray(status, np.uint16)
+        _word_view(cols, 10, "<u2")[...] = st.reshape(P, C)
+    pix = fmt._pixels(cols)
+    words: dict[tuple[int, str], NDArray[np.uint64]] = {}
+    for f in p.fields:
+        if f.name not in fields:
+            continue
+        img = fields[f.name]
+        # Staggered (H, W) -> (W, H) -> (packets, columns, pixels): one transpose copy.
+        v = _encode_value(f, np.asarray(img).T.reshape(P, C, H))
+        key = (f.offset, f.dtype)
+        words[key] = words[key] | v if key in words else v
+    for (off, dt), v in words.items():
+        _word_view(pix, off, dt)[...] = v.astype(dt)
+    if not p.legacy:
+        arr[:, 0:2].view("<u2")[:, 0] = 1  # packet_type: lidar
+        arr[:, 2:4].view("<u2")[:, 0] = frame_id
+        arr[:, 4:7] = np.frombuffer(init_id.to_bytes(3, "little"), np.uint8)
+        arr[:, 7:12] = np.frombuffer(prod_sn.to_bytes(5, "little"), np.uint8)
+        crc = (crc_rows or crc64_xz_rows)(arr[:, :-8])
+        arr[:, -8:].view("<u8")[:, 0] = crc
+    return arr
+
+
+@dataclass(frozen=True)
+class LidarPacket:
+    """One decoded lidar packet. Field images are (H, columns_per_packet)."""
+
+    frame_id: int
+    init_id: int
+    prod_sn: int
+    packet_type: int
+    timestamps_ns: NDArray[np.uint64]
+    measurement_id: NDArray[np.uint16]
+    status: NDArray[np.uint32]
+    fields: dict[str, NDArray[np.uint32]] = field(repr=False)
+    crc: int | None = None
+
+
+def decode_lidar_packet(fmt: PacketFormat, buf: bytes | bytearray | memoryview, *,
+                        init_id: int | None = None, prod_sn: int | None = None,
+                        check_crc: bool = True,
+                        crc_rows: CrcRows | None = None) -> LidarPacket:
+    """Decode and validate one lidar packet.
+
+    ``init_id``/``prod_sn``: the metadata's values; a packet must match unless either side is
+    0 (as ouster-sdk). Raises a :class:`ProtocolError` subclass naming expected and actual.
+    """
+    p = fmt.profile
+    data = np.frombuffer(buf, dtype=np.uint8)
+    if len(data) != fmt.packet_bytes:
+        raise PacketSizeError(
+            f"lidar packet of {len(data)} bytes; {p.name} with {fmt.pixels_per_column} pixels "
+            f"and {fmt.columns_per_packet} columns per packet is {fmt.packet_bytes} bytes")
+    arr = data.reshape(1, -1)
+    cols = fmt._columns(arr)
+    ts = _word_view(cols, 0, "<u8")[0].astype(np.uint64)
+    mid = _word_view(cols, 8, "<u2")[0].astype(np.uint16)
+    crc = None
+    if p.legacy:
+        frame_id = int(_word_view(cols, 10, "<u2")[0, 0])
+        status = _word_view(cols, fmt.col_bytes - 4, "<u4")[0].astype(np.uint32)
+        ptype, pid, psn = 1, 0, 0
+    else:
+        ptype = int(data[0:2].view("<u2")[0])
+        if ptype != 1:
+            raise PacketTypeError(f"packet_type {ptype}; a lidar packet carries 1")
+        frame_id = int(data[2:4].view("<u2")[0])
+        pid = int.from_bytes(data[4:7].tobytes(), "little")
+        psn = int.from_bytes(data[7:12].tobytes(), "little")
+        status = _word_view(cols, 10, "<u2")[0].astype(np.uint32)
+        crc = int(data[-8:].view("<u8")[0])
+        if check_crc:
+            want = int((crc_rows or crc64_xz_rows)(arr[:, :-8])[0])
+            if want != crc:
+                raise CrcError(f"CRC-64/XZ footer 0x{crc:016x}; the packet's bytes give "
+                               f"0x{want:016x}")
+        if init_id and pid and pid != init_id:
+            raise PacketIdError(f"init_id {pid}; the metadata says {init_id}")
+        if prod_sn and psn and psn != prod_sn:
+            raise PacketIdError(f"prod_sn {psn}; the metadata says {prod_sn}")
+    bad = mid >= fmt.columns_per_frame
+    if bad.any():
+        raise MeasurementIdError(
+            f"measurement_id {int(mid[bad][0])}; must be below columns_per_frame "
+            f"{fmt.columns_per_frame}")
+    pix = fmt._pixels(cols)
+    out = {f.name: _decode_value(f, _word_view(pix, f.offset, f.dtype))[0].T
+           for f in p.fields}
+    return LidarPacket(frame_id, pid, psn, ptype, ts, mid, status, out, crc)
+
+
+@dataclass(frozen=True)
+class DecodedFrame:
+    """Packets of one frame assembled by measurement_id (staggered (H, W) images)."""
+
+    frame_id: int
+    timestamps_ns: NDArray[np.uint64]
+    status: NDArray[np.uint32]
+    fields: dict[str, NDArray[np.uint32]]
+    valid_columns: int
+
+
+def frame_from_packets(fmt: PacketFormat, packets: Sequence[LidarPacket]) -> DecodedFrame:
+    """Place decoded packets' columns by measurement_id; invalid columns stay zero."""
+    H, W = fmt.pixels_per_column, fmt.columns_per_frame
+    ts = np.zeros(W, np.uint64)
+    st = np.zeros(W, np.uint32)
+    imgs = {name: np.zeros((H, W), np.uint32) for name in fmt.field_names}
+    for pk in packets:
+        ok = (pk.status & 1).astype(bool)
+        m = pk.measurement_id[ok]
+        ts[m] = pk.timestamps_ns[ok]
+        st[m] = pk.status[ok]
+        for name, img in pk.fields.items():
+            imgs[name][:, m] = img[:, ok]
+    fid = packets[0].frame_id if packets else 0
+    return DecodedFrame(fid, ts, st, imgs, int(np.count_nonzero(st & 1)))

@@ -1,0 +1,257 @@
+"""protocols.ouster against the judge, ouster-sdk 1.0.1: byte-identical packets, the SDK's
+own parser reading ours, metadata it validates without issues, the same XYZ; plus round trips,
+validation errors and fuzzing."""
+
+from __future__ import annotations
+
+import json
+
+import fastcrc
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from ouster.sdk import core
+
+import protocols.ouster as o
+
+MODES = ["512x10", "1024x10", "2048x10", "512x20", "1024x20"]
+PROFILES = list(o.PROFILES)
+
+
+def _random_fields(fmt: o.PacketFormat, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    out = {}
+    for f in fmt.profile.fields:
+        v = rng.integers(0, 1 << min(f.bits, 32), (fmt.pixels_per_column, fmt.columns_per_frame),
+                         dtype=np.uint64)
+        low = -f.shift if f.shift < 0 else 0  # RNG15 stores range in 8 mm, NIR in 16 steps
+        out[f.name] = ((v >> np.uint64(low)) << np.uint64(low)).astype(np.uint32)
+    return out
+
+
+def _fast_crc(rows: np.ndarray) -> np.ndarray:
+    return np.fromiter((fastcrc.crc64.xz(r.tobytes()) for r in rows), np.uint64, len(rows))
+
+
+# ----------------------------------------------------------------------------- CRC
+
+
+def test_crc_check_value() -> None:
+    assert o.crc64_xz(b"123456789") == 0x995DC9BBDF1939FA
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 300), st.integers(1, 5), st.integers(0, 2**32 - 1))
+def test_vectorised_crc_matches_a_compiled_one(length: int, n: int, seed: int) -> None:
+    rows = np.random.default_rng(seed).integers(0, 256, (n, length), dtype=np.uint8)
+    got = o.crc64_xz_rows(rows)
+    for i in range(n):
+        assert int(got[i]) == fastcrc.crc64.xz(rows[i].tobytes()) == o.crc64_xz(rows[i])
+
+
+# -------------------------------------------------------------------------- metadata
+
+
+@pytest.mark.parametrize("mode", [*MODES, "4096x5"])
+@pytest.mark.parametrize("profile", PROFILES)
+def test_sdk_validates_our_metadata_without_issues(mode: str, profile: str) -> None:
+    m = o.os0_64_metadata(mode, profile)
+    info, issues = core.parse_and_validate_metadata(m.dumps())
+    assert info is not None
+    assert list(issues.critical) == [] and list(issues.warning) == []
+    assert info.prod_line == "OS-0-64" and info.init_id == m.init_id and info.sn == m.prod_sn
+    assert info.format.columns_per_frame == m.columns
+    assert info.format.pixels_per_column == 64
+    assert str(info.format.udp_profile_lidar) == profile
+    assert list(info.format.pixel_shift_by_row) == list(m.pixel_shift_by_row)
+    assert o.SensorMetadata.loads(m.dumps()) == m
+
+
+def test_pixel_shifts_scale_with_columns() -> None:
+    a = o.os0_64_metadata("1024x10")
+    b = o.os0_64_metadata("2048x10")
+    assert b.pixel_shift_by_row[:2] == (62, -20) and a.pixel_shift_by_row[:2] == (31, -10)
+    assert a.with_changes(mode="2048x10").pixel_shift_by_row == b.pixel_shift_by_row
+
+
+@pytest.mark.parametrize(("mutate", "needle"), [
+    (lambda d: d.pop("calibration_status"), "calibration_status"),
+    (lambda d: d["beam_intrinsics"].pop("beam_altitude_angles"), "beam_altitude_angles"),
+    (lambda d: d["beam_intrinsics"]["beam_azimuth_angles"].__setitem__(3, "x"),
+     "beam_azimuth_angles[3]"),
+    (lambda d: d["lidar_data_format"].__setitem__("udp_profile_lidar", "FAST"),
+     "udp_profile_lidar"),
+    (lambda d: d["lidar_data_format"].__setitem__("columns_per_frame", 1000), "lidar_mode"),
+    (lambda d: d["sensor_info"].__setitem__("prod_sn", "abc"), "prod_sn"),
+    (lambda d: d["config_params"].__setitem__("udp_dest", ""), "udp_dest"),
+    (lambda d: d["lidar_intrinsics"].__setitem__("lidar_to_sensor_transform", [1, 2]),
+     "lidar_to_sensor_transform"),
+])
+def test_bad_metadata_names_the_field(mutate: object, needle: str) -> None:
+    doc = o.os0_64_metadata().to_json()
+    mutate(doc)  # type: ignore[operator]
+    with pytest.raises(o.MetadataError, match=needle.replace("[", r"\[").replace("]", r"\]")):
+        o.SensorMetadata.from_json(doc)
+    with pytest.raises(o.MetadataError, match="not JSON"):
+        o.SensorMetadata.loads("{")
+
+
+def test_xyz_matches_the_sdk() -> None:
+    m = o.os0_64_metadata("1024x10")
+    info = core.SensorInfo(m.dumps())
+    rng = np.random.default_rng(2)
+    rng_mm = rng.integers(300, 60000, (64, 1024)).astype(np.uint32)
+    ours = o.xyz_from_range(m, rng_mm)
+    theirs = core.XYZLut(info, use_extrinsics=False)(rng_mm)
+    np.testing.assert_allclose(ours, theirs, atol=1e-9)
+
+
+def test_rays_hit_what_the_range_says() -> None:
+    """Cast the model's rays at a plane z = -1.5 m (sensor frame): the encoded range puts the
+    SDK's XYZ back on the plane."""
+    m = o.os0_64_metadata("512x10")
+    origins, dirs = o.beam_rays(m)
+    down = dirs[..., 2] < -0.05
+    t = (-1.5 - origins[..., 2]) / np.where(down, dirs[..., 2], -1.0)
+    rng_mm = np.where(down, np.round((t + m.lidar_origin_to_beam_origin_mm / 1000) * 1000), 0)
+    xyz = core.XYZLut(core.SensorInfo(m.dumps()), use_extrinsics=False)(
+        rng_mm.astype(np.uint32))
+    assert np.abs(xyz[down][:, 2] + 1.5).max() < 0.001  # the 1 mm range quantum
+
+
+# --------------------------------------------------------------------------- packets
+
+
+@pytest.mark.parametrize("profile", [p for p in PROFILES if p != "LEGACY"])
+@pytest.mark.parametrize("mode", ["512x20", "1024x10", "2048x10"])
+def test_packets_are_byte_identical_to_the_sdks(profile: str, mode: str) -> None:
+    m = o.os0_64_metadata(mode, profile)
+    info = core.SensorInfo(m.dumps())
+    fr = core.LidarFrame(info)
+    rng = np.random.default_rng(3)
+    fields = _random_fields(m.packet_format, rng)
+    sent = {}
+    for name in fr.fields:
+        a = fr.field(name)
+        a[:] = fields[name].astype(a.dtype)
+        sent[name] = fields[name]
+    ts = np.arange(m.columns, dtype=np.uint64) * 48_828 + 1_000_000_000
+    fr.timestamp[:] = ts
+    fr.measurement_id[:] = np.arange(m.columns)
+    fr.status[:] = 1
+    fr.frame_id = 65535
+    theirs = core.frame_to_packets(fr, core.PacketFormat(info), m.init_id, m.prod_sn)
+    ours = o.encode_lidar_frame(m.packet_format, sent, ts, frame_id=65535, init_id=m.init_id,
+                                prod_sn=m.prod_sn, crc_rows=_fast_crc)
+    assert len(theirs) == ours.shape[0]
+    for i, p in enumerate(theirs):
+        assert np.array_equal(np.asarray(p.buf), ours[i]), f"packet {i} differs"
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+@pytest.mark.parametrize("cpp", [8, 16, 32])
+def test_sdk_parser_reads_our_packets(profile: str, cpp: int) -> None:
+    m = o.os0_64_metadata("1024x10", profile, columns_per_packet=cpp)
+    pf = core.PacketFormat(core.SensorInfo(m.dumps()))
+    fmt = m.packet_format
+    assert pf.lidar_packet_size == fmt.packet_bytes
+    fields = _random_fields(fmt, np.random.default_rng(4))
+    ts = np.arange(1024, dtype=np.uint64) * 97_656 + 123
+    arr = o.encode_lidar_frame(fmt, fields, ts, frame_id=4242, init_id=m.init_id,
+                               prod_sn=m.prod_sn)
+    for i in (0, arr.shape[0] - 1):
+        buf = arr[i]
+        assert pf.frame_id(buf) == 4242
+        if profile != "LEGACY":
+            assert pf.init_id(buf) == m.init_id and pf.prod_sn(buf) == m.prod_sn
+            assert pf.packet_type(buf) == 1
+            assert pf.crc(buf) == pf.calculate_crc(buf)
+        cols = slice(i * cpp, (i + 1) * cpp)
+        for f in fmt.profile.fields:
+            if f.name in [str(x) for x in pf.fields]:
+                got = pf.packet_field(f.name, buf)
+                np.testing.assert_array_equal(got, fields[f.name][:, cols], err_msg=f.name)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.sampled_from(PROFILES), st.sampled_from([8, 16]), st.integers(0, 0xFFFF),
+       st.integers(0, 2**24 - 1), st.integers(0, 2**40 - 1), st.integers(0, 2**32 - 1))
+def test_round_trip(profile: str, cpp: int, frame_id: int, init_id: int, sn: int,
+                    seed: int) -> None:
+    fmt = o.PacketFormat.create(profile, 64, cpp, 512)
+    fields = _random_fields(fmt, np.random.default_rng(seed))
+    ts = np.random.default_rng(seed).integers(0, 2**63, 512, dtype=np.uint64)
+    arr = o.encode_lidar_frame(fmt, fields, ts, frame_id=frame_id, init_id=init_id,
+                               prod_sn=sn)
+    pk = [o.decode_lidar_packet(fmt, arr[i], init_id=init_id, prod_sn=sn)
+          for i in range(arr.shape[0])]
+    fr = o.frame_from_packets(fmt, pk[::-1])  # order does not matter: placed by m_id
+    assert fr.frame_id == frame_id and fr.valid_columns == 512
+    np.testing.assert_array_equal(fr.timestamps_ns, ts)
+    for k, v in fields.items():
+        np.testing.assert_array_equal(fr.fields[k], v, err_msg=k)
+
+
+def _one_packet(profile: str = "RNG19_RFL8_SIG16_NIR16") -> tuple[o.PacketFormat, np.ndarray]:
+    fmt = o.PacketFormat.create(profile, 64, 16, 1024)
+    arr = o.encode_lidar_frame(fmt, _random_fields(fmt, np.random.default_rng(5)),
+                               np.arange(1024, dtype=np.uint64), frame_id=1, init_id=77,
+                               prod_sn=88)
+    return fmt, arr[0].copy()
+
+
+def test_validation_errors_say_what_was_expected() -> None:
+    fmt, buf = _one_packet()
+    with pytest.raises(o.PacketSizeError, match=r"12540 bytes.*is 12544 bytes"):
+        o.decode_lidar_packet(fmt, buf[:-4])
+    bad = buf.copy()
+    bad[100] ^= 1
+    with pytest.raises(o.CrcError, match="CRC-64/XZ"):
+        o.decode_lidar_packet(fmt, bad)
+    assert o.decode_lidar_packet(fmt, bad, check_crc=False).frame_id == 1
+    with pytest.raises(o.PacketIdError, match="init_id 77; the metadata says 78"):
+        o.decode_lidar_packet(fmt, buf, init_id=78)
+    with pytest.raises(o.PacketIdError, match="prod_sn 88"):
+        o.decode_lidar_packet(fmt, buf, prod_sn=89)
+    assert o.decode_lidar_packet(fmt, buf, init_id=0, prod_sn=0).init_id == 77  # 0: no check
+    typ = buf.copy()
+    typ[0] = 2
+    with pytest.raises(o.PacketTypeError, match="packet_type 2"):
+        o.decode_lidar_packet(fmt, typ, check_crc=False)
+    small = o.PacketFormat.create("RNG19_RFL8_SIG16_NIR16", 64, 16, 512)
+    big = o.encode_lidar_frame(fmt, {}, np.zeros(1024, np.uint64), frame_id=0, init_id=0,
+                               prod_sn=0)[-1]
+    with pytest.raises(o.MeasurementIdError, match="measurement_id 1008"):
+        o.decode_lidar_packet(small, big)
+    with pytest.raises(TypeError):
+        o.ProtocolError("abstract")
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(min_size=0, max_size=64), st.integers(0, 12543), st.booleans())
+def test_fuzzed_packets_give_a_value_or_a_protocol_error(junk: bytes, at: int,
+                                                         crc: bool) -> None:
+    fmt, buf = _one_packet()
+    data = bytearray(buf.tobytes())
+    data[at:at + len(junk)] = junk
+    try:
+        o.decode_lidar_packet(fmt, bytes(data), init_id=77, prod_sn=88, check_crc=crc)
+    except o.ProtocolError:
+        pass
+
+
+def test_imu_round_trip_and_size() -> None:
+    p = o.ImuPacket(1, 2, 3, (0.0, 0.0, 1.0), (0.1, 0.2, 0.3))
+    b = o.encode_imu_packet(p)
+    assert len(b) == 48 == o.IMU_PACKET_BYTES
+    q = o.decode_imu_packet(b)
+    assert q.sys_ts_ns == 1 and q.accel_g == (0.0, 0.0, 1.0)
+    assert q.gyro_deg_s == pytest.approx((0.1, 0.2, 0.3))
+    with pytest.raises(o.PacketSizeError, match="47 bytes"):
+        o.decode_imu_packet(b[:-1])
+
+
+def test_metadata_json_is_plain_json() -> None:
+    doc = json.loads(o.os0_64_metadata().dumps())
+    assert set(doc) == {"sensor_info", "config_params", "lidar_data_format", "beam_intrinsics",
+                        "lidar_intrinsics", "imu_intrinsics", "calibration_status"}
