@@ -88,10 +88,13 @@ def _word_view(pix: NDArray[np.uint8], offset: int, dtype: str) -> NDArray[np.ge
     return pix[..., offset:offset + size].view(dtype)[..., 0]
 
 
-def _encode_value(f: Field, value: NDArray[np.integer]) -> NDArray[np.uint64]:
-    v = value.astype(np.uint64)
-    v = v << np.uint64(f.shift) if f.shift >= 0 else v >> np.uint64(-f.shift)
-    return v & np.uint64(f.mask)
+def _encode_value(f: Field, value: NDArray[np.integer]) -> NDArray[np.uint32]:
+    v = np.asarray(value).astype(np.uint32, copy=False)
+    if f.shift > 0:
+        v = v << np.uint32(f.shift)
+    elif f.shift < 0:
+        v = v >> np.uint32(-f.shift)
+    return v & np.uint32(f.mask)
 
 
 def _decode_value(f: Field, word: NDArray[np.generic]) -> NDArray[np.uint32]:
@@ -146,17 +149,17 @@ def encode_lidar_frame(fmt: PacketFormat, fields: Mapping[str, NDArray[np.intege
         st = np.ones(W, np.uint16) if status is None else np.asarray(status, np.uint16)
         _word_view(cols, 10, "<u2")[...] = st.reshape(P, C)
     pix = fmt._pixels(cols)
-    words: dict[tuple[int, str], NDArray[np.uint64]] = {}
+    # Fields sharing a word are combined in the (H, W) image layout; each word is then
+    # written once through a transposed view: (H, W) -> (packets, columns, pixels).
+    words: dict[tuple[int, str], NDArray[np.uint32]] = {}
     for f in p.fields:
         if f.name not in fields:
             continue
-        img = fields[f.name]
-        # Staggered (H, W) -> (W, H) -> (packets, columns, pixels): one transpose copy.
-        v = _encode_value(f, np.asarray(img).T.reshape(P, C, H))
+        v = _encode_value(f, fields[f.name])
         key = (f.offset, f.dtype)
         words[key] = words[key] | v if key in words else v
     for (off, dt), v in words.items():
-        _word_view(pix, off, dt)[...] = v.astype(dt)
+        _word_view(pix, off, dt)[...] = v.T.reshape(P, C, H)
     if not p.legacy:
         arr[:, 0:2].view("<u2")[:, 0] = 1  # packet_type: lidar
         arr[:, 2:4].view("<u2")[:, 0] = frame_id
