@@ -1,0 +1,246 @@
+"""libpcap / pcapng with Ethernet + IPv4 + UDP framing (sans-IO: bytes in, bytes out).
+
+Writing: a libpcap file (nanosecond or microsecond time stamps) whose records are Ethernet
+frames carrying IPv4/UDP datagrams; datagrams larger than the MTU are split into IPv4
+fragments as a real 1500-byte link would carry a sensor's 12.5 kB packets. Time stamps come
+from the caller (the simulation clock), never from a clock read here.
+
+Reading: libpcap (either byte order, µs or ns) and pcapng (SHB, IDB, EPB, SPB, with per-
+interface time resolution); Ethernet (with 802.1Q tags) + IPv4 + UDP; fragments reassembled.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+__all__ = ["PcapError", "PcapWriter", "UdpDatagram", "read_udp"]
+
+LINKTYPE_ETHERNET = 1
+_ETH = struct.Struct("!6s6sH")
+_IP = struct.Struct("!BBHHHBBH4s4s")
+_UDP = struct.Struct("!HHHH")
+_SRC_MAC = bytes.fromhex("bc0fa7000001")  # Ouster's OUI, a made-up device
+_DST_MAC = bytes.fromhex("020000000001")  # locally administered
+
+
+class PcapError(ValueError):
+    """A capture file is malformed; the message says where and what was expected."""
+
+
+@dataclass(frozen=True, slots=True)
+class UdpDatagram:
+    timestamp_ns: int
+    src_ip: str
+    dst_ip: str
+    src_port: int
+    dst_port: int
+    payload: bytes
+
+
+def _ip_bytes(ip: str) -> bytes:
+    try:
+        parts = [int(p) for p in ip.split(".")]
+    except ValueError as err:
+        raise ValueError(f"IPv4 address {ip!r} is not dotted decimal") from err
+    if len(parts) != 4 or any(not 0 <= p <= 255 for p in parts):
+        raise ValueError(f"IPv4 address {ip!r} is not dotted decimal")
+    return bytes(parts)
+
+
+def _checksum(header: bytes) -> int:
+    s: int = sum(struct.unpack(f"!{len(header) // 2}H", header))
+    while s >> 16:
+        s = (s & 0xFFFF) + (s >> 16)
+    return ~s & 0xFFFF
+
+
+class PcapWriter:
+    """Builds a libpcap byte stream; call :meth:`header` once, then :meth:`records`.
+
+    Args:
+        mtu: IPv4 MTU of the simulated link (fragments above it; >= 68).
+        nanosecond: ns time stamps (magic a1b23c4d) or µs (a1b2c3d4).
+        snaplen: the header's snapshot length.
+    """
+
+    def __init__(self, *, mtu: int = 1500, nanosecond: bool = True,
+                 snaplen: int = 65535) -> None:
+        if mtu < 68:
+            raise ValueError(f"mtu {mtu}; IPv4 needs at least 68")
+        self.mtu = mtu
+        self.nanosecond = nanosecond
+        self.snaplen = snaplen
+        self._ip_id = 0
+
+    def header(self) -> bytes:
+        magic = 0xA1B23C4D if self.nanosecond else 0xA1B2C3D4
+        return struct.pack("<IHHiIII", magic, 2, 4, 0, 0, self.snaplen, LINKTYPE_ETHERNET)
+
+    def _record(self, ts_ns: int, frame: bytes) -> bytes:
+        sec, rem = divmod(ts_ns, 1_000_000_000)
+        frac = rem if self.nanosecond else rem // 1000
+        return struct.pack("<IIII", sec, frac, len(frame), len(frame)) + frame
+
+    def records(self, d: UdpDatagram) -> bytes:
+        """The pcap record(s) of one UDP datagram (several if it is fragmented)."""
+        if not 0 <= d.timestamp_ns < (1 << 32) * 1_000_000_000:
+            raise ValueError(f"timestamp_ns {d.timestamp_ns} does not fit a pcap record")
+        if len(d.payload) > 65507:
+            raise ValueError(f"UDP payload of {len(d.payload)} bytes exceeds 65507")
+        src, dst = _ip_bytes(d.src_ip), _ip_bytes(d.dst_ip)
+        udp = _UDP.pack(d.src_port, d.dst_port, 8 + len(d.payload), 0) + d.payload
+        self._ip_id = (self._ip_id + 1) & 0xFFFF
+        room = (self.mtu - 20) // 8 * 8
+        out = []
+        off = 0
+        while True:
+            chunk = udp[off:off + room] if len(udp) - off > self.mtu - 20 else udp[off:]
+            more = off + len(chunk) < len(udp)
+            flags_frag = (0x2000 if more else 0) | (off // 8)
+            hdr = _IP.pack(0x45, 0, 20 + len(chunk), self._ip_id, flags_frag, 64, 17, 0,
+                           src, dst)
+            hdr = hdr[:10] + struct.pack("!H", _checksum(hdr)) + hdr[12:]
+            out.append(self._record(d.timestamp_ns,
+                                    _ETH.pack(_DST_MAC, _SRC_MAC, 0x0800) + hdr + chunk))
+            off += len(chunk)
+            if not more:
+                return b"".join(out)
+
+    def encode(self, datagrams: Iterable[UdpDatagram]) -> bytes:
+        """A whole file: header and every datagram."""
+        return self.header() + b"".join(self.records(d) for d in datagrams)
+
+
+def _frames(data: bytes) -> Iterator[tuple[int, bytes]]:
+    """(timestamp_ns, link-layer frame) of every Ethernet record, pcap or pcapng."""
+    if len(data) < 4:
+        raise PcapError(f"capture of {len(data)} bytes is too short for a header")
+    magic = data[:4]
+    if magic == b"\x0a\x0d\x0d\x0a":
+        yield from _pcapng_frames(data)
+        return
+    table = {b"\xd4\xc3\xb2\xa1": ("<", 1000), b"\xa1\xb2\xc3\xd4": (">", 1000),
+             b"\x4d\x3c\xb2\xa1": ("<", 1), b"\xa1\xb2\x3c\x4d": (">", 1)}
+    if magic not in table:
+        raise PcapError(f"magic {magic.hex()} is neither libpcap nor pcapng")
+    end, scale = table[magic]
+    if len(data) < 24:
+        raise PcapError("libpcap global header is truncated (24 bytes expected)")
+    linktype = struct.unpack(end + "I", data[20:24])[0] & 0x0FFFFFFF
+    if linktype != LINKTYPE_ETHERNET:
+        raise PcapError(f"link type {linktype}; only Ethernet (1) is supported")
+    rec = struct.Struct(end + "IIII")
+    pos = 24
+    while pos < len(data):
+        if pos + 16 > len(data):
+            raise PcapError(f"record header at byte {pos} is truncated")
+        sec, frac, incl, _orig = rec.unpack_from(data, pos)
+        pos += 16
+        if pos + incl > len(data):
+            raise PcapError(f"record at byte {pos - 16} claims {incl} bytes; "
+                            f"{len(data) - pos} remain")
+        yield sec * 1_000_000_000 + frac * scale, data[pos:pos + incl]
+        pos += incl
+
+
+def _pcapng_frames(data: bytes) -> Iterator[tuple[int, bytes]]:
+    pos = 0
+    end = "<"
+    ifaces: list[tuple[int, int]] = []  # (linktype, ns per tick)
+    while pos < len(data):
+        if pos + 12 > len(data):
+            raise PcapError(f"pcapng block at byte {pos} is truncated")
+        btype = struct.unpack_from(end + "I", data, pos)[0]
+        if btype == 0x0A0D0D0A:
+            bom = data[pos + 8:pos + 12]
+            end = "<" if bom == b"\x4d\x3c\x2b\x1a" else ">" if bom == b"\x1a\x2b\x3c\x4d" \
+                else ""
+            if not end:
+                raise PcapError(f"pcapng section at byte {pos} has byte-order magic "
+                                f"{bom.hex()}")
+            ifaces = []
+        blen = struct.unpack_from(end + "I", data, pos + 4)[0]
+        if blen < 12 or blen % 4 or pos + blen > len(data):
+            raise PcapError(f"pcapng block at byte {pos} has length {blen}")
+        body = data[pos + 8:pos + blen - 4]
+        if btype == 1:  # interface description
+            link = struct.unpack_from(end + "H", body, 0)[0]
+            tick = 1000  # default µs
+            opt = 8
+            while opt + 4 <= len(body):
+                code, olen = struct.unpack_from(end + "HH", body, opt)
+                if code == 0:
+                    break
+                if code == 9 and olen >= 1:  # if_tsresol
+                    r = body[opt + 4]
+                    tick = 2 ** -(r & 0x7F) * 1e9 if r & 0x80 else 10 ** (9 - r)
+                opt += 4 + (olen + 3) // 4 * 4
+            ifaces.append((link, tick))
+        elif btype in (6, 3):  # enhanced / simple packet
+            if btype == 6:
+                iid, hi, lo, cap, _orig = struct.unpack_from(end + "IIIII", body, 0)
+                payload = body[20:20 + cap]
+            else:
+                iid, hi, lo = 0, 0, 0
+                cap = struct.unpack_from(end + "I", body, 0)[0]
+                payload = body[4:4 + cap]
+            if iid >= len(ifaces):
+                raise PcapError(f"pcapng packet at byte {pos} names interface {iid}; "
+                                f"{len(ifaces)} described")
+            link, tick = ifaces[iid]
+            if link == LINKTYPE_ETHERNET:
+                yield int(((hi << 32) | lo) * tick), payload
+        pos += blen
+
+
+def read_udp(data: bytes) -> Iterator[UdpDatagram]:
+    """Every IPv4/UDP datagram in a capture, fragments reassembled, in capture order (a
+    fragmented datagram appears at its last fragment's position, with its first fragment's
+    time stamp). Non-IPv4 and non-UDP frames are skipped."""
+    pending: dict[tuple[bytes, bytes, int], tuple[int, dict[int, bytes], int | None]] = {}
+    for ts, frame in _frames(data):
+        if len(frame) < 14:
+            continue
+        etype = struct.unpack_from("!H", frame, 12)[0]
+        off = 14
+        while etype == 0x8100 and len(frame) >= off + 4:  # 802.1Q
+            etype = struct.unpack_from("!H", frame, off + 2)[0]
+            off += 4
+        if etype != 0x0800 or len(frame) < off + 20:
+            continue
+        vihl, _tos, total, ident, ff, _ttl, proto, _cs, src, dst = _IP.unpack_from(frame, off)
+        ihl = (vihl & 0x0F) * 4
+        if vihl >> 4 != 4 or ihl < 20 or proto != 17:
+            continue
+        body = frame[off + ihl:off + total]
+        if len(body) != total - ihl:
+            raise PcapError(f"IPv4 datagram says {total} bytes; the frame holds "
+                            f"{len(frame) - off}")
+        more, frag = bool(ff & 0x2000), (ff & 0x1FFF) * 8
+        if more or frag:
+            key = (src, dst, ident)
+            t0, parts, last = pending.get(key, (ts, {}, None))
+            parts[frag] = body
+            if not more:
+                last = frag + len(body)
+            pending[key] = (t0, parts, last)
+            if last is None:
+                continue
+            buf = bytearray()
+            for o in sorted(parts):
+                if o != len(buf):
+                    break
+                buf += parts[o]
+            if len(buf) != last:
+                continue
+            del pending[key]
+            ts, body = t0, bytes(buf)
+        if len(body) < 8:
+            raise PcapError("UDP header truncated")
+        sport, dport, ulen, _ = _UDP.unpack_from(body, 0)
+        if ulen < 8 or ulen > len(body):
+            raise PcapError(f"UDP length {ulen}; the datagram holds {len(body)} bytes")
+        yield UdpDatagram(ts, ".".join(map(str, src)), ".".join(map(str, dst)), sport, dport,
+                          body[8:ulen])
