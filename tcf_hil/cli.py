@@ -302,6 +302,67 @@ def score(gt: Path, observed: Path, match_method: str, max_distance: float,
             console.print(f"wrote {p}")
 
 
+# ---------------------------------------------------------------------------- lidar
+
+
+@cli.group(cls=_Group)
+def lidar() -> None:
+    """The emulated Ouster OS0-64 (offline recording; live streaming comes next)."""
+
+
+@lidar.command("pcap")
+@click.argument("scenario_name", metavar="SCENARIO")
+@click.option("--mode", type=click.Choice(["512x10", "1024x10", "2048x10", "512x20", "1024x20"]),
+              default="1024x10", show_default=True, help="Columns x frames per second.")
+@click.option("--profile", type=click.Choice(["RNG19_RFL8_SIG16_NIR16", "LEGACY",
+                                              "RNG19_RFL8_SIG16_NIR16_DUAL",
+                                              "RNG15_RFL8_NIR8"]),
+              default="RNG19_RFL8_SIG16_NIR16", show_default=True, help="UDP lidar profile.")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Random seed.")
+@click.option("--backend", type=click.Choice(["embree", "open3d"]), default="embree",
+              show_default=True, help="Ray casting backend.")
+@click.option("--noise", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="Range noise sigma (m).")
+@click.option("--max-range", type=click.FloatRange(min=0, min_open=True), default=50.0,
+              show_default=True, help="Range cap (m), as the paper.")
+@click.option("--frames", type=click.IntRange(min=1), default=None,
+              help="Stop after this many frames (default: the whole track).")
+@click.option("--mtu", type=click.IntRange(min=68), default=1500, show_default=True,
+              help="IPv4 MTU of the recorded link (larger packets are fragmented).")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Output directory.")
+def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, backend: str,
+               noise: float, max_range: float, frames: int | None, mtu: int,
+               out: Path) -> None:
+    """Drive the sensor along the scenario's track, as fast as the machine allows.
+
+    Writes lidar.pcap (lidar UDP to 7502, LEGACY IMU to 7503 at 100 Hz, from 127.0.0.1),
+    metadata.json (read it with ouster-sdk: ouster-cli -m metadata.json source lidar.pcap),
+    ground_truth.json (with the returns each stem got), visibility.json and sensor_poses.csv
+    (the sensor frame in the world at every column time stamp).
+    """
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from emulators.lidar import ReturnModel
+    from tcf_hil.lidar import record_pcap
+    from tcf_hil.scenario import load_scenario
+
+    scn = load_scenario(scenario_name)
+    model = ReturnModel(noise_sigma_m=noise, max_range_m=max_range)
+    with Progress(TextColumn("{task.description}"), BarColumn(),
+                  TextColumn("{task.completed}/{task.total} frames"), TimeRemainingColumn(),
+                  console=console, transient=True) as prog:
+        task = prog.add_task(f"{scn.name} {mode} {profile}", total=None)
+
+        def step(done: int, total: int) -> None:
+            prog.update(task, completed=done, total=total)
+
+        r = record_pcap(scn, out, mode=mode, profile=profile, seed=seed, backend=backend,
+                        model=model, max_frames=frames, mtu=mtu, progress=step)
+    console.print(f"{scn.name}: {r.frames} frames, {r.packets} lidar packets, {r.returns} "
+                  f"returns, {r.stems_seen} stems seen ({r.backend}); wrote {out}/")
+
+
 # ----------------------------------------------------------------------- experiment
 
 

@@ -1,0 +1,131 @@
+"""The scene the lidar sees: terrain and stem meshes in local coordinates, and ray backends.
+
+Backends by name (python-can style registry, imported lazily): ``embree`` (embreex, robust
+mode; the default) and ``open3d`` (``RaycastingScene``). Both compute in float32, so the scene
+stays in local plot coordinates (metres from the plot centre) and callers add the geographic
+origin back in float64.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tcf_hil.errors import ConfigError
+from tcf_hil.forest import Forest, stem_mesh, terrain_mesh
+
+FloatArray = NDArray[np.float64]
+
+BACKENDS: dict[str, tuple[str, str]] = {
+    "embree": ("tcf_hil.scene", "EmbreeCaster"),
+    "open3d": ("tcf_hil.scene", "Open3dCaster"),
+}
+MATERIAL_GROUND, MATERIAL_BARK = 0, 1
+
+
+class Caster(Protocol):
+    """Casts rays against one triangle mesh."""
+
+    name: str
+
+    def cast(self, origins: FloatArray, directions: FloatArray
+             ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        """Hit distance along each unit direction (inf on a miss) and triangle id (-1)."""
+        ...
+
+
+class EmbreeCaster:
+    name = "embree"
+
+    def __init__(self, vertices: FloatArray, faces: NDArray[np.int64]) -> None:
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        # Robust mode: without it rays slip through edges shared by two triangles.
+        self._scene = rtcore_scene.EmbreeScene(robust=True)
+        TriangleMesh(scene=self._scene, vertices=vertices.astype(np.float32),
+                     indices=faces.astype(np.int32))
+
+    def cast(self, origins: FloatArray, directions: FloatArray
+             ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        r = self._scene.run(np.ascontiguousarray(origins, dtype=np.float32),
+                            np.ascontiguousarray(directions, dtype=np.float32), output=1)
+        prim = r["primID"].astype(np.int64)
+        t = r["tfar"].astype(np.float32)
+        miss = prim < 0
+        t[miss] = np.inf
+        prim[miss] = -1
+        return t, prim
+
+
+class Open3dCaster:
+    name = "open3d"
+
+    def __init__(self, vertices: FloatArray, faces: NDArray[np.int64]) -> None:
+        o3d: Any = importlib.import_module("open3d")  # untyped for mypy: its stubs lag
+        self._o3d = o3d
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
+                                  o3d.core.Tensor(faces.astype(np.uint32)))
+
+    def cast(self, origins: FloatArray, directions: FloatArray
+             ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        rays = np.concatenate([origins, directions], axis=1).astype(np.float32)
+        ans = self._scene.cast_rays(self._o3d.core.Tensor(rays))
+        t = ans["t_hit"].numpy().astype(np.float32)
+        prim = ans["primitive_ids"].numpy().astype(np.int64)
+        miss = ~np.isfinite(t)
+        prim[miss] = -1
+        t[miss] = np.inf
+        return t, prim
+
+
+def make_caster(name: str, vertices: FloatArray, faces: NDArray[np.int64]) -> Caster:
+    """Build the named backend (imports it only now)."""
+    if name not in BACKENDS:
+        raise ConfigError("ray backend", name, ", ".join(BACKENDS))
+    module, cls = BACKENDS[name]
+    try:
+        factory = getattr(importlib.import_module(module), cls)
+        caster: Caster = factory(vertices, faces)
+        return caster
+    except ImportError as err:
+        raise ConfigError("ray backend", name, f"an installed backend ({err})") from err
+
+
+@dataclass
+class Scene:
+    """Terrain plus stems as one mesh in local coordinates, with per-triangle stem ids."""
+
+    vertices: FloatArray
+    faces: NDArray[np.int64]
+    stem_id: NDArray[np.int32]  # per triangle; 0 = terrain
+    caster: Caster
+
+    @classmethod
+    def from_forest(cls, forest: Forest, backend: str = "embree",
+                    stem_tolerance_m: float | None = None,
+                    terrain_tolerance_m: float | None = None,
+                    margin_m: float | None = None) -> Scene:
+        scn = forest.scenario
+        st = stem_mesh(forest.stems, stem_tolerance_m if stem_tolerance_m is not None
+                       else scn.stems.tolerance_mm / 1000.0)
+        tr = terrain_mesh(forest.terrain, forest.bounds(margin_m),
+                          terrain_tolerance_m if terrain_tolerance_m is not None
+                          else scn.terrain.tolerance_mm / 1000.0)
+        verts = np.vstack([tr.vertices, st.vertices])
+        faces = np.vstack([tr.faces, st.faces + len(tr.vertices)]).astype(np.int64)
+        ids = np.concatenate([np.zeros(len(tr.faces), np.int32),
+                              np.asarray(st.face_attributes.get("stem_id", []), np.int32)])
+        return cls(verts, faces, ids, make_caster(backend, verts, faces))
+
+    def cast(self, origins: FloatArray, directions: FloatArray
+             ) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
+        """(distance, stem id of the hit: 0 terrain, -1 nothing) for local-frame rays."""
+        t, prim = self.caster.cast(origins, directions)
+        sid = np.where(prim >= 0, self.stem_id[np.maximum(prim, 0)], -1).astype(np.int32)
+        return t.astype(np.float64), sid
