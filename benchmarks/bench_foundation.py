@@ -39,23 +39,13 @@ CASES: dict[str, str] = {
     """,
     "generate 50 ha, 55 000 stems (no meshes)": """
         from tcf_hil.forest import generate_forest, ground_truth
-        from tcf_hil.scenario import scenario_from_dict
-        side = (50 * 10000) ** 0.5
-        s = scenario_from_dict({"name": "fifty-ha", "plot": {"size_m": [side, side]},
-            "stems": {"count": 55000}, "terrain": {"kind": "rolling"},
-            "distribution": {"kind": "uneven"},
-            "track": {"start_m": [0.0, -side / 2, 2.0], "end_m": [0.0, side / 2, 2.0]}})
+        s = _fifty_ha()
         t0 = time.perf_counter(); f = generate_forest(s); ground_truth(f)
         t = time.perf_counter() - t0
     """,
     "generate 50 ha, 55 000 stems + meshes": """
         from tcf_hil.forest import generate_forest, stem_mesh, terrain_mesh
-        from tcf_hil.scenario import scenario_from_dict
-        side = (50 * 10000) ** 0.5
-        s = scenario_from_dict({"name": "fifty-ha", "plot": {"size_m": [side, side]},
-            "stems": {"count": 55000}, "terrain": {"kind": "rolling"},
-            "distribution": {"kind": "uneven"},
-            "track": {"start_m": [0.0, -side / 2, 2.0], "end_m": [0.0, side / 2, 2.0]}})
+        s = _fifty_ha()
         t0 = time.perf_counter(); f = generate_forest(s)
         sm = stem_mesh(f.stems, s.stems.tolerance_mm / 1000)
         tm = terrain_mesh(f.terrain, f.bounds(), s.terrain.tolerance_mm / 1000)
@@ -126,6 +116,14 @@ def _docs(n=100_000):
     od = {"objects": [{"id": i + 1, "cp": [float(o[i, 0]), float(o[i, 1]), 0.0],
                        "class": cls[(i * 5) % 3], "h": 19.5} for i in range(n)]}
     return gd, od
+
+def _fifty_ha():
+    from tcf_hil.scenario import scenario_from_dict
+    side = (50 * 10000) ** 0.5
+    return scenario_from_dict({"name": "fifty-ha", "plot": {"size_m": [side, side]},
+        "stems": {"count": 55000}, "terrain": {"kind": "rolling"},
+        "distribution": {"kind": "uneven"},
+        "track": {"start_m": [0.0, -side / 2, 2.0], "end_m": [0.0, side / 2, 2.0]}})
 
 def _tables():
     from tcf_hil.stems_json import stem_table
