@@ -363,6 +363,55 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
                   f"returns, {r.stems_seen} stems seen ({r.backend}); wrote {out}/")
 
 
+@lidar.command("stream")
+@click.argument("scenario_name", metavar="SCENARIO")
+@click.option("--mode", type=click.Choice(["512x10", "1024x10", "2048x10", "512x20", "1024x20"]),
+              default="1024x10", show_default=True, help="Columns x frames per second.")
+@click.option("--profile", type=click.Choice(["RNG19_RFL8_SIG16_NIR16", "LEGACY",
+                                              "RNG19_RFL8_SIG16_NIR16_DUAL",
+                                              "RNG15_RFL8_NIR8"]),
+              default="RNG19_RFL8_SIG16_NIR16", show_default=True, help="UDP lidar profile.")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Random seed.")
+@click.option("--sensor-address", default="127.0.0.1", show_default=True,
+              help="Address the packets come from (ouster-sdk checks it; any 127.x works).")
+@click.option("--dest", default="127.0.0.1", show_default=True, help="Where packets go.")
+@click.option("--lidar-port", type=click.IntRange(1, 65535), default=7502, show_default=True)
+@click.option("--imu-port", type=click.IntRange(1, 65535), default=7503, show_default=True)
+@click.option("--speed", type=click.FloatRange(min=0), default=1.0, show_default=True,
+              help="Simulation seconds per second; 0 = as fast as possible.")
+@click.option("--frames", type=click.IntRange(min=1), default=None,
+              help="Stop after this many frames (default: the whole track).")
+@click.option("--record", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also write what was sent (pcap) and the sidecar files here.")
+def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
+                 sensor_address: str, dest: str, lidar_port: int, imu_port: int, speed: float,
+                 frames: int | None, record: Path | None) -> None:
+    """Stream the emulated OS0-64 live over UDP until the track ends or Ctrl-C.
+
+    Read it with ouster-sdk given the metadata (the HTTP API comes next): write it first with
+    --record DIR (metadata.json appears at the end) or take it from `tcf-hil lidar pcap`.
+    """
+    import threading
+
+    from tcf_hil.lidar import stream_lidar
+    from tcf_hil.scenario import load_scenario
+
+    scn = load_scenario(scenario_name)
+    stop = threading.Event()
+    console.print(f"streaming {scn.name} {mode} {profile} from {sensor_address} to "
+                  f"{dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
+    try:
+        r = stream_lidar(scn, sensor_ip=sensor_address, dest=dest, speed=speed, record=record,
+                         stop=stop, mode=mode, profile=profile, seed=seed, max_frames=frames,
+                         udp_port_lidar=lidar_port, udp_port_imu=imu_port)
+    except KeyboardInterrupt:
+        stop.set()
+        raise
+    p50, p99 = r.pacing_us
+    console.print(f"sent {r.packets} lidar packets in {r.frames} frames; pacing error p50 "
+                  f"{p50:.0f} us, p99 {p99:.0f} us; refused {r.refused}")
+
+
 # ----------------------------------------------------------------------- experiment
 
 

@@ -1,19 +1,25 @@
-"""Offline lidar recording: scenario -> forest -> scene -> OS0-64 frames -> packets -> pcap,
-with the metadata, ground truth, per-stem visibility and the sensor poses beside it."""
+"""Lidar runs: scenario -> forest -> scene -> OS0-64 frames -> packets, then either a pcap
+file (offline, as fast as the machine allows) or UDP on the wire (live, paced in real time).
+Both paths produce the same packet bytes, with the metadata, ground truth, per-stem
+visibility and the sensor poses beside them."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import math
-from collections.abc import Callable
+import multiprocessing as mp
+import queue
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from emulators.lidar import Os0Emulator, ReturnModel
+from emulators.lidar import Datagram, FrameResult, Os0Emulator, PacedSender, ReturnModel
 from protocols.ouster import (
     ImuPacket,
     SensorMetadata,
@@ -23,12 +29,12 @@ from protocols.ouster import (
 )
 from protocols.pcap import PcapWriter, UdpDatagram
 from tcf_hil._io import atomic_path, write_bytes_atomic, write_json_atomic
-from tcf_hil.forest import generate_forest, ground_truth
+from tcf_hil.forest import Forest, generate_forest, ground_truth
 from tcf_hil.scenario import Scenario
 from tcf_hil.scene import Scene
 from tcf_hil.trajectory import StraightTrack, quaternions
 
-SENSOR_IP = "127.0.0.1"
+IMU_PERIOD_NS = 10_000_000  # 100 Hz
 
 
 def _crc_rows() -> Callable[[np.ndarray], np.ndarray] | None:
@@ -44,94 +50,233 @@ def _crc_rows() -> Callable[[np.ndarray], np.ndarray] | None:
 
 @dataclass(frozen=True)
 class RecordResult:
-    out_dir: Path
+    out_dir: Path | None
     frames: int
     packets: int
     returns: int
     stems_seen: int
     backend: str
+    pacing_us: tuple[float, float] = (0.0, 0.0)
+    refused: int = 0
 
 
-def record_pcap(scn: Scenario, out_dir: str | Path, *, mode: str = "1024x10",
-                profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
-                backend: str = "embree", model: ReturnModel | None = None,
-                max_frames: int | None = None, mtu: int = 1500,
-                progress: Callable[[int, int], None] | None = None) -> RecordResult:
-    """Drive the sensor along the scenario's track and write the run's files into ``out_dir``:
-    ``lidar.pcap`` (lidar to 7502, LEGACY IMU at 100 Hz to 7503, fragmented at ``mtu``),
-    ``metadata.json``, ``ground_truth.json`` (with ``returns`` per stem), ``visibility.json``
-    and ``sensor_poses.csv`` (time_ns, x, y, z, qw, qx, qy, qz: the sensor frame in the world
-    at every column time stamp)."""
+class LidarRun:
+    """One sensor driven along a scenario's track; yields each frame's datagrams in send
+    order (lidar packets at their last column's time stamp, IMU at 100 Hz)."""
+
+    def __init__(self, scn: Scenario, *, mode: str = "1024x10",
+                 profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
+                 backend: str = "embree", model: ReturnModel | None = None,
+                 max_frames: int | None = None, udp_dest: str = "127.0.0.1",
+                 udp_port_lidar: int = 7502, udp_port_imu: int = 7503) -> None:
+        self.forest: Forest = generate_forest(scn, seed)
+        self.scene = Scene.from_forest(self.forest, backend=backend)
+        self.track = StraightTrack.from_config(scn.track, self.forest.terrain)
+        init_id = (self.forest.seed * 2654435761 + 12345) % (1 << 24) or 1
+        self.meta: SensorMetadata = os0_64_metadata(
+            mode, profile, init_id=init_id, udp_dest=udp_dest, udp_port_lidar=udp_port_lidar,
+            udp_port_imu=udp_port_imu)
+        self.emu = Os0Emulator(self.meta, self.scene, self.track, model, seed=self.forest.seed,
+                               start_ns=self.track.t0_ns)
+        n = max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
+        self.frames = min(n, max_frames) if max_frames is not None else n
+        self.backend = backend
+        self.counts = np.zeros(len(self.forest.stems) + 1, dtype=np.int64)
+        self.packets = 0
+        self._poses = io.StringIO()
+        self._pw = csv.writer(self._poses, lineterminator="\n")
+        self._pw.writerow(["time_ns", "x", "y", "z", "qw", "qx", "qy", "qz"])
+
+    def datagrams(self) -> Iterator[tuple[FrameResult, list[Datagram]]]:
+        fmt = self.meta.packet_format
+        crc = _crc_rows()
+        cpp = fmt.columns_per_packet
+        next_imu = self.track.t0_ns
+        lp, ip = self.meta.udp_port_lidar, self.meta.udp_port_imu
+        for k in range(self.frames):
+            fr = self.emu.frame(k)
+            arr = encode_lidar_frame(fmt, fr.fields, fr.timestamps_ns, frame_id=k & 0xFFFF,
+                                     init_id=self.meta.init_id, prod_sn=self.meta.prod_sn,
+                                     crc_rows=crc)
+            out = []
+            for i, t_send in enumerate(fr.timestamps_ns[cpp - 1::cpp].tolist()):
+                while next_imu <= t_send:
+                    out.append(Datagram(next_imu, ip, encode_imu_packet(ImuPacket(
+                        next_imu, next_imu, next_imu, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0)))))
+                    next_imu += IMU_PERIOD_NS
+                out.append(Datagram(t_send, lp, arr[i].tobytes()))
+            self.packets += arr.shape[0]
+            hit = fr.stem_id[fr.stem_id >= 0]
+            self.counts += np.bincount(hit, minlength=len(self.counts))[: len(self.counts)]
+            q = quaternions(fr.rotations)
+            p = fr.positions + self.forest.origin
+            self._pw.writerows(
+                [int(t), f"{a:.6f}", f"{b:.6f}", f"{c:.6f}", f"{w:.9f}", f"{x:.9f}",
+                 f"{y:.9f}", f"{z:.9f}"]
+                for t, (a, b, c), (w, x, y, z) in zip(fr.timestamps_ns.tolist(), p.tolist(),
+                                                      q.tolist(), strict=True))
+            yield fr, out
+
+    def write_sidecars(self, out: Path) -> dict[str, Any]:
+        """metadata.json, ground_truth.json (with returns), visibility.json, sensor_poses.csv."""
+        out.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(out / "sensor_poses.csv", self._poses.getvalue().encode())
+        write_bytes_atomic(out / "metadata.json", self.meta.dumps().encode())
+        gt = ground_truth(self.forest)
+        for o in gt["objects"]:
+            o["returns"] = int(self.counts[o["id"]])
+        write_json_atomic(out / "ground_truth.json", gt)
+        c = self.counts
+        vis: dict[str, Any] = {
+            "frames": self.frames, "mode": self.meta.mode, "profile": self.meta.profile,
+            "backend": self.backend, "terrain_returns": int(c[0]),
+            "stem_returns": int(c[1:].sum()), "stems_seen": int(np.count_nonzero(c[1:])),
+            "stems_total": len(self.forest.stems),
+            "returns_per_stem": {str(i): int(v) for i, v in enumerate(c) if i and v},
+        }
+        write_json_atomic(out / "visibility.json", vis)
+        return vis
+
+    def result(self, out: Path | None, **kw: Any) -> RecordResult:
+        return RecordResult(out, self.frames, self.packets, int(self.counts.sum()),
+                            int(np.count_nonzero(self.counts[1:])), self.backend, **kw)
+
+
+def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
+                sensor_ip: str = "127.0.0.1",
+                progress: Callable[[int, int], None] | None = None,
+                **run_kw: Any) -> RecordResult:
+    """Drive the sensor along the scenario's track and write ``out_dir``: ``lidar.pcap``
+    (lidar to 7502, LEGACY IMU at 100 Hz to 7503, fragmented at ``mtu``), ``metadata.json``,
+    ``ground_truth.json`` (with ``returns`` per stem), ``visibility.json`` and
+    ``sensor_poses.csv`` (time_ns, x, y, z, qw, qx, qy, qz: the sensor frame in the world at
+    every column time stamp). Keyword arguments go to :class:`LidarRun`."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    forest = generate_forest(scn, seed)
-    scene = Scene.from_forest(forest, backend=backend)
-    track = StraightTrack.from_config(scn.track, forest.terrain)
-    init_id = (forest.seed * 2654435761 + 12345) % (1 << 24) or 1
-    meta: SensorMetadata = os0_64_metadata(mode, profile, init_id=init_id)
-    emu = Os0Emulator(meta, scene, track, model, seed=forest.seed, start_ns=track.t0_ns)
-    n_frames = max(1, math.ceil(track.duration_ns / emu.period_ns))
-    if max_frames is not None:
-        n_frames = min(n_frames, max_frames)
-    fmt = meta.packet_format
-    crc = _crc_rows()
+    run = LidarRun(scn, **run_kw)
     writer = PcapWriter(mtu=mtu)
-    origin = forest.origin
-    counts = np.zeros(len(forest.stems) + 1, dtype=np.int64)
-    packets = 0
-    cpp = fmt.columns_per_packet
-    poses = io.StringIO()
-    pw = csv.writer(poses, lineterminator="\n")
-    pw.writerow(["time_ns", "x", "y", "z", "qw", "qx", "qy", "qz"])
-    imu_period = 10_000_000
-    next_imu = track.t0_ns
-    buf = np.empty((fmt.packets_per_frame, fmt.packet_bytes), np.uint8)
+    dest = run.meta.udp_dest
     with atomic_path(out / "lidar.pcap") as tmp, open(tmp, "wb") as fh:
         fh.write(writer.header())
-        for k in range(n_frames):
-            fr = emu.frame(k)
-            arr = encode_lidar_frame(fmt, fr.fields, fr.timestamps_ns, frame_id=k & 0xFFFF,
-                                     init_id=meta.init_id, prod_sn=meta.prod_sn,
-                                     crc_rows=crc, out=buf)
-            end_ts = fr.timestamps_ns[cpp - 1::cpp]
-            recs = []
-            for i in range(arr.shape[0]):
-                t_send = int(end_ts[i])
-                while next_imu <= t_send:
-                    imu = encode_imu_packet(ImuPacket(next_imu, next_imu, next_imu,
-                                                      (0.0, 0.0, 1.0), (0.0, 0.0, 0.0)))
-                    recs.append(writer.records(UdpDatagram(next_imu, SENSOR_IP, meta.udp_dest,
-                                                           meta.udp_port_imu,
-                                                           meta.udp_port_imu, imu)))
-                    next_imu += imu_period
-                recs.append(writer.records(UdpDatagram(t_send, SENSOR_IP, meta.udp_dest,
-                                                       meta.udp_port_lidar,
-                                                       meta.udp_port_lidar, arr[i].tobytes())))
-            fh.write(b"".join(recs))
-            packets += arr.shape[0]
-            hit = fr.stem_id[fr.stem_id >= 0]
-            counts += np.bincount(hit, minlength=len(counts))[: len(counts)]
-            q = quaternions(fr.rotations)
-            p = fr.positions + origin
-            for j in range(len(fr.timestamps_ns)):
-                pw.writerow([int(fr.timestamps_ns[j]), f"{p[j, 0]:.6f}", f"{p[j, 1]:.6f}",
-                             f"{p[j, 2]:.6f}", f"{q[j, 0]:.9f}", f"{q[j, 1]:.9f}",
-                             f"{q[j, 2]:.9f}", f"{q[j, 3]:.9f}"])
+        for k, (_fr, dgs) in enumerate(run.datagrams()):
+            fh.write(b"".join(writer.records(UdpDatagram(d.t_ns, sensor_ip, dest, d.port,
+                                                         d.port, bytes(d.payload))) for d in dgs))
             if progress:
-                progress(k + 1, n_frames)
-    write_bytes_atomic(out / "sensor_poses.csv", poses.getvalue().encode())
-    write_bytes_atomic(out / "metadata.json", meta.dumps().encode())
-    gt = ground_truth(forest)
-    for o in gt["objects"]:
-        o["returns"] = int(counts[o["id"]])
-    write_json_atomic(out / "ground_truth.json", gt)
-    vis: dict[str, Any] = {
-        "frames": n_frames, "mode": mode, "profile": profile, "backend": backend,
-        "terrain_returns": int(counts[0]),
-        "stem_returns": int(counts[1:].sum()),
-        "stems_seen": int(np.count_nonzero(counts[1:])),
-        "stems_total": len(forest.stems),
-        "returns_per_stem": {str(i): int(c) for i, c in enumerate(counts) if i and c},
-    }
-    write_json_atomic(out / "visibility.json", vis)
-    return RecordResult(out, n_frames, packets, int(counts.sum()), vis["stems_seen"], backend)
+                progress(k + 1, run.frames)
+    run.write_sidecars(out)
+    return run.result(out)
+
+
+def _produce(run: LidarRun, q: Any, stop: Any) -> None:
+    """Producer process: frames as (t_ns, port, payload) lists, then the run's bookkeeping."""
+    try:
+        for _fr, dgs in run.datagrams():
+            if stop.is_set():
+                break
+            # One blob per frame: the pipe carries a few large objects, cheap to unpickle.
+            meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs], dtype=np.int64)
+            q.put(("frame", (meta, b"".join(d.payload for d in dgs))))
+        q.put(("done", (run.counts, run._poses.getvalue(), run.packets)))
+    except BaseException as err:  # reported by the sending side
+        q.put(("error", f"{type(err).__name__}: {err}"))
+
+
+def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "127.0.0.1",
+                 speed: float = 1.0, record: str | Path | None = None,
+                 stop: threading.Event | None = None,
+                 progress: Callable[[int, int], None] | None = None,
+                 **run_kw: Any) -> RecordResult:
+    """Send the run live over UDP from ``sensor_ip`` to ``dest``, paced from the simulation
+    clock (``speed`` 1.0 = real time, 0 = as fast as possible).
+
+    Frames are ray-cast and encoded ahead in a separate process (a thread would share the
+    interpreter lock with the pacing loop and make it late by milliseconds); this process
+    only waits and sends. With ``record``, the sidecar files and an exact pcap of what was
+    sent go there. Stops at the end of the track or when ``stop`` is set.
+    """
+    run = LidarRun(scn, udp_dest=dest, **run_kw)
+    ctx = mp.get_context("fork")
+    q = ctx.Queue(maxsize=4)
+    child_stop = ctx.Event()
+    stop = stop or threading.Event()
+    child = ctx.Process(target=_produce, args=(run, q, child_stop), name="lidar-frames",
+                        daemon=True)
+    child.start()
+    # A receiver thread takes frames off the pipe as soon as the producer writes them (it
+    # waits on I/O, not on the interpreter lock), so the pacing loop never blocks on a
+    # half-written frame.
+    local: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=4)
+
+    def receive() -> None:
+        while True:
+            try:
+                item = q.get(timeout=0.5)
+            except queue.Empty:
+                if child_stop.is_set() or not child.is_alive():
+                    local.put(("error", "the frame producer died"))
+                    return
+                continue
+            local.put(item)
+            if item[0] != "frame":
+                return
+
+    receiver = threading.Thread(target=receive, name="lidar-receive", daemon=True)
+    receiver.start()
+    # Start sending only with frames in hand, so the first ones are not late.
+    while receiver.is_alive() and local.qsize() < 3 and not stop.is_set():
+        stop.wait(0.01)
+    writer = PcapWriter()
+    out = Path(record) if record is not None else None
+    done = 0
+    error: str | None = None
+    with contextlib.ExitStack() as stack:
+        fh = None
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            fh = stack.enter_context(open(stack.enter_context(atomic_path(out / "lidar.pcap")),
+                                          "wb"))
+            fh.write(writer.header())
+        sender = stack.enter_context(PacedSender(sensor_ip, dest, speed=speed))
+        while not stop.is_set():
+            try:
+                kind, body = local.get(timeout=1.0)
+            except queue.Empty:
+                continue
+            if kind == "error":
+                error = body
+                break
+            if kind == "done":
+                run.counts, poses, run.packets = body
+                run._poses = io.StringIO(poses)
+                run._poses.seek(0, io.SEEK_END)
+                break
+            meta, blob = body
+            ends = np.cumsum(meta[:, 2]).tolist()
+            starts = [0, *ends[:-1]]
+            view = memoryview(blob)
+            dgs = [Datagram(t, port, view[a:b]) for (t, port, _n), a, b in
+                   zip(meta.tolist(), starts, ends, strict=True)]
+            sender.send(dgs)
+            if fh is not None:  # exactly what was sent, at its simulation time
+                fh.write(b"".join(writer.records(UdpDatagram(
+                    d.t_ns, sensor_ip, dest, d.port, d.port, bytes(d.payload))) for d in dgs))
+            done += 1
+            if progress:
+                progress(done, run.frames)
+        stats = sender.stats
+        child_stop.set()
+        with contextlib.suppress(Exception):
+            while True:
+                local.get_nowait()
+        with contextlib.suppress(Exception):
+            while True:
+                q.get_nowait()
+        child.join(timeout=5.0)
+        if child.is_alive():
+            child.terminate()
+    if error is not None:
+        raise RuntimeError(f"lidar frame producer failed: {error}")
+    if out is not None:
+        run.frames = done
+        run.write_sidecars(out)
+    return run.result(out, pacing_us=stats.pacing_us(), refused=stats.refused)

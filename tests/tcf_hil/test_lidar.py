@@ -148,3 +148,61 @@ def test_lidar_pcap_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
         assert (tmp_path / name).stat().st_size > 0
     info = core.SensorInfo((tmp_path / "metadata.json").read_text())
     assert info.prod_line == "OS-0-64"
+
+
+def _free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_live_stream_read_by_ouster_sdk(tmp_path: Path) -> None:
+    """Real sockets on 127.0.0.1: the SDK's live source, given our metadata, receives every
+    frame complete and in order, and what we recorded of the stream equals what it got."""
+    import threading
+
+    from ouster.sdk import sensor
+
+    from tcf_hil.lidar import LidarRun, stream_lidar
+
+    lp, ip = _free_udp_port(), _free_udp_port()
+    scn = load_scenario("forest-ii")
+    meta = LidarRun(scn, mode="512x10", max_frames=1, udp_port_lidar=lp,
+                    udp_port_imu=ip).meta
+    src = sensor.SensorFrameSetSource("127.0.0.1", sensor_info=[core.SensorInfo(meta.dumps())],
+                                      timeout=5.0)
+    result = {}
+
+    def go() -> None:
+        result["r"] = stream_lidar(scn, mode="512x10", max_frames=10, udp_port_lidar=lp,
+                                   udp_port_imu=ip, record=tmp_path)
+
+    t = threading.Thread(target=go)
+    t.start()
+    got = []
+    for fs in src:
+        fr = fs[0]
+        got.append((fr.frame_id, fr.complete(), fr.field("RANGE").copy()))
+        if len(got) == 8:
+            break
+    src.close()
+    t.join(timeout=30)
+    assert [g[0] for g in got] == list(range(8)) and all(g[1] for g in got)
+    r = result["r"]
+    assert r.refused == 0 and r.frames == 10
+    rec = opcap.PcapFrameSetSource(str(tmp_path / "lidar.pcap"),
+                                   meta=[str(tmp_path / "metadata.json")])
+    for (fid, _, rng), fs in zip(got, rec, strict=False):
+        assert fs[0].frame_id == fid
+        np.testing.assert_array_equal(fs[0].field("RANGE"), rng)
+
+
+def test_refusing_destination_does_not_stop_the_stream() -> None:
+    """Nobody listens on the ports: the kernel refuses (ICMP port unreachable), we go on."""
+    from tcf_hil.lidar import stream_lidar
+
+    r = stream_lidar(load_scenario("forest-ii"), mode="512x20", max_frames=6, speed=0.0,
+                     udp_port_lidar=_free_udp_port(), udp_port_imu=_free_udp_port())
+    assert r.frames == 6 and r.packets == 6 * 32
