@@ -383,21 +383,49 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
               help="Stop after this many frames (default: the whole track).")
 @click.option("--record", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also write what was sent (pcap) and the sidecar files here.")
+@click.option("--http-port", type=click.IntRange(0, 65535), default=None,
+              help="Serve the sensor's HTTP API on this port (ouster-sdk and ouster-cli "
+                   "need 80, which needs root); the API stays up until Ctrl-C.")
+@click.option("--http-address", default=None,
+              help="Address of the HTTP API (default: the sensor address).")
 def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
                  sensor_address: str, dest: str, lidar_port: int, imu_port: int, speed: float,
-                 frames: int | None, record: Path | None) -> None:
+                 frames: int | None, record: Path | None, http_port: int | None,
+                 http_address: str | None) -> None:
     """Stream the emulated OS0-64 live over UDP until the track ends or Ctrl-C.
 
-    Read it with ouster-sdk given the metadata (the HTTP API comes next): write it first with
-    --record DIR (metadata.json appears at the end) or take it from `tcf-hil lidar pcap`.
+    \b
+    With --http-port 80 (as root) stock clients connect as to a real sensor:
+      ouster-cli source 127.0.0.1 slice 0:5 save x.pcap
+    Without the HTTP API, give ouster-sdk the metadata instead (written by --record DIR or
+    by `tcf-hil lidar pcap`):
+      sensor.SensorFrameSetSource("127.0.0.1", sensor_info=[core.SensorInfo(json_text)])
     """
     import threading
 
-    from tcf_hil.lidar import stream_lidar
+    from tcf_hil.lidar import serve_sensor, stream_lidar
     from tcf_hil.scenario import load_scenario
 
     scn = load_scenario(scenario_name)
     stop = threading.Event()
+    if http_port is not None:
+        host = http_address or sensor_address
+        console.print(f"sensor {scn.name} {mode} {profile}: HTTP API on {host}:{http_port}, "
+                      f"UDP from {sensor_address} (Ctrl-C stops)")
+        try:
+            serve_sensor(scn, http_host=host, http_port=http_port, sensor_ip=sensor_address,
+                         speed=speed, stop=stop, mode=mode, profile=profile, seed=seed,
+                         max_frames=frames, udp_dest=dest, udp_port_lidar=lidar_port,
+                         udp_port_imu=imu_port,
+                         on_result=lambda r: console.print(
+                             f"stream ended: {r.packets} lidar packets in {r.frames} frames"))
+        except KeyboardInterrupt:
+            stop.set()
+        except OSError as err:
+            raise click.ClickException(f"cannot serve {host}:{http_port}: {err.strerror} "
+                                       "(port 80 needs root; or pass the metadata file to "
+                                       "the client instead)") from err
+        return
     console.print(f"streaming {scn.name} {mode} {profile} from {sensor_address} to "
                   f"{dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
     try:

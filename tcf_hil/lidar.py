@@ -19,7 +19,14 @@ from typing import Any
 
 import numpy as np
 
-from emulators.lidar import Datagram, FrameResult, Os0Emulator, PacedSender, ReturnModel
+from emulators.lidar import (
+    Datagram,
+    FrameResult,
+    Os0Emulator,
+    PacedSender,
+    ReturnModel,
+    SensorApi,
+)
 from protocols.ouster import (
     ImuPacket,
     SensorMetadata,
@@ -68,14 +75,16 @@ class LidarRun:
                  profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
                  backend: str = "embree", model: ReturnModel | None = None,
                  max_frames: int | None = None, udp_dest: str = "127.0.0.1",
-                 udp_port_lidar: int = 7502, udp_port_imu: int = 7503) -> None:
+                 udp_port_lidar: int = 7502, udp_port_imu: int = 7503,
+                 meta: SensorMetadata | None = None) -> None:
         self.forest: Forest = generate_forest(scn, seed)
         self.scene = Scene.from_forest(self.forest, backend=backend)
         self.track = StraightTrack.from_config(scn.track, self.forest.terrain)
-        init_id = (self.forest.seed * 2654435761 + 12345) % (1 << 24) or 1
-        self.meta: SensorMetadata = os0_64_metadata(
-            mode, profile, init_id=init_id, udp_dest=udp_dest, udp_port_lidar=udp_port_lidar,
-            udp_port_imu=udp_port_imu)
+        if meta is None:
+            init_id = (self.forest.seed * 2654435761 + 12345) % (1 << 24) or 1
+            meta = os0_64_metadata(mode, profile, init_id=init_id, udp_dest=udp_dest,
+                                   udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
+        self.meta: SensorMetadata = meta
         self.emu = Os0Emulator(self.meta, self.scene, self.track, model, seed=self.forest.seed,
                                start_ns=self.track.t0_ns)
         n = max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
@@ -194,7 +203,9 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     only waits and sends. With ``record``, the sidecar files and an exact pcap of what was
     sent go there. Stops at the end of the track or when ``stop`` is set.
     """
-    run = LidarRun(scn, udp_dest=dest, **run_kw)
+    run_kw.setdefault("udp_dest", dest)
+    run = LidarRun(scn, **run_kw)
+    dest = run.meta.udp_dest
     ctx = mp.get_context("fork")
     q = ctx.Queue(maxsize=4)
     child_stop = ctx.Event()
@@ -280,3 +291,52 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
         run.frames = done
         run.write_sidecars(out)
     return run.result(out, pacing_us=stats.pacing_us(), refused=stats.refused)
+
+
+def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int = 80,
+                 sensor_ip: str = "127.0.0.1", speed: float = 1.0,
+                 stop: threading.Event | None = None, ready: threading.Event | None = None,
+                 on_result: Callable[[RecordResult], None] | None = None,
+                 **run_kw: Any) -> SensorApi:
+    """The emulated sensor as a client meets a real one: the HTTP API on ``http_host``
+    (port 80 for ouster-sdk and ouster-cli) and the UDP stream to the configured
+    ``udp_dest``. A configuration change with ``reinit`` restarts the stream with the new
+    metadata (new init_id, frame_id from 0), as the real sensor does. Runs until the track
+    ends and ``stop`` is set; returns the (closed) API object for inspection."""
+    stop = stop or threading.Event()
+    probe = LidarRun(scn, **{**run_kw, "max_frames": 1})
+    reinit = threading.Event()
+    current = [probe.meta]
+    inner = [threading.Event()]
+
+    def on_reinit(meta: SensorMetadata) -> None:
+        current[0] = meta
+        reinit.set()
+        inner[0].set()
+
+    api = SensorApi(probe.meta, http_host, http_port, on_reinit=on_reinit).start()
+
+    def relay() -> None:
+        stop.wait()
+        inner[0].set()
+
+    threading.Thread(target=relay, name="sensor-stop", daemon=True).start()
+    if ready is not None:
+        ready.set()
+    kw = {k: v for k, v in run_kw.items()
+          if k not in ("mode", "profile", "udp_dest", "udp_port_lidar", "udp_port_imu")}
+    try:
+        while not stop.is_set():
+            reinit.clear()
+            inner[0] = threading.Event()
+            if stop.is_set():
+                break
+            r = stream_lidar(scn, sensor_ip=sensor_ip, speed=speed, stop=inner[0],
+                             meta=current[0], **kw)
+            if on_result is not None:
+                on_result(r)
+            if not reinit.is_set():
+                stop.wait()  # the track ended: keep answering HTTP until told to stop
+    finally:
+        api.close()
+    return api

@@ -1,0 +1,186 @@
+"""The sensor's HTTP API (the part ouster-sdk and ouster-cli call), on a configurable address.
+
+Endpoints (FW 3.1 style, shared/research/ouster-wire.md §5.3):
+
+* ``GET /api/v1/sensor/metadata`` and ``/api/v1/sensor/metadata/<section>``
+* ``GET /api/v1/sensor/config[?staging=true]``; ``POST /api/v1/sensor/config?staging=..
+  &reinit=..&persist=..`` merges a JSON object into the staged config (``"udp_dest": "@auto"``
+  becomes the caller's address); ``reinit=true`` makes the staged config active and draws a
+  new init_id, as a real sensor does, and tells the emulator through ``on_reinit``
+* ``GET|PUT|DELETE /api/v1/user/data``; ``GET /api/v1/system/firmware``
+
+Unknown paths answer 404, malformed JSON 400, bodies over 64 KiB 413. No path ever touches
+the filesystem. Binds 127.0.0.1 unless told otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Callable
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+from protocols.ouster import MetadataError, SensorMetadata
+
+__all__ = ["SensorApi"]
+
+MAX_BODY = 64 * 1024
+_CONFIG_KEYS = {"lidar_mode": "mode", "udp_profile_lidar": "profile",
+                "udp_dest": "udp_dest", "udp_port_lidar": "udp_port_lidar",
+                "udp_port_imu": "udp_port_imu", "columns_per_packet": "columns_per_packet"}
+
+
+def _truthy(v: list[str] | None) -> bool:
+    return bool(v) and v[0].lower() in ("true", "1", "yes")  # type: ignore[index]
+
+
+class SensorApi:
+    """Serves the metadata of the running emulator and takes configuration changes.
+
+    Args:
+        meta: the active metadata (its init_id must equal the packets').
+        host, port: where to listen (port 0 picks a free one; ouster-sdk needs 80).
+        on_reinit: called with the new active metadata after ``reinit=true``.
+    """
+
+    def __init__(self, meta: SensorMetadata, host: str = "127.0.0.1", port: int = 80,
+                 on_reinit: Callable[[SensorMetadata], None] | None = None) -> None:
+        self._lock = threading.Lock()
+        self.meta = meta
+        self.staged: dict[str, Any] = dict(meta.to_json()["config_params"])
+        self.user_data: Any = ""
+        self.on_reinit = on_reinit
+        self.requests: list[str] = []
+        api = self
+
+        class Handler(BaseHTTPRequestHandler):
+            server_version = "tcf-hil-os0"
+            protocol_version = "HTTP/1.1"
+
+            def log_message(self, format: str, *args: Any) -> None:
+                return
+
+            def _send(self, status: int, body: Any) -> None:
+                data = json.dumps(body).encode()
+                self.send_response(status)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(data)))
+                self.end_headers()
+                self.wfile.write(data)
+
+            def _body(self) -> Any:
+                n = int(self.headers.get("Content-Length") or 0)
+                if n > MAX_BODY:
+                    raise _HttpError(HTTPStatus.REQUEST_ENTITY_TOO_LARGE,
+                                     f"body of {n} bytes; at most {MAX_BODY}")
+                raw = self.rfile.read(n) if n else b""
+                if not raw.strip():
+                    return None
+                try:
+                    return json.loads(raw)
+                except (UnicodeDecodeError, json.JSONDecodeError) as err:
+                    raise _HttpError(HTTPStatus.BAD_REQUEST, f"malformed JSON: {err}") from err
+
+            def _handle(self, method: str) -> None:
+                url = urlsplit(self.path)
+                api.requests.append(f"{method} {self.path}")
+                try:
+                    status, body = api.route(method, url.path.rstrip("/"), parse_qs(url.query),
+                                             self._body if method in ("POST", "PUT") else None,
+                                             self.client_address[0])
+                except _HttpError as err:
+                    status, body = err.status, {"error": err.message}
+                self._send(status, body)
+
+            def do_GET(self) -> None:
+                self._handle("GET")
+
+            def do_POST(self) -> None:
+                self._handle("POST")
+
+            def do_PUT(self) -> None:
+                self._handle("PUT")
+
+            def do_DELETE(self) -> None:
+                self._handle("DELETE")
+
+        self.server = ThreadingHTTPServer((host, port), Handler)
+        self.server.daemon_threads = True
+        self.address = self.server.server_address
+        self._thread = threading.Thread(target=self.server.serve_forever, name="sensor-http",
+                                        daemon=True)
+
+    def start(self) -> SensorApi:
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+    def __enter__(self) -> SensorApi:
+        return self.start()
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    # The routing is plain data in, data out (tested without sockets too).
+    def route(self, method: str, path: str, query: dict[str, list[str]],
+              body: Callable[[], Any] | None, client_ip: str) -> tuple[int, Any]:
+        with self._lock:
+            doc = self.meta.to_json()
+            if method == "GET" and path == "/api/v1/sensor/metadata":
+                return 200, doc
+            if method == "GET" and path.startswith("/api/v1/sensor/metadata/"):
+                section = path.rsplit("/", 1)[1]
+                if section in doc:
+                    return 200, doc[section]
+                raise _HttpError(HTTPStatus.NOT_FOUND, f"no metadata section {section!r}")
+            if path == "/api/v1/sensor/config":
+                if method == "GET":
+                    return 200, (self.staged if _truthy(query.get("staging"))
+                                 else doc["config_params"])
+                if method == "POST":
+                    return self._post_config(query, body() if body else None, client_ip)
+            if path == "/api/v1/user/data":
+                if method == "GET":
+                    return 200, self.user_data
+                if method == "PUT":
+                    self.user_data = body() if body else ""
+                    return 200, ""
+                if method == "DELETE":
+                    self.user_data = ""
+                    return 200, ""
+            if method == "GET" and path == "/api/v1/system/firmware":
+                return 200, {"fw": self.meta.image_rev}
+        raise _HttpError(HTTPStatus.NOT_FOUND, f"{method} {path} is not served here")
+
+    def _post_config(self, query: dict[str, list[str]], change: Any,
+                     client_ip: str) -> tuple[int, Any]:
+        if change is not None and not isinstance(change, dict):
+            raise _HttpError(HTTPStatus.BAD_REQUEST, "config must be a JSON object")
+        for k, v in (change or {}).items():
+            self.staged[k] = client_ip if (k == "udp_dest" and v == "@auto") else v
+        if _truthy(query.get("reinit")):
+            kw = {attr: self.staged[key] for key, attr in _CONFIG_KEYS.items()
+                  if key in self.staged}
+            kw["init_id"] = (self.meta.init_id * 1103515245 + 12345) % (1 << 24) or 1
+            try:
+                new = self.meta.with_changes(**kw)
+            except (MetadataError, TypeError, ValueError) as err:
+                raise _HttpError(HTTPStatus.BAD_REQUEST, f"config rejected: {err}") from err
+            self.meta = new
+            self.staged = dict(new.to_json()["config_params"])
+            if self.on_reinit is not None:
+                self.on_reinit(new)
+        return 200, {}
+
+
+class _HttpError(Exception):
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = int(status)
+        self.message = message

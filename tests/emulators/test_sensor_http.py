@@ -1,0 +1,140 @@
+"""The sensor's HTTP API over real sockets on 127.0.0.1, and stock ouster-cli against the
+whole emulated sensor (HTTP on port 80 + UDP), run as its own process."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from emulators.lidar import SensorApi
+from protocols.ouster import SensorMetadata, os0_64_metadata
+
+
+def _call(api: SensorApi, method: str, path: str, body: bytes | None = None
+          ) -> tuple[int, Any]:
+    host, port = api.address[:2]
+    req = urllib.request.Request(f"http://{host}:{port}{path}", data=body, method=method,
+                                 headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=5) as r:
+            return r.status, json.loads(r.read() or b"null")
+    except urllib.error.HTTPError as err:
+        return err.code, json.loads(err.read() or b"null")
+
+
+@pytest.fixture
+def api() -> Any:
+    seen: list[SensorMetadata] = []
+    with SensorApi(os0_64_metadata("1024x10"), "127.0.0.1", 0, on_reinit=seen.append) as a:
+        a.seen = seen  # type: ignore[attr-defined]
+        yield a
+
+
+def test_metadata_and_sections(api: SensorApi) -> None:
+    code, doc = _call(api, "GET", "/api/v1/sensor/metadata")
+    assert code == 200 and doc == api.meta.to_json()
+    for section in doc:
+        assert _call(api, "GET", f"/api/v1/sensor/metadata/{section}") == (200, doc[section])
+    assert _call(api, "GET", "/api/v1/system/firmware")[1] == {"fw": api.meta.image_rev}
+    assert _call(api, "GET", "/api/v1/sensor/metadata/nope")[0] == 404
+    assert _call(api, "GET", "/api/v1/../../etc/passwd")[0] == 404
+    assert _call(api, "GET", "/api/v1/sensor/cmd/get_config_param")[0] == 404
+
+
+def test_config_staging_auto_dest_and_reinit(api: SensorApi) -> None:
+    old = api.meta.init_id
+    code, _ = _call(api, "POST", "/api/v1/sensor/config?reinit=False&persist=False",
+                    b'{"udp_dest": "@auto"}')
+    assert code == 200
+    assert _call(api, "GET", "/api/v1/sensor/config?staging=true")[1]["udp_dest"] == "127.0.0.1"
+    assert api.seen == []  # type: ignore[attr-defined]
+    _call(api, "POST", "/api/v1/sensor/config?staging=true&reinit=false",
+          b'{"lidar_mode": "2048x10", "udp_profile_lidar": "RNG15_RFL8_NIR8"}')
+    assert _call(api, "GET", "/api/v1/sensor/config")[1]["lidar_mode"] == "1024x10"  # active
+    code, _ = _call(api, "POST", "/api/v1/sensor/config?staging=true&reinit=true", b"{}")
+    assert code == 200
+    new = api.seen[-1]  # type: ignore[attr-defined]
+    assert (new.mode, new.profile) == ("2048x10", "RNG15_RFL8_NIR8")
+    assert new.init_id != old and api.meta == new
+    assert new.pixel_shift_by_row[0] == 2 * os0_64_metadata().pixel_shift_by_row[0]
+    md = _call(api, "GET", "/api/v1/sensor/metadata")[1]
+    assert md["sensor_info"]["initialization_id"] == new.init_id
+    assert md["lidar_data_format"]["udp_profile_lidar"] == "RNG15_RFL8_NIR8"
+
+
+def test_bad_requests(api: SensorApi) -> None:
+    assert _call(api, "POST", "/api/v1/sensor/config", b"{not json")[0] == 400
+    assert _call(api, "POST", "/api/v1/sensor/config", b"[1, 2]")[0] == 400
+    code, body = _call(api, "POST", "/api/v1/sensor/config?reinit=true",
+                       b'{"lidar_mode": "999x3"}')
+    assert code == 400 and "lidar_mode" in body["error"]
+    assert api.meta.mode == "1024x10"
+    assert _call(api, "POST", "/api/v1/sensor/config", b" " * (70 * 1024))[0] == 413
+    assert _call(api, "PUT", "/api/v1/user/data", b'"hello"')[0] == 200
+    assert _call(api, "GET", "/api/v1/user/data") == (200, "hello")
+    assert _call(api, "DELETE", "/api/v1/user/data")[0] == 200
+    assert _call(api, "GET", "/api/v1/user/data") == (200, "")
+
+
+def _port_80_free() -> str | None:
+    try:
+        with socket.socket() as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind(("127.0.0.1", 80))
+    except OSError as err:
+        return f"cannot bind 127.0.0.1:80 here ({err.strerror}); the stock clients need it"
+    return None
+
+
+def test_stock_ouster_cli_records_from_the_emulated_sensor(tmp_path: Path) -> None:
+    why = _port_80_free()
+    if why:
+        pytest.skip(why)
+    cli = shutil.which("ouster-cli")
+    if cli is None:
+        pytest.skip("ouster-cli is not on PATH")
+    exe = shutil.which("tcf-hil")
+    cmd = [exe] if exe else [sys.executable, "-m", "tcf_hil.cli"]
+    sensor = subprocess.Popen([*cmd, "lidar", "stream", "forest-ii", "--mode", "512x10",
+                               "--http-port", "80", "--frames", "400"],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        for _ in range(100):
+            try:
+                urllib.request.urlopen("http://127.0.0.1/api/v1/system/firmware", timeout=1)
+                break
+            except OSError:
+                time.sleep(0.2)
+        out = tmp_path / "x.pcap"
+        proc = subprocess.run([cli, "source", "127.0.0.1", "slice", "0:5", "save", str(out)],
+                              cwd=tmp_path, capture_output=True, text=True, timeout=90)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+    finally:
+        sensor.send_signal(signal.SIGINT)
+        try:
+            sensor.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            sensor.kill()
+    from ouster.sdk import pcap as opcap
+
+    meta = next(tmp_path.glob("x*.json"))
+    frames = [fs[0] for fs in opcap.PcapFrameSetSource(str(out), meta=[str(meta)])]
+    assert len(frames) >= 4
+    ids = [f.frame_id for f in frames]
+    assert ids == sorted(ids) and len(set(ids)) == len(ids)
+    assert all(int(np.count_nonzero(f.field("RANGE"))) > 10_000 for f in frames[1:])
+    assert json.loads(meta.read_text())["sensor_info"]["prod_line"] == "OS-0-64"
+    assert os.path.getsize(out) > 500_000
