@@ -307,18 +307,26 @@ def score(gt: Path, observed: Path, match_method: str, max_distance: float,
 
 @cli.group(cls=_Group)
 def lidar() -> None:
-    """The emulated Ouster OS0-64 (offline recording; live streaming comes next)."""
+    """The emulated Ouster OS0-64: offline recording to pcap, or live on the wire."""
+
+
+def _sensor_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    """--mode, --profile and --seed, shared by the lidar commands."""
+    f = click.option("--seed", type=click.IntRange(min=0), default=None, help="Random seed.")(f)
+    f = click.option("--profile", type=click.Choice(["RNG19_RFL8_SIG16_NIR16", "LEGACY",
+                                                     "RNG19_RFL8_SIG16_NIR16_DUAL",
+                                                     "RNG15_RFL8_NIR8"]),
+                     default="RNG19_RFL8_SIG16_NIR16", show_default=True,
+                     help="UDP lidar profile.")(f)
+    return click.option("--mode", type=click.Choice(["512x10", "1024x10", "2048x10", "512x20",
+                                                     "1024x20"]),
+                        default="1024x10", show_default=True,
+                        help="Columns x frames per second.")(f)
 
 
 @lidar.command("pcap")
 @click.argument("scenario_name", metavar="SCENARIO")
-@click.option("--mode", type=click.Choice(["512x10", "1024x10", "2048x10", "512x20", "1024x20"]),
-              default="1024x10", show_default=True, help="Columns x frames per second.")
-@click.option("--profile", type=click.Choice(["RNG19_RFL8_SIG16_NIR16", "LEGACY",
-                                              "RNG19_RFL8_SIG16_NIR16_DUAL",
-                                              "RNG15_RFL8_NIR8"]),
-              default="RNG19_RFL8_SIG16_NIR16", show_default=True, help="UDP lidar profile.")
-@click.option("--seed", type=click.IntRange(min=0), default=None, help="Random seed.")
+@_sensor_options
 @click.option("--backend", type=click.Choice(["embree", "open3d"]), default="embree",
               show_default=True, help="Ray casting backend.")
 @click.option("--noise", type=click.FloatRange(min=0), default=0.0, show_default=True,
@@ -365,13 +373,7 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
 
 @lidar.command("stream")
 @click.argument("scenario_name", metavar="SCENARIO")
-@click.option("--mode", type=click.Choice(["512x10", "1024x10", "2048x10", "512x20", "1024x20"]),
-              default="1024x10", show_default=True, help="Columns x frames per second.")
-@click.option("--profile", type=click.Choice(["RNG19_RFL8_SIG16_NIR16", "LEGACY",
-                                              "RNG19_RFL8_SIG16_NIR16_DUAL",
-                                              "RNG15_RFL8_NIR8"]),
-              default="RNG19_RFL8_SIG16_NIR16", show_default=True, help="UDP lidar profile.")
-@click.option("--seed", type=click.IntRange(min=0), default=None, help="Random seed.")
+@_sensor_options
 @click.option("--sensor-address", default="127.0.0.1", show_default=True,
               help="Address the packets come from (ouster-sdk checks it; any 127.x works).")
 @click.option("--dest", default="127.0.0.1", show_default=True, help="Where packets go.")
