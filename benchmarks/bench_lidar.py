@@ -1,0 +1,86 @@
+"""Lidar pipeline benchmark: rays/s and x real time for pose -> rays -> cast -> returns ->
+packets, next to the bare cast of the same rays in the same run, on Forests II, V and X at
+512/1024/2048 columns, for Embree and open3d.
+
+Run: ``python benchmarks/bench_lidar.py [--frames 7] [--forests II,V,X] [--json OUT]``.
+Medians over ``--frames`` frames along the track.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import numpy as np
+
+from emulators.lidar import Os0Emulator
+from protocols.ouster import encode_lidar_frame, os0_64_metadata
+from tcf_hil.forest import generate_forest
+from tcf_hil.lidar import _crc_rows
+from tcf_hil.scenario import load_scenario
+from tcf_hil.scene import Scene
+from tcf_hil.trajectory import StraightTrack
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--frames", type=int, default=7)
+    ap.add_argument("--forests", default="II,V,X")
+    ap.add_argument("--modes", default="512x10,1024x10,2048x10")
+    ap.add_argument("--backends", default="embree,open3d")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args()
+    rows = []
+    print(f"{'forest':8} {'backend':7} {'mode':8} {'rays':>7} {'bare ms':>8} {'pipe ms':>8} "
+          f"{'ratio':>6} {'x RT':>5} {'Mrays/s':>8} {'encode ms':>9}")
+    crc = _crc_rows()
+    for fname in a.forests.split(","):
+        forest = generate_forest(load_scenario(fname))
+        track = StraightTrack.from_config(forest.scenario.track, forest.terrain)
+        for backend in a.backends.split(","):
+            scene = Scene.from_forest(forest, backend=backend)
+            for mode in a.modes.split(","):
+                meta = os0_64_metadata(mode)
+                emu = Os0Emulator(meta, scene, track, start_ns=track.t0_ns)
+                fmt = meta.packet_format
+                buf = np.empty((fmt.packets_per_frame, fmt.packet_bytes), np.uint8)
+                n = max(1, int(track.duration_ns // emu.period_ns))
+                ks = np.linspace(0, n - 1, a.frames).astype(int)
+                bare, pipe, enc = [], [], []
+                for k in ks:
+                    pos, rot = track.sensor_pose(emu.column_times(int(k)))
+                    rt = rot.transpose(0, 2, 1)
+                    o = (np.matmul(emu._origins_wh, rt) + pos[:, None]).reshape(-1, 3)
+                    d = np.matmul(emu._directions_wh, rt).reshape(-1, 3)
+                    t0 = time.perf_counter()
+                    scene.caster.cast(o, d)
+                    bare.append(time.perf_counter() - t0)
+                    t0 = time.perf_counter()
+                    fr = emu.frame(int(k))
+                    t1 = time.perf_counter()
+                    encode_lidar_frame(fmt, fr.fields, fr.timestamps_ns, frame_id=1,
+                                       init_id=meta.init_id, prod_sn=meta.prod_sn,
+                                       crc_rows=crc, out=buf)
+                    t2 = time.perf_counter()
+                    pipe.append(t2 - t0)
+                    enc.append(t2 - t1)
+                rays = meta.pixels * meta.columns
+                b, p, e = (statistics.median(x) for x in (bare, pipe, enc))
+                period = 1.0 / meta.frequency_hz
+                row = {"forest": fname, "backend": backend, "mode": mode, "rays": rays,
+                       "bare_ms": b * 1e3, "pipeline_ms": p * 1e3, "ratio": b / p,
+                       "x_realtime": period / p, "mrays_s": rays / p / 1e6,
+                       "encode_ms": e * 1e3}
+                rows.append(row)
+                print(f"{fname:8} {backend:7} {mode:8} {rays:7d} {b * 1e3:8.1f} {p * 1e3:8.1f} "
+                      f"{b / p:6.2f} {period / p:5.1f} {rays / p / 1e6:8.2f} {e * 1e3:9.2f}",
+                      flush=True)
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(rows, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
