@@ -116,6 +116,8 @@ class LidarRun:
                 out.append(Datagram(t_send, lp, arr[i].tobytes()))
             self.packets += arr.shape[0]
             hit = fr.stem_id[fr.stem_id >= 0]
+            if fr.stem_id2 is not None:  # the DUAL profile's second returns count too
+                hit = np.concatenate([hit, fr.stem_id2[fr.stem_id2 >= 0]])
             self.counts += np.bincount(hit, minlength=len(self.counts))[: len(self.counts)]
             q = quaternions(fr.rotations)
             p = fr.positions + self.forest.origin

@@ -53,6 +53,8 @@ class ReturnModel:
                                                                    "bark": 0.45})
     signal_scale: float = 20000.0
     ambient: float = 1200.0
+    divergence_rad: float = 0.0016  # half-angle of the beam, for the DUAL second return
+    second_return_gap_m: float = 0.5  # a second return lies at least this far behind
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,7 @@ class FrameResult:
     timestamps_ns: NDArray[np.uint64]  # (W,)
     fields: dict[str, NDArray[np.uint32]]  # staggered (H, W)
     stem_id: NDArray[np.int32]  # (H, W): -1 no return, 0 terrain, else the stem
+    stem_id2: NDArray[np.int32] | None  # the DUAL profile's second return, else None
     positions: FloatArray  # (W, 3) sensor position per column
     rotations: FloatArray  # (W, 3, 3)
 
@@ -125,4 +128,47 @@ class Os0Emulator:
         if self.meta.profile == "RNG15_RFL8_NIR8":
             fields["NEAR_IR"] = np.minimum(fields["NEAR_IR"], 4080) // 16 * 16
         sid = np.where(ok, sid, -1).astype(np.int32)
-        return FrameResult(k, ts.astype(np.uint64), fields, sid, pos, rot)
+        sid2 = None
+        if "RANGE2" in self.profile_fields:  # model only what the profile carries
+            sid2 = self._second_return(o, d, t, ok, fields)
+        return FrameResult(k, ts.astype(np.uint64), fields, sid, sid2, pos, rot)
+
+    def _second_return(self, o: FloatArray, d: FloatArray, t1: FloatArray,
+                       ok1: NDArray[np.bool_], fields: dict[str, NDArray[np.uint32]]
+                       ) -> NDArray[np.int32]:
+        """Four sub-rays at the beam's divergence half-angle: the farthest surface they hit
+        at least ``second_return_gap_m`` behind the first return is the second return (a
+        beam that grazes a stem and lands on what is behind it). The SDK places it along
+        the central ray, as for a real sensor."""
+        m = self.model
+        H, W = self.meta.pixels, self.meta.columns
+        dd = d.reshape(-1, 3)
+        e1 = np.cross(dd, [0.0, 0.0, 1.0])
+        e1 /= np.maximum(np.linalg.norm(e1, axis=1), 1e-12)[:, None]
+        e2 = np.cross(dd, e1)
+        a = m.divergence_rad
+        subs = [dd + s * a * e for e in (e1, e2) for s in (1.0, -1.0)]
+        oo = np.tile(o.reshape(-1, 3), (4, 1))
+        dirs = np.vstack(subs)
+        dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+        t, sid = self.scene.cast(oo, dirs)
+        t = t.reshape(4, W, H).transpose(0, 2, 1)
+        sid = sid.reshape(4, W, H).transpose(0, 2, 1)
+        first = np.where(ok1, t1, np.inf)
+        behind = np.isfinite(t) & (sid >= 0) & (t >= first[None] + m.second_return_gap_m)
+        behind &= ok1[None]  # a second return needs a first one
+        t2 = np.where(behind, t, -np.inf).max(axis=0)
+        pick = np.argmax(np.where(behind, t, -np.inf), axis=0)
+        s2 = np.take_along_axis(sid, pick[None], axis=0)[0]
+        frac = behind.sum(axis=0) / 4.0
+        refl = np.where(s2 > 0, m.reflectance["bark"], m.reflectance["ground"])
+        rng_m = t2 + self.n_m
+        reach = m.max_range_m * np.minimum(1.0, np.sqrt(refl / m.reference_reflectance))
+        ok = np.isfinite(t2) & (rng_m <= reach)
+        fields["RANGE2"] = np.where(ok, np.round(np.where(ok, rng_m, 0.0) * 1000.0), 0.0
+                                    ).astype(np.uint32)
+        fields["REFLECTIVITY2"] = np.where(ok, np.round(refl * 100.0), 0.0).astype(np.uint32)
+        r2 = np.maximum(np.where(ok, rng_m, 1.0), 0.5) ** 2
+        fields["SIGNAL2"] = np.where(ok, np.minimum(65535.0, m.signal_scale * refl * frac / r2),
+                                     0.0).astype(np.uint32)
+        return np.where(ok, s2, -1).astype(np.int32)
