@@ -81,7 +81,10 @@ def stem_table(doc: Any, source: str = "<memory>", kind: Kind = "observed") -> S
     quality = np.empty(n, dtype=np.int64)
     extra = {k: np.full(n, np.nan) for k in ("h", "dbh", "maxcurve")}
     for i, o in enumerate(objs):
-        oid = o.get("id", i + 1)
+        # A missing id gets a name no explicit id can take; 1.0 and 1 are one JSON number.
+        oid = o.get("id", f"objects[{i}]")
+        if isinstance(oid, float) and oid.is_integer():
+            oid = int(oid)
         key = (type(oid).__name__, oid)
         if key in seen:
             raise InputError(source, f"objects[{i}].id",

@@ -37,8 +37,10 @@ def candidate_pairs(gt_xy: NDArray[np.float64], obs_xy: NDArray[np.float64],
     """All (gt index, observed index, distance) with distance <= max_distance."""
     if len(gt_xy) == 0 or len(obs_xy) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-    # Local offsets keep precision at UTM-sized coordinates.
-    ref = gt_xy.mean(axis=0)
+    # Local offsets keep precision at UTM-sized coordinates. The reference is a whole-metre
+    # corner of both sets: subtracting it is exact, so distances (and their ties, and a tree
+    # exactly at the radius) do not depend on the data's mean or order.
+    ref = np.floor(np.minimum(gt_xy.min(axis=0), obs_xy.min(axis=0)))
     sdm = cKDTree(gt_xy - ref).sparse_distance_matrix(
         cKDTree(obs_xy - ref), max_distance, output_type="ndarray")
     return sdm["i"].astype(np.int64), sdm["j"].astype(np.int64), sdm["v"].astype(np.float64)
