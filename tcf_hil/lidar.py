@@ -10,6 +10,7 @@ import csv
 import io
 import math
 import multiprocessing as mp
+import os
 import queue
 import threading
 from collections.abc import Callable, Iterator
@@ -180,6 +181,8 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
 
 def _produce(run: LidarRun, q: Any, stop: Any) -> None:
     """Producer process: frames as (t_ns, port, payload) lists, then the run's bookkeeping."""
+    with contextlib.suppress(OSError):
+        os.nice(5)  # the pacing loop, not the frame factory, gets the CPU when both want it
     try:
         for _fr, dgs in run.datagrams():
             if stop.is_set():
