@@ -50,10 +50,7 @@ def main() -> None:
                 ks = np.linspace(0, n - 1, a.frames).astype(int)
                 bare, pipe, enc = [], [], []
                 for k in ks:
-                    pos, rot = track.sensor_pose(emu.column_times(int(k)))
-                    rt = rot.transpose(0, 2, 1)
-                    o = (np.matmul(emu._origins_wh, rt) + pos[:, None]).reshape(-1, 3)
-                    d = np.matmul(emu._directions_wh, rt).reshape(-1, 3)
+                    o, d, _, _ = emu.rays(int(k))
                     t0 = time.perf_counter()
                     scene.caster.cast(o, d)
                     bare.append(time.perf_counter() - t0)

@@ -45,10 +45,7 @@ def main() -> None:
         n = max(1, int(track.duration_ns // emu.period_ns))
         rng_err, surf_err, secs, rays = [], [], [], 0
         for k in np.linspace(0, n - 1, a.frames).astype(int):
-            pos, rot = track.sensor_pose(emu.column_times(int(k)))
-            rt = rot.transpose(0, 2, 1)
-            o = (np.matmul(emu._origins_wh, rt) + pos[:, None]).reshape(-1, 3)
-            d = np.matmul(emu._directions_wh, rt).reshape(-1, 3)
+            o, d, _, _ = emu.rays(int(k))
             t0 = time.perf_counter()
             t, sid = scene.cast(o, d)
             secs.append(time.perf_counter() - t0)

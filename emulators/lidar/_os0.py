@@ -95,16 +95,22 @@ class Os0Emulator:
         return (self.start_ns + k * self.period_ns
                 + (np.arange(w, dtype=np.int64) * self.period_ns) // w)
 
-    def frame(self, k: int) -> FrameResult:
-        m = self.model
-        H, W = self.meta.pixels, self.meta.columns
-        ts = self.column_times(k)
-        pos, rot = self.poses.sensor_pose(ts)
+    def rays(self, k: int) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Frame k's rays in the scene, column-major: origins and unit directions
+        (W*H, 3), and the per-column sensor positions (W, 3) and rotations (W, 3, 3)."""
+        pos, rot = self.poses.sensor_pose(self.column_times(k))
         # Rays of column c are in the sensor frame of column c's pose.
         rt = rot.transpose(0, 2, 1)
         o = np.matmul(self._origins_wh, rt) + pos[:, None, :]
         d = np.matmul(self._directions_wh, rt)
-        t, sid = self.scene.cast(o.reshape(-1, 3), d.reshape(-1, 3))
+        return o.reshape(-1, 3), d.reshape(-1, 3), pos, rot
+
+    def frame(self, k: int) -> FrameResult:
+        m = self.model
+        H, W = self.meta.pixels, self.meta.columns
+        ts = self.column_times(k)
+        o, d, pos, rot = self.rays(k)
+        t, sid = self.scene.cast(o, d)
         t = t.reshape(W, H).T
         sid = sid.reshape(W, H).T
         refl = np.where(sid > 0, m.reflectance["bark"], m.reflectance["ground"])
@@ -143,7 +149,7 @@ class Os0Emulator:
         m = self.model
         H, W = self.meta.pixels, self.meta.columns
         dd = d.reshape(-1, 3)
-        e1 = np.cross(dd, [0.0, 0.0, 1.0])
+        e1 = np.cross(dd, np.array([0.0, 0.0, 1.0]))
         e1 /= np.maximum(np.linalg.norm(e1, axis=1), 1e-12)[:, None]
         e2 = np.cross(dd, e1)
         a = m.divergence_rad

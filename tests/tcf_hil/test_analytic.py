@@ -27,10 +27,7 @@ def test_mesh_error_is_bounded_by_the_tolerance(backend: str, tol_mm: float) -> 
                               terrain_tolerance_m=tol_mm / 1000)
     track = StraightTrack.from_config(SCN.track, forest.terrain)
     emu = Os0Emulator(os0_64_metadata("512x10"), scene, track, start_ns=track.t0_ns)
-    pos, rot = track.sensor_pose(emu.column_times(30))
-    rt = rot.transpose(0, 2, 1)
-    o = (np.matmul(emu._origins_wh, rt) + pos[:, None]).reshape(-1, 3)
-    d = np.matmul(emu._directions_wh, rt).reshape(-1, 3)
+    o, d, _, _ = emu.rays(30)
     t, sid = scene.cast(o, d)
     exact, cos = refine_hits(forest, o, d, t, sid)
     for kind in (sid > 0, sid == 0):
