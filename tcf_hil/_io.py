@@ -16,6 +16,17 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
+def ensure_dir(path: str | os.PathLike[str]) -> Path:
+    """Create a directory (and parents); InputError naming it when that is impossible."""
+    p = Path(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(str(p), "", f"cannot create the directory ({err.strerror or err})"
+                         ) from err
+    return p
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only on success.
@@ -23,8 +34,11 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     A crash or an exception leaves either the old file or nothing, never half a file.
     """
     final = Path(path)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part", dir=final.parent)
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part", dir=final.parent)
+    except OSError as err:
+        raise InputError(str(final), "", f"cannot write here ({err.strerror or err})") from err
     os.close(fd)
     tmp_path = Path(tmp)
     os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file normal modes
@@ -92,3 +106,5 @@ def loads_json(text: str, source: str = "<memory>") -> Any:
                                      f"column {err.colno})") from err
     except ValueError as err:
         raise InputError(source, "", f"invalid JSON: {err}") from err
+    except RecursionError as err:
+        raise InputError(source, "", "invalid JSON: nested too deeply") from err

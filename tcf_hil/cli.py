@@ -6,10 +6,11 @@ key), 2 usage error, 4 internal error (rerun with ``--traceback`` to see it).
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import sys
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ from rich.console import Console
 from rich.table import Table
 
 from tcf_hil import __version__
-from tcf_hil.errors import InputError, TcfHilError
+from tcf_hil.errors import ConfigError, InputError, TcfHilError
 
 console = Console(soft_wrap=True)
 err_console = Console(stderr=True)
@@ -39,6 +40,17 @@ def _floats(n: int, names: str) -> Callable[[click.Context, click.Parameter, Any
                                      f"({names})", param=param)
         return parts
     return convert
+
+
+@contextlib.contextmanager
+def _blame(scenario_name: str) -> Iterator[None]:
+    """Name the scenario in a configuration error found only while building its forest."""
+    try:
+        yield
+    except ConfigError as err:
+        if err.source is not None:
+            raise
+        raise ConfigError(err.key, err.value, err.allowed, scenario_name) from err
 
 
 class _Group(click.Group):
@@ -147,7 +159,8 @@ def forest_generate(scenario_name: str, seed: int | None, out: Path, no_meshes: 
     from tcf_hil.scenario import load_scenario
 
     scn = load_scenario(scenario_name, seed=seed)
-    with console.status(f"generating {scn.name} ({scn.stems.count} stems)") as status:
+    with _blame(scenario_name), \
+            console.status(f"generating {scn.name} ({scn.stems.count} stems)") as status:
         f = generate_forest(scn)
         paths = write_forest(f, out, meshes=not no_meshes,
                              progress=lambda name: status.update(f"{scn.name}: writing {name}"))
@@ -183,7 +196,7 @@ def forest_sample(scenario_name: str, seed: int | None, out: Path, points_per_st
     from tcf_hil.scenario import load_scenario
 
     scn = load_scenario(scenario_name, seed=seed)
-    with console.status(f"sampling {scn.name}"):
+    with _blame(scenario_name), console.status(f"sampling {scn.name}"):
         f = generate_forest(scn)
         cloud = sample_surfaces(f, points_per_stem, terrain_density)
         write_bytes_atomic(out, cloud.to_pcd(float32=float32))
@@ -230,13 +243,16 @@ def read_cloud(path: Path) -> np.ndarray:
               help="maxcurve (m) from which a stem is C (default 0.05, as the scenarios).")
 @click.option("--other-threshold", type=click.FloatRange(min=0, min_open=True), default=None,
               help="maxcurve (m) from which a stem is X (default 0.25).")
+@click.option("--scene-centre", callback=_floats(2, "X,Y"), default="0,0", show_default=True,
+              help="World x, y of the scene centre that d is measured from (the scenario's "
+                   "origin, e.g. 500000,6900000 for a UTM plot).")
 def detect(cloud: Path, out: Path, preset: str, curve_threshold: float | None,
-           other_threshold: float | None) -> None:
+           other_threshold: float | None, scene_centre: tuple[float, float]) -> None:
     """Run the reference stem algorithm on a PCD point cloud and write the observed JSON."""
     from tcf_hil._io import write_json_atomic
     from tcf_hil.sic import identify_stems, stem_params
 
-    over: dict[str, Any] = {}
+    over: dict[str, Any] = {"scene_centre": tuple(scene_centre)}
     if curve_threshold is not None:
         over["curve_threshold_m"] = curve_threshold
     if other_threshold is not None:
@@ -357,9 +373,10 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
 
     scn = load_scenario(scenario_name)
     model = ReturnModel(noise_sigma_m=noise, max_range_m=max_range)
-    with Progress(TextColumn("{task.description}"), BarColumn(),
-                  TextColumn("{task.completed}/{task.total} frames"), TimeRemainingColumn(),
-                  console=console, transient=True) as prog:
+    with _blame(scenario_name), \
+            Progress(TextColumn("{task.description}"), BarColumn(),
+                     TextColumn("{task.completed}/{task.total} frames"), TimeRemainingColumn(),
+                     console=console, transient=True) as prog:
         task = prog.add_task(f"{scn.name} {mode} {profile}", total=None)
 
         def step(done: int, total: int) -> None:

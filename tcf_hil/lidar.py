@@ -36,7 +36,7 @@ from protocols.ouster import (
     os0_64_metadata,
 )
 from protocols.pcap import PcapWriter, UdpDatagram
-from tcf_hil._io import atomic_path, write_bytes_atomic, write_json_atomic
+from tcf_hil._io import atomic_path, ensure_dir, write_bytes_atomic, write_json_atomic
 from tcf_hil.forest import Forest, generate_forest, ground_truth
 from tcf_hil.scenario import Scenario
 from tcf_hil.scene import Scene
@@ -131,7 +131,7 @@ class LidarRun:
 
     def write_sidecars(self, out: Path) -> dict[str, Any]:
         """metadata.json, ground_truth.json (with returns), visibility.json, sensor_poses.csv."""
-        out.mkdir(parents=True, exist_ok=True)
+        ensure_dir(out)
         write_bytes_atomic(out / "sensor_poses.csv", self._poses.getvalue().encode())
         write_bytes_atomic(out / "metadata.json", self.meta.dumps().encode())
         gt = ground_truth(self.forest)
@@ -164,7 +164,7 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
     ``sensor_poses.csv`` (time_ns, x, y, z, qw, qx, qy, qz: the sensor frame in the world at
     every column time stamp). Keyword arguments go to :class:`LidarRun`."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    ensure_dir(out)
     run = LidarRun(scn, **run_kw)
     writer = PcapWriter(mtu=mtu)
     dest = run.meta.udp_dest
@@ -248,7 +248,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     with contextlib.ExitStack() as stack:
         fh = None
         if out is not None:
-            out.mkdir(parents=True, exist_ok=True)
+            ensure_dir(out)
             fh = stack.enter_context(open(stack.enter_context(atomic_path(out / "lidar.pcap")),
                                           "wb"))
             fh.write(writer.header())

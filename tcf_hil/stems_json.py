@@ -56,6 +56,35 @@ class StemTable:
     def __len__(self) -> int:
         return len(self.ids)
 
+    def sort_keys(self) -> list[tuple[Any, ...]]:
+        """A total order of the objects that does not depend on their order in the document:
+        integer ids, then string ids, then objects without an id by position and class."""
+        out: list[tuple[Any, ...]] = []
+        for i, oid in enumerate(self.ids):
+            if oid is None:
+                out.append((2, "", float(self.xyz[i, 0]), float(self.xyz[i, 1]),
+                            str(self.classes[i])))
+            elif isinstance(oid, str):
+                out.append((1, oid, 0.0, 0.0, ""))
+            else:
+                out.append((0, oid, 0.0, 0.0, ""))
+        return out
+
+
+_MAX_COORD = 1e9  # metres: any projected coordinate system fits
+_MAX_SIZE = 1e4  # metres: heights, diameters, curves
+
+
+def _number(v: Any, source: str, field: str, limit: float) -> float:
+    try:
+        f = float(v)
+    except OverflowError:
+        f = math.inf
+    if not math.isfinite(f) or abs(f) > limit:
+        raise InputError(source, field, f"{str(v)[:40]} is not a finite number within "
+                                        f"+-{limit:g}")
+    return f
+
 
 def stem_table(doc: Any, source: str = "<memory>", kind: Kind = "observed") -> StemTable:
     """Validate a parsed stems document and return it as arrays.
@@ -81,26 +110,23 @@ def stem_table(doc: Any, source: str = "<memory>", kind: Kind = "observed") -> S
     quality = np.empty(n, dtype=np.int64)
     extra = {k: np.full(n, np.nan) for k in ("h", "dbh", "maxcurve")}
     for i, o in enumerate(objs):
-        # A missing id gets a name no explicit id can take; 1.0 and 1 are one JSON number.
-        oid = o.get("id", f"objects[{i}]")
+        # A missing id stays None (ordered by content when ranking); 1.0 and 1 are one
+        # JSON number.
+        oid = o.get("id")
         if isinstance(oid, float) and oid.is_integer():
             oid = int(oid)
-        key = (type(oid).__name__, oid)
-        if key in seen:
-            raise InputError(source, f"objects[{i}].id",
-                             f"duplicate id {oid!r} (also at objects[{seen[key]}])")
-        seen[key] = i
+        if oid is not None:
+            key = (type(oid).__name__, oid)
+            if key in seen:
+                raise InputError(source, f"objects[{i}].id",
+                                 f"duplicate id {oid!r} (also at objects[{seen[key]}])")
+            seen[key] = i
         ids.append(oid)
         for j, v in enumerate(o["cp"]):
-            if not math.isfinite(v):
-                raise InputError(source, f"objects[{i}].cp[{j}]", f"{v!r} is not a finite number")
-            xyz[i, j] = v
+            xyz[i, j] = _number(v, source, f"objects[{i}].cp[{j}]", _MAX_COORD)
         for k, arr in extra.items():
             if k in o:
-                v = o[k]
-                if not math.isfinite(v):
-                    raise InputError(source, f"objects[{i}].{k}", f"{v!r} is not a finite number")
-                arr[i] = v
+                arr[i] = _number(o[k], source, f"objects[{i}].{k}", _MAX_SIZE)
         c, q = o.get("class"), o.get("quality")
         if c is not None and q is not None and QUALITY_BY_CLASS[c] != q:
             raise InputError(source, f"objects[{i}].quality",

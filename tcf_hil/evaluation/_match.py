@@ -24,11 +24,12 @@ MatchMethod = Literal["greedy", "optimal"]
 IntArray = NDArray[np.int64]
 
 
-def _id_rank(ids: list[Any]) -> IntArray:
-    """Rank of every id in a stable total order (ints before strings)."""
-    order = sorted(range(len(ids)), key=lambda i: (isinstance(ids[i], str), ids[i]))
-    rank = np.empty(len(ids), dtype=np.int64)
-    rank[order] = np.arange(len(ids))
+def _id_rank(keys: list[Any]) -> IntArray:
+    """Rank of every object in a total order given by its sort key (see
+    ``StemTable.sort_keys``)."""
+    order = sorted(range(len(keys)), key=lambda i: keys[i])
+    rank = np.empty(len(keys), dtype=np.int64)
+    rank[order] = np.arange(len(keys))
     return rank
 
 
@@ -59,7 +60,9 @@ def match(gt_xy: NDArray[np.float64], obs_xy: NDArray[np.float64], max_distance:
     if method == "greedy":
         pairs, d = _greedy(gi, oi, dist, len(gt_xy), len(obs_xy), gt_ids, obs_ids)
     elif method == "optimal":
-        pairs, d = _optimal(gi, oi, dist, len(gt_xy))
+        gr = _id_rank(gt_ids) if gt_ids is not None else np.arange(len(gt_xy))
+        orank = _id_rank(obs_ids) if obs_ids is not None else np.arange(len(obs_xy))
+        pairs, d = _optimal(gi, oi, dist, len(gt_xy), gr, orank)
     else:
         raise ValueError(f"unknown matching method {method!r}; use 'greedy' or 'optimal'")
     order = np.argsort(pairs[:, 0], kind="stable")
@@ -88,8 +91,8 @@ def _greedy(gi: IntArray, oi: IntArray, dist: NDArray[np.float64], n_gt: int, n_
     return np.column_stack([gi[keep], oi[keep]]), dist[keep]
 
 
-def _optimal(gi: IntArray, oi: IntArray, dist: NDArray[np.float64], n_gt: int
-             ) -> tuple[IntArray, NDArray[np.float64]]:
+def _optimal(gi: IntArray, oi: IntArray, dist: NDArray[np.float64], n_gt: int,
+             grank: IntArray, orank: IntArray) -> tuple[IntArray, NDArray[np.float64]]:
     # Bipartite graph: gt nodes 0..n_gt-1, observed nodes n_gt + j (compacted).
     uo, oi_c = np.unique(oi, return_inverse=True)
     ug, gi_c = np.unique(gi, return_inverse=True)
@@ -105,8 +108,10 @@ def _optimal(gi: IntArray, oi: IntArray, dist: NDArray[np.float64], n_gt: int
         order = multi[np.argsort(comp[multi], kind="stable")]
         bounds = np.flatnonzero(np.diff(comp[order])) + 1
         for block in np.split(order, bounds):
-            g_loc, g_inv = np.unique(gi_c[block], return_inverse=True)
-            o_loc, o_inv = np.unique(oi_c[block], return_inverse=True)
+            # Rows and columns in rank order: equal-cost optima then resolve the same way
+            # whatever the documents' object order.
+            g_loc, g_inv = np.unique(grank[gi[block]], return_inverse=True)
+            o_loc, o_inv = np.unique(orank[oi[block]], return_inverse=True)
             big = 1.0 + float(dist[block].sum()) * 2.0 + 1.0
             cost = np.full((len(g_loc), len(o_loc)), big)
             cost[g_inv, o_inv] = dist[block]

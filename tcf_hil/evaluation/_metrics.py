@@ -67,8 +67,9 @@ class EvalConfig:
             raise ValueError(f"weights = {self.weights!r}; allowed: four numbers >= 0 (S,C,X,N)")
         if len(self.credits) != 3 or any(not math.isfinite(c) or c < 0 for c in self.credits):
             raise ValueError(f"credits = {self.credits!r}; allowed: three numbers >= 0 (E,A,N)")
-        if self.credits[0] <= 0:
-            raise ValueError(f"credits = {self.credits!r}; the E credit must be > 0")
+        if self.credits[0] <= 0 or max(self.credits[1:]) > self.credits[0]:
+            raise ValueError(f"credits = {self.credits!r}; the E credit must be > 0 and at "
+                             "least the A and N credits (else wc could pass 100 %)")
         for key, case in self.case_table.items():
             if case not in CASES:
                 raise ValueError(f"case_table[{key}] = {case!r}; allowed: E, A, N")
@@ -133,7 +134,7 @@ def evaluate(gt: StemTable, obs: StemTable, cfg: EvalConfig | None = None) -> Ev
     """Match and score ``obs`` against ``gt`` (see the module docstring for definitions)."""
     cfg = cfg or EvalConfig()
     pairs, dist = match(gt.xyz[:, :2], obs.xyz[:, :2], cfg.max_distance_m, cfg.match,
-                        gt.ids, obs.ids)
+                        gt.sort_keys(), obs.sort_keys())
     em = evaluation_matrix(gt.classes, obs.classes, pairs)
     k = len(pairs)
     n_gt, n_obs = len(gt), len(obs)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from rich.table import Table
 
-from tcf_hil._io import write_bytes_atomic
+from tcf_hil._io import ensure_dir, write_bytes_atomic
 from tcf_hil.evaluation._metrics import LABELS, Evaluation
 from tcf_hil.plots import em_heatmap, matched_positions
 from tcf_hil.stems_json import StemTable
@@ -50,7 +50,7 @@ def write_plots(ev: Evaluation, gt: StemTable, obs: StemTable, out_dir: str | Pa
                 title: str = "") -> list[Path]:
     """Write ``em_heatmap.png`` and ``matched_positions.png`` into ``out_dir``."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    ensure_dir(out)
     wc = ev.metrics["evaluation_score_percent"]
     head = f"{title}: " if title else ""
     a = out / "em_heatmap.png"

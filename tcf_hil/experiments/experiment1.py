@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from tcf_hil._io import write_bytes_atomic, write_json_atomic
+from tcf_hil._io import ensure_dir, write_bytes_atomic, write_json_atomic
 from tcf_hil.evaluation import EvalConfig, evaluate, write_plots
 from tcf_hil.forest import generate_forest, ground_truth
 from tcf_hil.forest.sampling import sample_surfaces
@@ -55,7 +55,7 @@ def run_experiment1(out_dir: str | Path, *, forests: Sequence[str] = ("forest-v"
     """Run Experiment 1 and write per-forest outputs plus ``experiment1.json`` into
     ``out_dir``; returns one row per (forest, SIC preset)."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    ensure_dir(out)
     say = progress or (lambda _msg: None)
     rows: list[Experiment1Row] = []
     for name in forests:

@@ -221,6 +221,11 @@ def generate_forest(scn: Scenario, seed: int | None = None) -> Forest:
         stems.bend[ix] = _unit_perp(axis[ix], fix.uniform(0.0, 2.0 * math.pi, len(ix)))
         stems.length[ix] = height[ix] / axis[ix, 2]
     else:
+        if scn.distribution.kind == "even":
+            raise ConfigError("stems.count", scn.stems.count,
+                              "fewer stems for this plot (or less distribution.jitter_m, "
+                              "stems.lean_deg or stems.sweep_m): stems still intersect after "
+                              "40 re-draws")
         raise ConfigError("distribution.min_spacing_m", scn.distribution.min_spacing_m,
                           "a larger spacing: stems intersect after 40 re-draws "
                           "(or reduce stems.lean_deg / stems.sweep_m)")
@@ -236,7 +241,8 @@ def ground_truth(forest: Forest) -> dict[str, Any]:
     origin = forest.origin
     pos = forest.positions()
     # Centre lines of all stems in one vectorised pass, vertices at most 0.5 m apart.
-    counts = np.maximum(2, np.ceil(st.length * 1.01 / 0.5).astype(np.int64) + 1)
+    # Vertices at most 0.5 m apart along the arc (see StemSet.centerline).
+    counts = np.maximum(2, np.ceil(st.length * st.max_speed() / 0.5).astype(np.int64) + 1)
     idx = np.repeat(np.arange(n), counts)
     first = np.concatenate([[0], np.cumsum(counts)[:-1]]) if n else np.zeros(0, np.int64)
     frac = (np.arange(len(idx)) - np.repeat(first, counts)) / np.repeat(counts - 1, counts)

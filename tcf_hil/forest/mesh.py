@@ -17,6 +17,7 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
+from tcf_hil.errors import ConfigError
 from tcf_hil.forest.stems import StemSet
 from tcf_hil.forest.terrain import Terrain
 
@@ -133,7 +134,10 @@ def stem_mesh(stems: StemSet, tolerance_m: float,
 def terrain_mesh(terrain: Terrain, bounds: tuple[float, float, float, float],
                  tolerance_m: float, origin: FloatArray | None = None) -> trimesh.Trimesh:
     """The terrain over ``bounds`` as a regular triangulated grid (float64 vertices)."""
-    xs, ys, z = terrain.grid(bounds, tolerance_m)
+    try:
+        xs, ys, z = terrain.grid(bounds, tolerance_m)
+    except ValueError as err:
+        raise ConfigError("terrain.tolerance_mm", tolerance_m * 1000, str(err)) from err
     nx, ny = len(xs), len(ys)
     X, Y = np.meshgrid(xs, ys)
     verts = np.column_stack([X.ravel(), Y.ravel(), z.ravel()])

@@ -9,7 +9,7 @@ import numpy as np
 import trimesh
 
 from protocols.ply import encode_ply
-from tcf_hil._io import write_bytes_atomic, write_json_atomic
+from tcf_hil._io import ensure_dir, write_bytes_atomic, write_json_atomic
 from tcf_hil.forest.generate import Forest, ground_truth
 from tcf_hil.forest.mesh import stem_mesh, terrain_mesh
 from tcf_hil.plots import forest_map
@@ -35,7 +35,7 @@ def write_forest(forest: Forest, out_dir: str | Path, *, meshes: bool = True,
     """
     say = progress or (lambda _name: None)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    ensure_dir(out)
     scn = forest.scenario
     written = []
     say("ground_truth.json")
@@ -51,6 +51,9 @@ def write_forest(forest: Forest, out_dir: str | Path, *, meshes: bool = True,
                           forest.origin)
         write_bytes_atomic(out / "terrain.ply", mesh_ply(tm))
         written += [out / "stems.ply", out / "terrain.ply"]
+    else:  # never leave another forest's meshes beside this ground truth
+        for name in ("stems.ply", "terrain.ply"):
+            (out / name).unlink(missing_ok=True)
     say("map.png")
     pos = forest.positions()
     w, h = scn.plot.size_m
@@ -58,7 +61,7 @@ def write_forest(forest: Forest, out_dir: str | Path, *, meshes: bool = True,
     bounds = (-w / 2 - pad, -h / 2 - pad, w / 2 + pad, h / 2 + pad)
     terrain = None
     if not forest.terrain.is_flat:
-        terrain = forest.terrain.grid(bounds, 0.05, max_vertices=40_000)
+        terrain = forest.terrain.grid(bounds, 0.05, max_vertices=40_000, coarsen=True)
     png = forest_map(pos[:, :2], list(forest.classes), 2.0 * forest.stems.r_bh,
                      f"{scn.name} (seed {forest.seed}): {len(pos)} stems", bounds,
                      track=(scn.track.start_m, scn.track.end_m), terrain=terrain)

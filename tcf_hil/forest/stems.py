@@ -72,25 +72,36 @@ class StemSet:
         """Vertical height from base to top (m)."""
         return self.length * self.axis[:, 2]
 
+    def _dcds(self, idx: IntArray, s: FloatArray) -> FloatArray:
+        """dC/ds (not normalised); below the base it is the value at the base."""
+        L = self.length[idx]
+        _, df, _ = _bow(np.clip(s, 0.0, None) / L, self.peak[idx])
+        return self.axis[idx] + (self.sweep[idx] * df / L)[:, None] * self.bend[idx]
+
     def centre(self, idx: IntArray, s: FloatArray) -> FloatArray:
-        """Centre-line points (m, 3) of stems ``idx`` at axial positions ``s``."""
+        """Centre-line points (m, 3) of stems ``idx`` at axial positions ``s``. Below the
+        base (s < 0) the line goes on straight along its direction at the base, so it has no
+        kink where the stem meets the ground."""
         t = s / self.length[idx]
         f, _, _ = _bow(t, self.peak[idx])
-        return (self.base[idx] + s[:, None] * self.axis[idx]
-                + (self.sweep[idx] * f)[:, None] * self.bend[idx])
+        above = (self.base[idx] + s[:, None] * self.axis[idx]
+                 + (self.sweep[idx] * f)[:, None] * self.bend[idx])
+        below = self.base[idx] + s[:, None] * self._dcds(idx, np.zeros_like(s))
+        return np.where((s < 0)[:, None], below, above)
 
     def tangent(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """Unit tangents (m, 3) of the centre line."""
-        L = self.length[idx]
-        _, df, _ = _bow(s / L, self.peak[idx])
-        d = self.axis[idx] + (self.sweep[idx] * df / L)[:, None] * self.bend[idx]
+        d = self._dcds(idx, s)
         return d / np.linalg.norm(d, axis=1)[:, None]
 
     def speed(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """|dC/ds| (arc length per axial length, >= 1)."""
-        L = self.length[idx]
-        _, df, _ = _bow(s / L, self.peak[idx])
-        return np.sqrt(1.0 + (self.sweep[idx] * df / L) ** 2)
+        return np.linalg.norm(self._dcds(idx, s), axis=1)
+
+    def max_speed(self) -> FloatArray:
+        """Largest |dC/ds| of each stem (at the bow's steepest point, t = 0 or 1)."""
+        q = np.minimum(self.peak, 1.0 - self.peak)
+        return np.sqrt(1.0 + (self.sweep * 0.5 * math.pi / q / self.length) ** 2)
 
     def curvature_bound(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """|d2C/ds2| (1/m): how fast the centre line bends."""
@@ -132,8 +143,9 @@ class StemSet:
         """Centre-line polyline base -> top with vertices at most ``max_step_m`` apart (along
         the arc), and the radius at each vertex."""
         L = float(self.length[i])
-        # The arc is at most a few mm longer than L; the margin keeps chords under the limit.
-        n = max(2, math.ceil(L * 1.01 / max_step_m) + 1)
+        # Equal axial steps of at most max_step / max|dC/ds|: every arc, hence every chord,
+        # between vertices is at most max_step.
+        n = max(2, math.ceil(L * float(self.max_speed()[i]) / max_step_m) + 1)
         s = np.linspace(0.0, L, n)
         idx = np.full(n, i)
         return self.centre(idx, s), self.radius(idx, s)

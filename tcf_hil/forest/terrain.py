@@ -111,13 +111,24 @@ class Terrain:
         return min(max_spacing_m, math.sqrt(8.0 * tolerance_m / kappa) / math.sqrt(2.0))
 
     def grid(self, bounds: tuple[float, float, float, float], tolerance_m: float,
-             max_vertices: int = 4_000_000) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Vertex grid (xs, ys, z[ny, nx]) over ``bounds`` (xmin, ymin, xmax, ymax)."""
+             max_vertices: int = 16_000_000, *, coarsen: bool = False
+             ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Vertex grid (xs, ys, z[ny, nx]) over ``bounds`` (xmin, ymin, xmax, ymax).
+
+        Raises:
+            ValueError: when the tolerance needs more than ``max_vertices`` (unless
+                ``coarsen``, for pictures, where the grid is thinned instead).
+        """
         x0, y0, x1, y1 = bounds
         h = self.grid_spacing(tolerance_m)
         nx = max(2, math.ceil((x1 - x0) / h) + 1)
         ny = max(2, math.ceil((y1 - y0) / h) + 1)
         if nx * ny > max_vertices:
+            if not coarsen:
+                need = tolerance_m * nx * ny / max_vertices
+                raise ValueError(f"a {tolerance_m * 1000:g} mm terrain tolerance needs "
+                                 f"{nx * ny} vertices over this area (at most {max_vertices});"
+                                 f" use {need * 1000:.3g} mm or more")
             scale = math.sqrt(nx * ny / max_vertices)
             nx, ny = max(2, int(nx / scale)), max(2, int(ny / scale))
         xs = np.linspace(x0, x1, nx)

@@ -193,7 +193,10 @@ def _preset_text(name: str) -> str:
 def _load_dict(name_or_path: str, _seen: tuple[str, ...] = ()) -> tuple[dict[str, Any], str]:
     preset = preset_name(name_or_path)
     path = Path(name_or_path)
-    if preset is not None and not path.is_file():
+    # A bare preset name is the preset, even if a file of that name sits in the working
+    # directory; write ./forest-v or forest-v.toml to mean a file.
+    looks_like_path = "/" in name_or_path or name_or_path.endswith(".toml")
+    if preset is not None and not looks_like_path:
         source, text = f"preset {preset}", _preset_text(preset)
     else:
         source = str(path)
@@ -215,7 +218,7 @@ def _load_dict(name_or_path: str, _seen: tuple[str, ...] = ()) -> tuple[dict[str
                               source)
         if ext in _seen:
             raise ConfigError("extends", ext, "a preset that does not extend itself", source)
-        base, _ = _load_dict(preset_name(ext) or ext, (*_seen, ext))
+        base, _ = _load_dict(preset_name(ext) or ext, (*_seen, ext))  # a preset, never a file
         data = _merge(base, data)
     return data, source
 

@@ -137,3 +137,21 @@ def test_demo_through_the_console_script(tmp_path: Path) -> None:
     for f in ("forest-v", "forest-vi"):
         assert (runs[0] / f / "cloud.pcd").stat().st_size > 1_000_000
         assert (runs[0] / f / "tuned" / "em_heatmap.png").exists()
+
+
+def test_an_output_that_cannot_be_written_is_exit_1(tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    code, _, err = run(["forest", "sample", "forest-ii", "--points-per-stem", "10",
+                        "--out", str(blocker / "c.pcd")], capsys)
+    assert code == 1 and "cannot" in err and str(blocker) in err
+
+
+def test_generation_errors_name_the_scenario_file(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    p = tmp_path / "dense.toml"
+    p.write_text('[plot]\nsize_m = [2.0, 2.0]\n[stems]\ncount = 10\n'
+                 '[distribution]\nkind = "even"\ncorridor_half_width_m = 0.0\n')
+    code, _, err = run(["forest", "generate", str(p), "--out", str(tmp_path / "o")], capsys)
+    assert code == 1 and str(p) in err and "stems.count" in err

@@ -308,3 +308,34 @@ def test_matching_is_in_the_xy_plane_and_precise_at_utm() -> None:
         d["objects"][0]["cp"][2] = 50.0  # height differences do not count
     m = ev(g, o).metrics
     assert m["total_matches"] == 1 and m["position_rmse_m"] == pytest.approx(0.999)
+
+
+# ------------------------------------------------------- review regressions
+
+
+@pytest.mark.parametrize("method", ["greedy", "optimal"])
+def test_objects_without_ids_do_not_make_order_matter(method: str) -> None:
+    gt = {"objects": [{"id": 1, "cp": [500000.0, 6900000.0, 0.0], "class": "S"}]}
+    a = {"cp": [500000.5, 6900000.0, 0.0], "class": "S"}
+    b = {"cp": [499999.5, 6900000.0, 0.0], "class": "C"}
+    one = ev(gt, {"objects": [a, b]}, match=method).em.tolist()
+    two = ev(gt, {"objects": [b, a]}, match=method).em.tolist()
+    assert one == two
+
+
+def test_absurd_numbers_and_nesting_are_input_errors(tmp_path: Path) -> None:
+    from tcf_hil.stems_json import load_stems
+
+    for bad in ('{"objects": [{"cp": [' + "9" * 401 + ', 0, 0], "class": "S"}]}',
+                '{"objects": [{"cp": [0, 0, 0], "class": "S", "h": 1e200}]}',
+                '{"objects": [{"cp": [1e308, 0, 0], "class": "S"}]}',
+                "[" * 100_000 + "]" * 100_000):
+        p = tmp_path / "x.json"
+        p.write_text(bad)
+        with pytest.raises(InputError, match=r"x\.json"):
+            load_stems(p)
+
+
+def test_credits_above_e_are_refused() -> None:
+    with pytest.raises(ValueError, match="at least the A and N"):
+        EvalConfig(credits=(1.0, 2.0, 0.0))

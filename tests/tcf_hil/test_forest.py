@@ -247,3 +247,38 @@ def test_terrain_gradient_matches_finite_differences() -> None:
     xs = np.random.default_rng(2).uniform(-2000, 2000, (20000, 2))
     rms = float(np.sqrt(np.mean((t.height(xs[:, 0], xs[:, 1]) - t.elevation_m) ** 2)))
     assert rms == pytest.approx(1.0 / math.sqrt(2), rel=0.1)
+
+
+def test_centerline_vertices_at_most_half_a_metre_on_short_crooked_stems() -> None:
+    s = scenario_from_dict({"plot": {"size_m": [30.0, 30.0]},
+                            "stems": {"count": 60, "height_m": [2.0, 3.0],
+                                      "class_mix": {"S": 0, "C": 0, "X": 1},
+                                      "sweep_m": {"X": [0.8, 1.0]}},
+                            "track": {"start_m": [0.0, -15.0, 2.0], "end_m": [0.0, 15.0, 2.0]}})
+    for o in ground_truth(generate_forest(s))["objects"]:
+        cl = np.asarray(o["centerline"])
+        assert np.linalg.norm(np.diff(cl, axis=0), axis=1).max() <= 0.5 + 1e-4
+
+
+def test_centre_line_has_no_kink_at_the_base(forest_iv: Forest) -> None:
+    st = forest_iv.stems
+    idx = np.arange(len(st))
+    eps = 1e-6
+    below = (st.centre(idx, np.zeros(len(st))) - st.centre(idx, np.full(len(st), -eps))) / eps
+    above = (st.centre(idx, np.full(len(st), eps)) - st.centre(idx, np.zeros(len(st)))) / eps
+    np.testing.assert_allclose(below, above, atol=1e-4)
+
+
+def test_too_fine_a_terrain_tolerance_is_a_config_error() -> None:
+    from tcf_hil.forest import terrain_mesh
+
+    f = generate_forest(load_scenario("forest-x"))
+    with pytest.raises(ConfigError, match=r"terrain\.tolerance_mm"):
+        terrain_mesh(f.terrain, f.bounds(), 0.00001)
+
+
+def test_no_meshes_removes_another_forests_meshes(tmp_path: Path) -> None:
+    write_forest(generate_forest(load_scenario("forest-i")), tmp_path)
+    assert (tmp_path / "stems.ply").exists()
+    write_forest(generate_forest(load_scenario("forest-ii")), tmp_path, meshes=False)
+    assert not (tmp_path / "stems.ply").exists() and not (tmp_path / "terrain.ply").exists()

@@ -134,3 +134,13 @@ def test_valid_values_round_trip(count: int, size: float, amp: float, kind: str)
                             "terrain": {"kind": "rolling", "amplitude_m": amp},
                             "distribution": {"kind": kind, "edge_margin_m": 0.1}})
     assert scenario_from_dict(tomllib.loads(scenario_to_toml(s))) == s
+
+
+def test_a_file_named_like_a_preset_does_not_hide_it(tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "forest-v").write_text("not toml at all")
+    (tmp_path / "v").write_text('name = "notes"\n')
+    assert load_scenario("forest-v").name == "forest-v"
+    assert load_scenario("v").name == "forest-v"
+    assert load_scenario("./v").name == "notes"  # a path means the file
