@@ -68,6 +68,17 @@ class RecordResult:
     refused: int = 0
 
 
+def sensor_metadata(scn: Scenario, *, mode: str = "1024x10",
+                    profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
+                    udp_dest: str = "127.0.0.1", udp_port_lidar: int = 7502,
+                    udp_port_imu: int = 7503) -> SensorMetadata:
+    """The run's metadata (init_id derived from the seed), without building any scene."""
+    s = scn.seed if seed is None else seed
+    init_id = (s * 2654435761 + 12345) % (1 << 24) or 1
+    return os0_64_metadata(mode, profile, init_id=init_id, udp_dest=udp_dest,
+                           udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
+
+
 class LidarRun:
     """One sensor driven along a scenario's track; yields each frame's datagrams in send
     order (lidar packets at their last column's time stamp, IMU at 100 Hz)."""
@@ -81,11 +92,9 @@ class LidarRun:
         self.forest: Forest = generate_forest(scn, seed)
         self.scene = Scene.from_forest(self.forest, backend=backend)
         self.track = StraightTrack.from_config(scn.track, self.forest.terrain)
-        if meta is None:
-            init_id = (self.forest.seed * 2654435761 + 12345) % (1 << 24) or 1
-            meta = os0_64_metadata(mode, profile, init_id=init_id, udp_dest=udp_dest,
-                                   udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
-        self.meta: SensorMetadata = meta
+        self.meta: SensorMetadata = meta or sensor_metadata(
+            scn, mode=mode, profile=profile, seed=self.forest.seed, udp_dest=udp_dest,
+            udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
         self.emu = Os0Emulator(self.meta, self.scene, self.track, model, seed=self.forest.seed,
                                start_ns=self.track.t0_ns)
         n = max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
@@ -309,9 +318,11 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
     metadata (new init_id, frame_id from 0), as the real sensor does. Runs until the track
     ends and ``stop`` is set; returns the (closed) API object for inspection."""
     stop = stop or threading.Event()
-    probe = LidarRun(scn, **{**run_kw, "max_frames": 1})
+    meta_kw = {k: run_kw[k] for k in ("mode", "profile", "seed", "udp_dest", "udp_port_lidar",
+                                      "udp_port_imu") if k in run_kw}
+    first = sensor_metadata(scn, **meta_kw)  # the stream itself builds the scene
     reinit = threading.Event()
-    current = [probe.meta]
+    current = [first]
     inner = [threading.Event()]
 
     def on_reinit(meta: SensorMetadata) -> None:
@@ -319,7 +330,7 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
         reinit.set()
         inner[0].set()
 
-    api = SensorApi(probe.meta, http_host, http_port, on_reinit=on_reinit).start()
+    api = SensorApi(first, http_host, http_port, on_reinit=on_reinit).start()
 
     def relay() -> None:
         stop.wait()

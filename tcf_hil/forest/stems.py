@@ -98,10 +98,11 @@ class StemSet:
         """|dC/ds| (arc length per axial length, >= 1)."""
         return np.linalg.norm(self._dcds(idx, s), axis=1)
 
-    def max_speed(self) -> FloatArray:
-        """Largest |dC/ds| of each stem (at the bow's steepest point, t = 0 or 1)."""
-        q = np.minimum(self.peak, 1.0 - self.peak)
-        return np.sqrt(1.0 + (self.sweep * 0.5 * math.pi / q / self.length) ** 2)
+    def max_speed(self, idx: IntArray | None = None) -> FloatArray:
+        """Largest |dC/ds| of stems ``idx`` (all by default), at the bow's steepest point."""
+        ix = np.arange(len(self)) if idx is None else idx
+        q = np.minimum(self.peak[ix], 1.0 - self.peak[ix])
+        return np.sqrt(1.0 + (self.sweep[ix] * 0.5 * math.pi / q / self.length[ix]) ** 2)
 
     def curvature_bound(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """|d2C/ds2| (1/m): how fast the centre line bends."""
@@ -145,7 +146,8 @@ class StemSet:
         L = float(self.length[i])
         # Equal axial steps of at most max_step / max|dC/ds|: every arc, hence every chord,
         # between vertices is at most max_step.
-        n = max(2, math.ceil(L * float(self.max_speed()[i]) / max_step_m) + 1)
+        vmax = float(self.max_speed(np.array([i]))[0])
+        n = max(2, math.ceil(L * vmax / max_step_m) + 1)
         s = np.linspace(0.0, L, n)
         idx = np.full(n, i)
         return self.centre(idx, s), self.radius(idx, s)
