@@ -21,7 +21,7 @@ from tcf_hil.forest import generate_forest
 from tcf_hil.lidar import _crc_rows
 from tcf_hil.scenario import load_scenario
 from tcf_hil.scene import Scene
-from tcf_hil.trajectory import StraightTrack
+from tcf_hil.trajectory import Trajectory
 
 
 def main() -> None:
@@ -38,7 +38,7 @@ def main() -> None:
     crc = _crc_rows()
     for fname in a.forests.split(","):
         forest = generate_forest(load_scenario(fname))
-        track = StraightTrack.from_config(forest.scenario.track, forest.terrain)
+        track = Trajectory.from_config(forest.scenario.track, forest.terrain)
         for backend in a.backends.split(","):
             scene = Scene.from_forest(forest, backend=backend)
             for mode in a.modes.split(","):

@@ -21,7 +21,7 @@ from tcf_hil.analytic import refine_hits
 from tcf_hil.forest import generate_forest
 from tcf_hil.scenario import load_scenario
 from tcf_hil.scene import Scene
-from tcf_hil.trajectory import StraightTrack
+from tcf_hil.trajectory import Trajectory
 
 
 def main() -> None:
@@ -34,7 +34,7 @@ def main() -> None:
     a = ap.parse_args()
     scn = load_scenario(a.forest)
     forest = generate_forest(scn)
-    track = StraightTrack.from_config(scn.track, forest.terrain)
+    track = Trajectory.from_config(scn.track, forest.terrain)
     meta = os0_64_metadata(a.mode)
     rows = []
     print(f"{'tol mm':>6} {'triangles':>10} {'stem hits':>9} {'surf p99 mm':>11} "

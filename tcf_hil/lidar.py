@@ -40,7 +40,7 @@ from tcf_hil._io import atomic_path, ensure_dir, write_bytes_atomic, write_json_
 from tcf_hil.forest import Forest, generate_forest, ground_truth
 from tcf_hil.scenario import Scenario
 from tcf_hil.scene import Scene
-from tcf_hil.trajectory import StraightTrack, quaternions
+from tcf_hil.trajectory import Trajectory, quaternions
 
 IMU_PERIOD_NS = 10_000_000  # 100 Hz
 
@@ -91,7 +91,7 @@ class LidarRun:
                  meta: SensorMetadata | None = None) -> None:
         self.forest: Forest = generate_forest(scn, seed)
         self.scene = Scene.from_forest(self.forest, backend=backend)
-        self.track = StraightTrack.from_config(scn.track, self.forest.terrain)
+        self.track = Trajectory.from_config(scn.track, self.forest.terrain)
         self.meta: SensorMetadata = meta or sensor_metadata(
             scn, mode=mode, profile=profile, seed=self.forest.seed, udp_dest=udp_dest,
             udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
@@ -118,12 +118,19 @@ class LidarRun:
                                      init_id=self.meta.init_id, prod_sn=self.meta.prod_sn,
                                      crc_rows=crc)
             out = []
-            for i, t_send in enumerate(fr.timestamps_ns[cpp - 1::cpp].tolist()):
-                while next_imu <= t_send:
-                    out.append(Datagram(next_imu, ip, encode_imu_packet(ImuPacket(
-                        next_imu, next_imu, next_imu, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0)))))
-                    next_imu += IMU_PERIOD_NS
+            sends = fr.timestamps_ns[cpp - 1::cpp].tolist()
+            imu_t = np.arange(next_imu, sends[-1] + 1, IMU_PERIOD_NS, dtype=np.int64)
+            acc, gyro = self.track.imu(imu_t) if len(imu_t) else (np.zeros((0, 3)),) * 2
+            j = 0
+            for i, t_send in enumerate(sends):
+                while j < len(imu_t) and imu_t[j] <= t_send:
+                    t = int(imu_t[j])
+                    out.append(Datagram(t, ip, encode_imu_packet(ImuPacket(
+                        t, t, t, tuple(acc[j].tolist()), tuple(gyro[j].tolist())))))
+                    j += 1
                 out.append(Datagram(t_send, lp, arr[i].tobytes()))
+            if len(imu_t):
+                next_imu = int(imu_t[-1]) + IMU_PERIOD_NS
             self.packets += arr.shape[0]
             hit = fr.stem_id[fr.stem_id >= 0]
             if fr.stem_id2 is not None:  # the DUAL profile's second returns count too

@@ -1,64 +1,378 @@
-"""Sensor trajectories. Here: the paper's straight pass at constant speed, the sensor a fixed
-height above the terrain, level, facing along the track (the harvester issue brings strip
-roads, turns and terrain-following attitude)."""
+"""The harvester's path through the forest and the poses along it.
+
+A track is a polyline (start, waypoints, end) driven in one or more passes. Corners are rounded
+with circular arcs (``turn_radius_m``, shrunk where legs are short); a pass that returns along
+the same road is driven in reverse gear after a standstill, a pass beside it (``pass_offset_m``)
+is reached by a U-turn. Each leg (between standstills) has a trapezoidal speed profile
+(``accel_m_s2``; 0 is the paper's constant speed). The machine's base point rests on the
+ground under its footprint (the mean height under its four edges); pitch and roll follow that
+ground (REP-103: x forward, y left, z up; R = Rz(yaw) Ry(pitch) Rx(roll), positive pitch = nose
+down). The lidar sits on the machine at the
+mount pose.
+
+Everything is a function of simulation time in integer nanoseconds and works on arrays, so the
+lidar emulator can take one pose per column. Velocities, accelerations and angular rates (for
+the IMU) are central differences over ``DIFF_NS``.
+"""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
+from tcf_hil.errors import ConfigError
 from tcf_hil.forest import Terrain
-from tcf_hil.scenario import TrackConfig
+from tcf_hil.scenario import PoseErrorConfig, TrackConfig
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+GRAVITY_M_S2 = 9.80665
+DIFF_NS = 1_000_000  # step of the central differences (1 ms)
+_CUSP_RAD = math.pi - 1e-6
+
+
+def rot_z(a: FloatArray) -> FloatArray:
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1),
+                     np.stack([z, z, o], -1)], -2)
+
+
+def rot_y(a: FloatArray) -> FloatArray:
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1),
+                     np.stack([-s, z, c], -1)], -2)
+
+
+def rot_x(a: FloatArray) -> FloatArray:
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1),
+                     np.stack([z, s, c], -1)], -2)
+
+
+def rotation_ypr(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll), radians, arrays of rotations (n, 3, 3)."""
+    result: FloatArray = rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+    return result
 
 
 @dataclass(frozen=True)
-class StraightTrack:
-    """Constant-velocity pass from ``start`` to ``end`` (local x, y), sensor ``height_m``
-    above the terrain. Before ``t0_ns`` it waits at the start, after the end at the end."""
+class _Leg:
+    """Segments between two standstills, in travel direction: arrays over segments."""
 
-    start: tuple[float, float]
-    end: tuple[float, float]
-    height_m: float
-    speed_m_s: float
+    x0: FloatArray
+    y0: FloatArray
+    th0: FloatArray  # travel direction at the segment start (rad, counter-clockwise from +x)
+    k: FloatArray  # curvature (1/m, left positive); 0: straight
+    s0: FloatArray  # arc length at the segment start
+    tag: IntArray  # pass number of each segment
+    length: float
+    gear: int  # +1 forward, -1 reverse
+    # speed profile
+    t_acc: float
+    t_cruise: float
+    v_peak: float
+    accel: float
+
+    @property
+    def duration_s(self) -> float:
+        return 2 * self.t_acc + self.t_cruise
+
+    def distance(self, tau: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Arc length and speed (>= 0) at time tau (s) after the leg's start."""
+        T, ta, v, a = self.duration_s, self.t_acc, self.v_peak, self.accel
+        before = tau < 0.0
+        tau = np.clip(tau, 0.0, T)
+        if ta == 0.0:
+            return np.minimum(v * tau, self.length), np.where(before | (tau >= T), 0.0, v)
+        d_a = 0.5 * a * ta * ta
+        s = np.where(tau < ta, 0.5 * a * tau * tau,
+                     np.where(tau <= ta + self.t_cruise, d_a + v * (tau - ta),
+                              self.length - 0.5 * a * (T - tau) ** 2))
+        sp = np.where(tau < ta, a * tau, np.where(tau <= ta + self.t_cruise, v, a * (T - tau)))
+        return np.clip(s, 0.0, self.length), np.where(before, 0.0, np.maximum(sp, 0.0))
+
+    def point(self, s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, IntArray]:
+        """x, y, travel direction and pass tag at arc length s."""
+        if len(self.s0) == 0:
+            z = np.zeros_like(s)
+            return z + self.x0_fallback[0], z + self.x0_fallback[1], z, np.zeros(len(s), np.int64)
+        i = np.clip(np.searchsorted(self.s0, s, side="right") - 1, 0, len(self.s0) - 1)
+        ds = s - self.s0[i]
+        th0, k = self.th0[i], self.k[i]
+        th = th0 + k * ds
+        straight = k == 0.0
+        safe_k = np.where(straight, 1.0, k)
+        x = self.x0[i] + np.where(straight, ds * np.cos(th0), (np.sin(th) - np.sin(th0)) / safe_k)
+        y = self.y0[i] + np.where(straight, ds * np.sin(th0), (np.cos(th0) - np.cos(th)) / safe_k)
+        return x, y, th, self.tag[i]
+
+    x0_fallback: tuple[float, float] = (0.0, 0.0)
+
+
+def _fillet_leg(pts: list[tuple[float, float, int]], radius: float
+                ) -> tuple[list[tuple[float, float, float, float, float, int]], float]:
+    """Segments (x0, y0, th0, length, k, tag) of a polyline with rounded corners."""
+    P = np.array([(p[0], p[1]) for p in pts], dtype=np.float64)
+    tags = [p[2] for p in pts]
+    d = np.diff(P, axis=0)
+    lens = np.hypot(d[:, 0], d[:, 1])
+    u = d / lens[:, None]
+    n = len(P)
+    tan_len = np.zeros(n)
+    k_at = np.zeros(n)
+    turn = np.zeros(n)
+    for i in range(1, n - 1):
+        delta = math.atan2(u[i - 1, 0] * u[i, 1] - u[i - 1, 1] * u[i, 0], float(u[i - 1] @ u[i]))
+        if abs(delta) < 1e-12:
+            continue
+        share_in = lens[i - 1] if i - 1 == 0 else lens[i - 1] / 2
+        share_out = lens[i] if i == n - 2 else lens[i] / 2
+        t = min(radius * math.tan(abs(delta) / 2), share_in, share_out)
+        r = t / math.tan(abs(delta) / 2)
+        tan_len[i], k_at[i], turn[i] = t, math.copysign(1.0 / r, delta), delta
+    segs = []
+    total = 0.0
+    for i in range(n - 1):
+        a = P[i] + u[i] * tan_len[i]
+        b = P[i + 1] - u[i] * tan_len[i + 1]
+        th = math.atan2(u[i, 1], u[i, 0])
+        ln = float(np.hypot(*(b - a)))
+        if ln > 0:
+            segs.append((float(a[0]), float(a[1]), th, ln, 0.0, tags[i + 1]))
+            total += ln
+        if i + 1 < n - 1 and turn[i + 1] != 0.0:
+            r = 1.0 / abs(k_at[i + 1])
+            segs.append((float(b[0]), float(b[1]), th, r * abs(turn[i + 1]), k_at[i + 1],
+                         tags[i + 1]))
+            total += r * abs(turn[i + 1])
+    return segs, total
+
+
+def _profile(length: float, v: float, a: float) -> tuple[float, float, float]:
+    """(t_acc, t_cruise, v_peak) of a trapezoid (a = 0: constant speed)."""
+    if length <= 0:
+        return 0.0, 0.0, 0.0
+    if a == 0.0:
+        return 0.0, length / v, v
+    d_a = v * v / (2 * a)
+    if 2 * d_a <= length:
+        return v / a, (length - 2 * d_a) / v, v
+    vp = math.sqrt(a * length)
+    return vp / a, 0.0, vp
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """The machine at some times (arrays over samples)."""
+
+    position: FloatArray  # (n, 3) base point on the ground, local world frame
+    yaw: FloatArray  # rad, counter-clockwise from +x (east)
+    pitch: FloatArray  # rad, REP-103 (positive nose down)
+    roll: FloatArray  # rad (positive left side up)
+    speed: FloatArray  # m/s along the forward axis (negative in reverse)
+    pass_no: IntArray
+    moving: NDArray[np.bool_]
+
+    @property
+    def heading_deg(self) -> FloatArray:
+        """Compass heading: 0 = north (+y), clockwise, in [0, 360)."""
+        result: FloatArray = np.mod(90.0 - np.degrees(self.yaw), 360.0)
+        return result
+
+    @property
+    def rotation(self) -> FloatArray:
+        return rotation_ypr(self.yaw, self.pitch, self.roll)
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A scenario's track over its terrain, starting to move at ``t0_ns``."""
+
+    track: TrackConfig
     terrain: Terrain
     t0_ns: int = 1_000_000_000
+    legs: tuple[_Leg, ...] = field(init=False, repr=False)
+    leg_start_s: FloatArray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        tr = self.track
+        base = [(tr.start_m[0], tr.start_m[1]), *tr.waypoints_m, (tr.end_m[0], tr.end_m[1])]
+        d = np.array(base[-1]) - np.array(base[0])
+        dn = float(np.hypot(*d))
+        normal = np.array([-d[1], d[0]]) / dn if dn > 0 else np.array([0.0, 0.0])
+        if tr.passes > 1 and tr.pass_offset_m > 0 and dn == 0:
+            raise ConfigError("track.pass_offset_m", tr.pass_offset_m,
+                              "0 when start and end coincide (no direction to offset)", None)
+        pts: list[tuple[float, float, int]] = []
+        for p in range(tr.passes):
+            seq = base if p % 2 == 0 else base[::-1]
+            off = normal * tr.pass_offset_m * p
+            for x, y in seq:
+                q = (float(x + off[0]), float(y + off[1]), p)
+                if not pts or math.hypot(q[0] - pts[-1][0], q[1] - pts[-1][1]) > 1e-9:
+                    pts.append(q)
+        # split into legs at cusps (the road driven back: reverse gear)
+        legs_pts: list[list[tuple[float, float, int]]] = [pts[:2]]
+        for i in range(2, len(pts)):
+            a, b, c = pts[i - 2], pts[i - 1], pts[i]
+            u = (b[0] - a[0], b[1] - a[1])
+            w = (c[0] - b[0], c[1] - b[1])
+            ang = abs(math.atan2(u[0] * w[1] - u[1] * w[0], u[0] * w[0] + u[1] * w[1]))
+            if ang >= _CUSP_RAD:
+                legs_pts.append([b, c])
+            else:
+                legs_pts[-1].append(c)
+        legs = []
+        for j, lp in enumerate(legs_pts):
+            segs: list[tuple[float, float, float, float, float, int]] = []
+            length = 0.0
+            if len(lp) >= 2:
+                segs, length = _fillet_leg(lp, tr.turn_radius_m)
+            ta, tc, vp = _profile(length, tr.speed_m_s, tr.accel_m_s2)
+            arr = np.array([s[:5] for s in segs], dtype=np.float64).reshape(-1, 5)
+            s0 = np.concatenate([[0.0], np.cumsum(arr[:, 3])[:-1]]) if len(arr) else np.zeros(0)
+            legs.append(_Leg(arr[:, 0].copy(), arr[:, 1].copy(), arr[:, 2].copy(),
+                             arr[:, 4].copy(), s0, np.array([s[5] for s in segs], np.int64),
+                             length, 1 if j % 2 == 0 else -1, ta, tc, vp, tr.accel_m_s2,
+                             (lp[0][0], lp[0][1])))
+        starts = [0.0]
+        for leg in legs[:-1]:
+            starts.append(starts[-1] + leg.duration_s + tr.stop_s)
+        object.__setattr__(self, "legs", tuple(legs))
+        object.__setattr__(self, "leg_start_s", np.array(starts))
 
     @classmethod
     def from_config(cls, track: TrackConfig, terrain: Terrain,
-                    t0_ns: int = 1_000_000_000) -> StraightTrack:
-        return cls((track.start_m[0], track.start_m[1]), (track.end_m[0], track.end_m[1]),
-                   track.start_m[2], track.speed_m_s, terrain, t0_ns)
+                    t0_ns: int = 1_000_000_000) -> Trajectory:
+        return cls(track, terrain, t0_ns)
 
     @property
     def length_m(self) -> float:
-        return math.hypot(self.end[0] - self.start[0], self.end[1] - self.start[1])
+        return float(sum(leg.length for leg in self.legs))
 
     @property
     def duration_ns(self) -> int:
-        return round(self.length_m / self.speed_m_s * 1e9)
+        """From ``t0_ns`` until the machine stops at the end."""
+        return round((self.leg_start_s[-1] + self.legs[-1].duration_s) * 1e9)
 
     @property
-    def heading_rad(self) -> float:
-        return math.atan2(self.end[1] - self.start[1], self.end[0] - self.start[0])
+    def end_ns(self) -> int:
+        return self.t0_ns + self.duration_ns
 
-    def sensor_pose(self, t_ns: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
-        """Positions (n, 3) and rotations (n, 3, 3): sensor x forward, z up."""
-        t = (np.asarray(t_ns, dtype=np.int64) - self.t0_ns).astype(np.float64) / 1e9
-        L = self.length_m
-        s = np.clip(t * self.speed_m_s, 0.0, L)
-        u = (np.array(self.end) - np.array(self.start)) / L if L > 0 else np.zeros(2)
-        xy = np.asarray(self.start)[None, :] + s[:, None] * u[None, :]
-        z = self.terrain.height(xy[:, 0], xy[:, 1]) + self.height_m
-        pos = np.column_stack([xy, z])
-        c, si = math.cos(self.heading_rad), math.sin(self.heading_rad)
-        rot = np.broadcast_to(np.array([[c, -si, 0.0], [si, c, 0.0], [0.0, 0.0, 1.0]]),
-                              (len(s), 3, 3)).copy()
-        return pos, rot
+    # -- poses ------------------------------------------------------------------------------
+    def vehicle_state(self, t_ns: IntArray | int) -> VehicleState:
+        t = np.atleast_1d(np.asarray(t_ns, dtype=np.int64))
+        ts = (t - self.t0_ns).astype(np.float64) / 1e9
+        j = np.clip(np.searchsorted(self.leg_start_s, ts, side="right") - 1, 0,
+                    len(self.legs) - 1)
+        n = len(t)
+        x, y, th, sp = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+        tag = np.zeros(n, np.int64)
+        gear = np.empty(n)
+        for li, leg in enumerate(self.legs):
+            m = j == li
+            if not m.any():
+                continue
+            s, v = leg.distance(ts[m] - self.leg_start_s[li])
+            x[m], y[m], th[m], tag[m] = leg.point(s)
+            sp[m] = v
+            gear[m] = leg.gear
+        if len(self.legs[0].s0) == 0:  # a standing machine facing from start to end
+            tr = self.track
+            th[:] = math.atan2(tr.end_m[1] - tr.start_m[1], tr.end_m[0] - tr.start_m[0])
+        yaw = th + np.where(gear < 0, math.pi, 0.0)
+        yaw = np.mod(yaw + math.pi, 2 * math.pi) - math.pi
+        pitch, roll = np.zeros(n), np.zeros(n)
+        if self.track.follow_terrain and not self.terrain.is_flat:
+            # the machine rests on its footprint: height, pitch and roll from the ground under
+            # its front, rear, left and right edges (bumps shorter than it are bridged)
+            L, W = self.track.footprint_m
+            fx, fy = np.cos(yaw), np.sin(yaw)
+            h = self.terrain.height
+            front, rear = h(x + fx * L / 2, y + fy * L / 2), h(x - fx * L / 2, y - fy * L / 2)
+            left, right = h(x - fy * W / 2, y + fx * W / 2), h(x + fy * W / 2, y - fx * W / 2)
+            pitch = np.arctan2(rear - front, L)
+            roll = np.arctan2(left - right, W)
+            z = (front + rear + left + right) / 4.0
+        else:
+            z = self.terrain.height(x, y)
+        return VehicleState(np.column_stack([x, y, z]), yaw, pitch, roll, sp * gear,
+                            tag, sp > 0)
+
+    def sensor_pose(self, t_ns: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Lidar sensor frame in the local world: positions (n, 3), rotations (n, 3, 3)."""
+        st = self.vehicle_state(t_ns)
+        R = st.rotation
+        tr = self.track
+        m = np.array([tr.mount_xy_m[0], tr.mount_xy_m[1], tr.start_m[2]])
+        r, p, y = np.radians(tr.mount_rpy_deg)
+        Rm = rotation_ypr(np.array([y]), np.array([p]), np.array([r]))[0]
+        return st.position + R @ m, R @ Rm
+
+    def sensor_kinematics(self, t_ns: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Sensor velocity and acceleration (n, 3) in the world, angular velocity (n, 3) in the
+        sensor frame (rad/s), by central differences over ``DIFF_NS``."""
+        t = np.atleast_1d(np.asarray(t_ns, dtype=np.int64))
+        h = DIFF_NS
+        p0, R0 = self.sensor_pose(t - h)
+        p1, _ = self.sensor_pose(t)
+        p2, R2 = self.sensor_pose(t + h)
+        hs = h / 1e9
+        vel = (p2 - p0) / (2 * hs)
+        acc = (p2 - 2 * p1 + p0) / (hs * hs)
+        Rrel = np.swapaxes(R0, 1, 2) @ R2
+        w = np.stack([Rrel[:, 2, 1] - Rrel[:, 1, 2], Rrel[:, 0, 2] - Rrel[:, 2, 0],
+                      Rrel[:, 1, 0] - Rrel[:, 0, 1]], axis=1) / 2.0
+        return vel, acc, w / (2 * hs)
+
+    def imu(self, t_ns: IntArray) -> tuple[FloatArray, FloatArray]:
+        """What an IMU fixed to the sensor frame reads: specific force in g (gravity included:
+        a level sensor at rest reads (0, 0, 1)) and angular rate in deg/s, (n, 3) each."""
+        _, R = self.sensor_pose(t_ns)
+        _, acc, w = self.sensor_kinematics(t_ns)
+        f = acc + np.array([0.0, 0.0, GRAVITY_M_S2])
+        accel = np.einsum("nji,nj->ni", R, f) / GRAVITY_M_S2
+        return accel, np.degrees(w)
+
+
+@dataclass(frozen=True)
+class PoseError:
+    """GNSS/INS error put on what goes on the bus (the truth is kept elsewhere): white noise
+    on position and heading, a constant bias and a horizontal drift. Deterministic: the error
+    at a time stamp depends only on (seed, time stamp)."""
+
+    cfg: PoseErrorConfig
+    seed: int = 0
+    t0_ns: int = 1_000_000_000
+
+    @property
+    def active(self) -> bool:
+        c = self.cfg
+        return bool(c.position_sd_m or c.heading_sd_deg or any(c.bias_m) or c.drift_m_per_s)
+
+    def apply(self, position: FloatArray, heading_deg: FloatArray, t_ns: IntArray
+              ) -> tuple[FloatArray, FloatArray]:
+        if not self.active:
+            return position, heading_deg
+        c = self.cfg
+        t = np.atleast_1d(np.asarray(t_ns, dtype=np.int64))
+        ang = np.random.default_rng([self.seed, 0x0D1F7]).uniform(0, 2 * math.pi)
+        el = np.maximum((t - self.t0_ns).astype(np.float64) / 1e9, 0.0) * c.drift_m_per_s
+        pos = position + np.array(c.bias_m) + np.column_stack(
+            [el * math.cos(ang), el * math.sin(ang), np.zeros(len(t))])
+        hd = np.array(heading_deg, dtype=np.float64, copy=True)
+        for i, ti in enumerate(t.tolist()):
+            g = np.random.default_rng([self.seed, 0x9E55, ti & ((1 << 63) - 1)])
+            pos[i] += g.normal(0.0, 1.0, 3) * c.position_sd_m
+            hd[i] = (hd[i] + g.normal() * c.heading_sd_deg) % 360.0
+        return pos, hd
 
 
 def quaternions(rot: FloatArray) -> FloatArray:

@@ -28,6 +28,8 @@ _ROMAN = ("i", "ii", "iii", "iv", "v", "vi", "vii", "viii", "ix", "x")
 PRESET_NAMES: tuple[str, ...] = tuple(f"forest-{r}" for r in _ROMAN)
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
+_MAX_ITEMS = 1000
+
 
 def _describe_type(tp: Any) -> str:
     if dataclasses.is_dataclass(tp):
@@ -37,6 +39,8 @@ def _describe_type(tp: Any) -> str:
         return "one of " + ", ".join(repr(a) for a in get_args(tp))
     if origin is tuple:
         args = get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"a list (up to {_MAX_ITEMS} items) of {_describe_type(args[0])}"
         return f"an array of {len(args)} numbers"
     return {int: "an integer", float: "a number", str: "a string", bool: "true or false"}.get(
         tp, str(tp))
@@ -81,6 +85,11 @@ def _convert(tp: Any, value: Any, key: str, meta: typing.Mapping[str, Any],
         if value not in choices:
             raise ConfigError(key, value, _describe_type(tp), source)
         return value
+    if origin is tuple and len(get_args(tp)) == 2 and get_args(tp)[1] is Ellipsis:
+        if not isinstance(value, list | tuple) or len(value) > _MAX_ITEMS:
+            raise ConfigError(key, value, _describe_type(tp), source)
+        return tuple(_convert(get_args(tp)[0], v, f"{key}[{i}]", meta, source)
+                     for i, v in enumerate(value))
     if origin is tuple:
         args = get_args(tp)
         if not isinstance(value, list | tuple) or len(value) != len(args):

@@ -118,10 +118,58 @@ class DistributionConfig:
 @dataclass(frozen=True, slots=True)
 class TrackConfig:
     start_m: tuple[float, float, float] = _f(
-        (0.0, -50.0, 2.0), "sensor start (x, y, height above ground)")
+        (0.0, -50.0, 2.0), "sensor start (x, y, height of the lidar above the ground)")
     end_m: tuple[float, float, float] = _f(
-        (0.0, 50.0, 2.0), "sensor end (x, y, height above ground)")
+        (0.0, 50.0, 2.0), "sensor end (x, y; the height is start_m's)")
     speed_m_s: float = _f(1.0, "driving speed", gt=0.0, le=30.0)
+    waypoints_m: tuple[tuple[float, float], ...] = _f(
+        (), "points (x, y) driven through between start and end, corners rounded by "
+        "turn_radius_m")
+    turn_radius_m: float = _f(
+        6.0, "radius of the arcs that round every corner (shrunk where legs are short)",
+        gt=0.0, le=1000.0)
+    passes: int = _f(
+        1, "passes along the strip road, alternating direction (multi-pass scanning)",
+        ge=1, le=20)
+    pass_offset_m: float = _f(
+        0.0, "lateral shift of each further pass (to the left of start->end); 0: the same "
+        "road driven back in reverse gear, >0: U-turns between passes", ge=0.0, le=1000.0)
+    accel_m_s2: float = _f(
+        0.0, "acceleration and braking at the start and end of each leg; 0: the paper's "
+        "constant speed from the first instant", ge=0.0, le=10.0)
+    stop_s: float = _f(1.0, "standstill before reversing between passes", ge=0.0, le=600.0)
+    follow_terrain: bool = _f(
+        True, "pitch and roll follow the ground under the machine's footprint (false: level)")
+    footprint_m: tuple[float, float] = _f(
+        (4.0, 2.6), "machine length and width over which pitch and roll are taken", gt=0.0,
+        le=50.0)
+    mount_xy_m: tuple[float, float] = _f(
+        (0.0, 0.0), "lidar position on the machine (x forward, y left of the base point)")
+    mount_rpy_deg: tuple[float, float, float] = _f(
+        (0.0, 0.0, 0.0), "lidar roll, pitch, yaw on the machine (REP-103, degrees)")
+
+
+@dataclass(frozen=True, slots=True)
+class PoseErrorConfig:
+    position_sd_m: float = _f(0.0, "white noise on x, y and z (GNSS), per sample", ge=0.0,
+                              le=100.0)
+    heading_sd_deg: float = _f(0.0, "white noise on heading (INS), per sample", ge=0.0,
+                               le=180.0)
+    bias_m: tuple[float, float, float] = _f((0.0, 0.0, 0.0), "constant position offset")
+    drift_m_per_s: float = _f(
+        0.0, "horizontal drift speed of the position error (direction drawn per seed)",
+        ge=0.0, le=10.0)
+
+
+@dataclass(frozen=True, slots=True)
+class HarvesterConfig:
+    node_id: int = _f(10, "CANopen node id of the harvester", ge=1, le=127)
+    rate_hz: float = _f(100.0, "pose rate: SYNC period of the node's own SYNC producer",
+                        gt=0.0, le=1000.0)
+    heartbeat_ms: int = _f(100, "heartbeat producer time (0: off)", ge=0, le=65535)
+    pose_error: PoseErrorConfig = field(
+        default_factory=PoseErrorConfig,
+        metadata={"doc": "GNSS/INS error applied to the pose on the bus (the truth is kept)"})
 
 
 @dataclass(frozen=True, slots=True)
@@ -145,5 +193,7 @@ class Scenario:
     distribution: DistributionConfig = field(default_factory=DistributionConfig,
                                              metadata={"doc": "stem placement"})
     track: TrackConfig = field(default_factory=TrackConfig, metadata={"doc": "sensor track"})
+    harvester: HarvesterConfig = field(default_factory=HarvesterConfig,
+                                       metadata={"doc": "the harvester's CANopen node"})
     sampling: SamplingConfig = field(default_factory=SamplingConfig,
                                      metadata={"doc": "surface sampling (no lidar)"})

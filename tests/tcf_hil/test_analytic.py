@@ -11,7 +11,7 @@ from tcf_hil.analytic import refine_hits
 from tcf_hil.forest import generate_forest
 from tcf_hil.scenario import scenario_from_dict
 from tcf_hil.scene import Scene
-from tcf_hil.trajectory import StraightTrack
+from tcf_hil.trajectory import Trajectory
 
 SCN = scenario_from_dict({
     "plot": {"size_m": [20.0, 30.0]}, "stems": {"count": 25, "lean_deg": [0.0, 6.0]},
@@ -25,7 +25,7 @@ def test_mesh_error_is_bounded_by_the_tolerance(backend: str, tol_mm: float) -> 
     forest = generate_forest(SCN)
     scene = Scene.from_forest(forest, backend=backend, stem_tolerance_m=tol_mm / 1000,
                               terrain_tolerance_m=tol_mm / 1000)
-    track = StraightTrack.from_config(SCN.track, forest.terrain)
+    track = Trajectory.from_config(SCN.track, forest.terrain)
     emu = Os0Emulator(os0_64_metadata("512x10"), scene, track, start_ns=track.t0_ns)
     o, d, _, _ = emu.rays(30)
     t, sid = scene.cast(o, d)

@@ -248,3 +248,25 @@ def test_dual_second_return_lies_behind_the_first(tmp_path: Path) -> None:
 
     run = LidarRun(scn, mode="512x10", max_frames=1)
     assert run.emu.frame(0).stem_id2 is None
+
+
+def test_imu_packets_carry_the_trajectory_specific_force_and_rate(tmp_path: Path) -> None:
+    """Through a U-turn on rolling ground: the IMU packets (100 Hz, port 7503) hold what an
+    IMU fixed to the sensor would read, gravity included."""
+    from protocols.ouster import decode_imu_packet
+    from protocols.pcap import read_udp
+    from tcf_hil.trajectory import Trajectory
+
+    scn = scenario_from_dict({**ROLLING, "track": {
+        "start_m": [0.0, -5.0, 2.0], "end_m": [0.0, 5.0, 2.0], "speed_m_s": 3.0,
+        "passes": 2, "pass_offset_m": 6.0, "turn_radius_m": 3.0, "accel_m_s2": 2.0}})
+    record_pcap(scn, tmp_path, mode="512x20")
+    imu = [decode_imu_packet(d.payload) for d in read_udp((tmp_path / "lidar.pcap").read_bytes())
+           if d.dst_port == 7503]
+    t = np.array([p.accel_ts_ns for p in imu], dtype=np.int64)
+    assert len(imu) > 300 and (np.diff(t) == 10_000_000).all()
+    acc, gyro = Trajectory.from_config(scn.track, generate_forest(scn).terrain).imu(t)
+    np.testing.assert_allclose([p.accel_g for p in imu], acc, atol=1e-6)  # float32 on the wire
+    np.testing.assert_allclose([p.gyro_deg_s for p in imu], gyro, atol=1e-4)
+    assert np.abs(gyro[:, 2]).max() == pytest.approx(np.degrees(3.0 / 3.0), rel=0.05)  # v/R
+    assert np.median(np.linalg.norm(acc, axis=1)) == pytest.approx(1.0, abs=0.1)  # gravity

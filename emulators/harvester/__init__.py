@@ -1,0 +1,20 @@
+"""The harvester on the CAN bus: a CANopen pose node (NMT, heartbeat, SYNC, TPDOs, TIME) on
+any python-can transport, the simulation clock, bus specifications and CAN logs."""
+
+from emulators.harvester._bus import (
+    DEFAULT_SOCKETCAND_PORT,
+    BusSpec,
+    BusSpecError,
+    kernel_has_vcan,
+    parse_bus_spec,
+    socketcand_answers,
+)
+from emulators.harvester._clock import SimClock
+from emulators.harvester._log import CanLog
+from emulators.harvester._node import HarvesterNode, NodeConfig, NodeStats, describe
+
+__all__ = [
+    "DEFAULT_SOCKETCAND_PORT", "BusSpec", "BusSpecError", "CanLog", "HarvesterNode",
+    "NodeConfig", "NodeStats", "SimClock", "describe", "kernel_has_vcan", "parse_bus_spec",
+    "socketcand_answers",
+]

@@ -1,0 +1,76 @@
+"""Record every frame on a bus with python-can's own writers: candump log (``.log``, the
+default: line-based and flushed per frame, so a crash leaves a valid file), or ASC / BLF by
+suffix. ``python -m can.player FILE`` and ``can.LogReader`` read them back."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from pathlib import Path
+
+import can
+
+from emulators.harvester._bus import BusSpec
+
+log = logging.getLogger("tcf_hil.harvester")
+
+SUFFIXES = (".log", ".asc", ".blf")
+
+
+class CanLog(can.Listener):
+    """A separate client on the bus (so it also sees the frames of this process's node) that
+    writes every frame to ``path``. ``frames`` counts what was written."""
+
+    def __init__(self, path: Path, spec: BusSpec | None = None, *, channel: str = "vcan0"
+                 ) -> None:
+        self.path = Path(path)
+        if self.path.suffix.lower() not in SUFFIXES:
+            raise ValueError(f"CAN log {self.path}: expected a file ending in "
+                             f"{', '.join(SUFFIXES)}, got {self.path.suffix or 'no suffix'!r}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        kw = {"channel": channel} if self.path.suffix.lower() == ".log" else {}
+        self._writer = can.Logger(str(self.path), **kw)
+        self._flush = self.path.suffix.lower() in (".log", ".asc")
+        self._lock = threading.Lock()
+        self.frames = 0
+        self.spec = spec
+        self._bus: can.BusABC | None = None
+        self._notifier: can.Notifier | None = None
+
+    def start(self) -> CanLog:
+        if self.spec is not None:
+            self._bus = can.Bus(**self.spec.kwargs())
+            self._notifier = can.Notifier(self._bus, [self], timeout=0.2)
+        return self
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self._lock:
+            if self._writer is None:
+                return
+            self._writer.on_message_received(msg)
+            self.frames += 1
+            if self._flush:
+                fh = getattr(self._writer, "file", None)
+                if fh is not None:
+                    fh.flush()
+
+    def on_error(self, exc: Exception) -> None:
+        log.warning("CAN log %s: bus error %s", self.path, exc)
+
+    def stop(self) -> None:
+        if self._notifier is not None:
+            self._notifier.stop()
+        if self._bus is not None:
+            with contextlib.suppress(Exception):
+                self._bus.shutdown()
+        with self._lock:
+            if self._writer is not None:
+                self._writer.stop()
+                self._writer = None  # type: ignore[assignment]
+
+    def __enter__(self) -> CanLog:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -1,0 +1,198 @@
+"""The harvester of a scenario on the CAN bus: trajectory + pose error -> CANopen node.
+
+The pose on the bus is the machine's base point relative to the datum (the scenario's
+``plot.origin_m``), evaluated at whole microseconds so that the time stamp in TPDO3 is exactly
+the time of the pose it travels with; :func:`truth_pose` gives the error-free pose at the same
+time stamp for the recorder and for tests.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from emulators.harvester import (
+    DEFAULT_SOCKETCAND_PORT,
+    BusSpec,
+    CanLog,
+    HarvesterNode,
+    NodeConfig,
+    SimClock,
+    kernel_has_vcan,
+    parse_bus_spec,
+    socketcand_answers,
+)
+from protocols.harvester import (
+    STATUS_MOVING,
+    STATUS_PASS_SHIFT,
+    STATUS_POSE_ERROR,
+    STATUS_REVERSE,
+    STATUS_VALID,
+    Pose,
+)
+from tcf_hil.forest import Terrain
+from tcf_hil.scenario import Scenario
+from tcf_hil.trajectory import PoseError, Trajectory
+
+if TYPE_CHECKING:
+    from emulators.canbus import SocketcandServer
+
+
+@dataclass(frozen=True)
+class HarvesterModel:
+    """Everything that decides what the node says, without any bus."""
+
+    scenario: Scenario
+    trajectory: Trajectory
+    error: PoseError
+
+    @classmethod
+    def from_scenario(cls, scn: Scenario, terrain: Terrain, seed: int = 0,
+                      t0_ns: int = 1_000_000_000) -> HarvesterModel:
+        traj = Trajectory.from_config(scn.track, terrain, t0_ns)
+        return cls(scn, traj, PoseError(scn.harvester.pose_error, seed, t0_ns))
+
+    def truth(self, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                np.ndarray, np.ndarray]:
+        """Error-free (position (n, 3), heading deg, pitch deg, roll deg, speed, status)."""
+        st = self.trajectory.vehicle_state(t_ns)
+        status = (STATUS_VALID | np.where(st.moving, STATUS_MOVING, 0)
+                  | np.where(st.speed < 0, STATUS_REVERSE, 0)
+                  | (np.minimum(st.pass_no, 255) << STATUS_PASS_SHIFT))
+        if self.error.active:
+            status = status | STATUS_POSE_ERROR
+        return (st.position, st.heading_deg, np.degrees(st.pitch), np.degrees(st.roll),
+                st.speed, status)
+
+    def bus_pose(self, t_ns: int) -> Pose:
+        """The pose the node publishes at simulation time ``t_ns`` (taken at the whole
+        microsecond it carries; pose error applied)."""
+        t_us = t_ns // 1000
+        t = np.array([t_us * 1000], dtype=np.int64)
+        pos, hd, pitch, roll, speed, status = self.truth(t)
+        pos, hd = self.error.apply(pos, hd, t)
+        return Pose(float(pos[0, 0]), float(pos[0, 1]), float(pos[0, 2]), float(hd[0]),
+                    float(pitch[0]), float(roll[0]), float(speed[0]), t_us, int(status[0]))
+
+    def truth_pose(self, t_us: int) -> Pose:
+        """The error-free pose at a bus time stamp (full microseconds)."""
+        t = np.array([t_us * 1000], dtype=np.int64)
+        pos, hd, pitch, roll, speed, status = self.truth(t)
+        return Pose(float(pos[0, 0]), float(pos[0, 1]), float(pos[0, 2]), float(hd[0]),
+                    float(pitch[0]), float(roll[0]), float(speed[0]), t_us, int(status[0]))
+
+    def node_config(self, *, node_id: int | None = None, rate_hz: float | None = None,
+                    sync_producer: bool = True, autostart: bool = True,
+                    unix_epoch_ns: int | None = None) -> NodeConfig:
+        h, tr = self.scenario.harvester, self.scenario.track
+        origin = self.scenario.plot.origin_m
+        return NodeConfig(
+            node_id=node_id if node_id is not None else h.node_id,
+            rate_hz=rate_hz if rate_hz is not None else h.rate_hz,
+            sync_producer=sync_producer, autostart=autostart, heartbeat_ms=h.heartbeat_ms,
+            datum_mm=tuple(round(v * 1000) for v in origin),  # type: ignore[arg-type]
+            mount_mm=(round(tr.mount_xy_m[0] * 1000), round(tr.mount_xy_m[1] * 1000),
+                      round(tr.start_m[2] * 1000)),
+            mount_cdeg=(round(tr.mount_rpy_deg[2] * 100), round(tr.mount_rpy_deg[1] * 100),
+                        round(tr.mount_rpy_deg[0] * 100)),
+            unix_epoch_ns=unix_epoch_ns)
+
+
+@contextlib.contextmanager
+def open_bus(spec_text: str, *, announce: Callable[[str], None] = lambda s: None
+             ) -> Iterator[BusSpec]:
+    """The bus for a ``--can`` value; ``auto`` picks vcan0, else joins or starts the
+    socketcand server on 127.0.0.1:29536 (stopped again on exit if started here)."""
+    spec = parse_bus_spec(spec_text)
+    server: SocketcandServer | None = None
+    if spec is None:
+        host, port = "127.0.0.1", DEFAULT_SOCKETCAND_PORT
+        if kernel_has_vcan("vcan0"):
+            spec = BusSpec("socketcan", "vcan0")
+            announce("bus: socketcan:vcan0 (kernel CAN)")
+        elif socketcand_answers(host, port):
+            spec = BusSpec("socketcand", "vcan0", host, port)
+            announce(f"bus: joined the CAN server at {spec}")
+        else:
+            from emulators.canbus import SocketcandServer
+
+            server = SocketcandServer(host, port)
+            server.start()
+            spec = BusSpec("socketcand", "vcan0", host, server.port)
+            announce(f"bus: no kernel CAN here; embedded CAN server at {spec}")
+    try:
+        yield spec
+    finally:
+        if server is not None:
+            server.stop()
+
+
+@dataclass
+class HarvesterRunResult:
+    spec: str
+    node_id: int
+    sim_seconds: float
+    stats: dict[str, Any]
+    log_frames: int
+    log_path: Path | None
+
+
+def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int = 0,
+                  node_id: int | None = None, rate_hz: float | None = None,
+                  log_path: Path | None = None, speed: float = 1.0,
+                  duration_s: float | None = None, sync_producer: bool = True,
+                  autostart: bool = True, stop: threading.Event | None = None,
+                  clock: SimClock | None = None,
+                  on_tick: Callable[[float, float], None] | None = None) -> HarvesterRunResult:
+    """Drive the scenario's track in (scaled) real time with the node on ``spec`` until the
+    track ends (plus one second standing), ``duration_s`` of simulation time, or ``stop``."""
+    model = HarvesterModel.from_scenario(scn, terrain, seed)
+    clock = clock or SimClock.start(model.trajectory.t0_ns, speed)
+    end_ns = (model.trajectory.end_ns + 1_000_000_000 if duration_s is None
+              else clock.t0_ns + round(duration_s * 1e9))
+    stop = stop or threading.Event()
+    cfg = model.node_config(node_id=node_id, rate_hz=rate_hz, sync_producer=sync_producer,
+                            autostart=autostart)
+    can_log = CanLog(log_path, spec).start() if log_path is not None else None
+    node = HarvesterNode(spec, model.bus_pose, clock, cfg)
+    try:
+        node.start()
+        total = (end_ns - clock.t0_ns) / 1e9
+        while not stop.is_set():
+            now = clock.now_ns()
+            if on_tick is not None:
+                on_tick((now - clock.t0_ns) / 1e9, total)
+            if now >= end_ns:
+                break
+            stop.wait(min(0.2, max(0.0, (end_ns - now) / 1e9 / clock.speed)))
+    finally:
+        node.stop()
+        if can_log is not None:
+            time.sleep(0.05)  # the last frames reach the log's own connection
+            can_log.stop()
+    st = {k: v for k, v in vars(node.stats).items() if k != "batch_times_ns"}
+    bt = np.diff(np.array(node.stats.batch_times_ns, dtype=np.float64)) / 1e3
+    if len(bt):
+        period = 1e6 / cfg.rate_hz
+        st["tpdo_period_us_p50"] = float(np.median(bt))
+        st["tpdo_jitter_us_p99"] = float(np.percentile(np.abs(bt - period), 99))
+    return HarvesterRunResult(str(spec), cfg.node_id,
+                              (min(clock.now_ns(), end_ns) - clock.t0_ns) / 1e9, st,
+                              can_log.frames if can_log else 0, log_path)
+
+
+def heading_error_deg(a: float, b: float) -> float:
+    """Smallest angle between two compass headings."""
+    d = (a - b) % 360.0
+    return min(d, 360.0 - d)
+
+
+__all__ = ["HarvesterModel", "HarvesterRunResult", "heading_error_deg", "open_bus",
+           "run_harvester"]

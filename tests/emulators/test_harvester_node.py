@@ -1,0 +1,189 @@
+"""The harvester's CANopen node on python-can's in-process bus, observed by real python-can and
+canopen peers: boot-up, NMT, heartbeat, SYNC-triggered and event TPDOs, TIME, atomic poses,
+remapping by SDO, and foreign or malformed frames counted and ignored."""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Iterator
+
+import can
+import canopen
+import pytest
+
+from emulators.harvester import BusSpec, HarvesterNode, NodeConfig, SimClock
+from protocols.harvester import Pose, PoseAssembler, decode_time, eds_path
+
+_names = itertools.count()
+
+
+def pose_at(t_ns: int) -> Pose:
+    """Every field a different function of the same time: a torn frame would show."""
+    s = t_ns / 1e9
+    return Pose(s, -s, 2 * s, (10 * s) % 360, (s % 50) - 25, -((s % 40) - 20), s % 10,
+                t_ns // 1000)
+
+
+def consistent(p: Pose) -> bool:
+    s = p.time_us / 1e6
+    return (abs(p.x_m - s) < 2e-3 and abs(p.y_m + s) < 2e-3 and abs(p.z_m - 2 * s) < 2e-3
+            and abs(((p.heading_deg - 10 * s) + 180) % 360 - 180) < 0.02
+            and abs(p.pitch_deg - ((s % 50) - 25)) < 0.02)
+
+
+@pytest.fixture
+def bus_name() -> str:
+    return f"harvester-test-{next(_names)}"
+
+
+@pytest.fixture
+def monitor(bus_name: str) -> Iterator[can.BusABC]:
+    with can.Bus(interface="virtual", channel=bus_name) as bus:
+        yield bus
+
+
+def collect(bus: can.BusABC, seconds: float) -> list[can.Message]:
+    out, end = [], time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        m = bus.recv(left)
+        if m is not None:
+            out.append(m)
+    return out
+
+
+def drain(bus: can.BusABC) -> None:
+    """Wait for the node to act on what was just sent, then forget what came before."""
+    time.sleep(0.05)
+    while bus.recv(0) is not None:
+        pass
+
+
+def node(bus_name: str, **kw: object) -> HarvesterNode:
+    cfg = NodeConfig(**kw)  # type: ignore[arg-type]
+    return HarvesterNode(BusSpec("virtual", bus_name), pose_at,
+                         SimClock.start(1_000_000_000), cfg)
+
+
+def test_boot_up_then_poses_at_the_sync_rate_all_consistent(bus_name: str,
+                                                            monitor: can.BusABC) -> None:
+    with node(bus_name, rate_hz=50.0, time_period_s=0.5, unix_epoch_ns=1_767_225_600 * 10**9):
+        msgs = collect(monitor, 1.25)
+    assert (msgs[0].arbitration_id, bytes(msgs[0].data)) == (0x70A, b"\x00")  # boot-up first
+    ids = [m.arbitration_id for m in msgs]
+    syncs = ids.count(0x80)
+    assert 58 <= syncs <= 65
+    for cob in (0x18A, 0x28A, 0x38A):
+        assert ids.count(cob) == syncs  # one of each per SYNC
+    assert 11 <= ids.count(0x48A) <= 14  # event timer 100 ms
+    hb = [bytes(m.data) for m in msgs if m.arbitration_id == 0x70A][1:]
+    assert hb and set(hb) == {b"\x05"}  # OPERATIONAL by itself
+    asm = PoseAssembler(10)
+    poses = [p for m in msgs if (p := asm.feed(m.arbitration_id, bytes(m.data))) is not None]
+    assert len(poses) == syncs
+    assert all(consistent(p) for p in poses)
+    times = [decode_time(bytes(m.data)) for m in msgs if m.arbitration_id == 0x100]
+    assert len(times) >= 2
+    assert 1_767_225_600_000 <= times[0] < 1_767_225_600_000 + 2000
+
+
+def test_nmt_states_gate_the_pdos_and_resets_boot_again(bus_name: str,
+                                                         monitor: can.BusABC) -> None:
+    master = can.Bus(interface="virtual", channel=bus_name)
+    try:
+        with node(bus_name, autostart=False):
+            msgs = collect(monitor, 0.4)
+            assert not [m for m in msgs if 0x180 <= m.arbitration_id < 0x500]
+            assert bytes(msgs[-1].data) == b"\x7f" or any(
+                bytes(m.data) == b"\x7f" for m in msgs if m.arbitration_id == 0x70A)
+            master.send(can.Message(arbitration_id=0, data=[1, 10], is_extended_id=False))
+            drain(monitor)
+            msgs = collect(monitor, 0.3)
+            assert sum(m.arbitration_id == 0x18A for m in msgs) >= 20
+            master.send(can.Message(arbitration_id=0, data=[2, 0], is_extended_id=False))
+            drain(monitor)
+            msgs = collect(monitor, 0.3)
+            assert not [m for m in msgs if 0x180 <= m.arbitration_id < 0x500]
+            assert {bytes(m.data) for m in msgs if m.arbitration_id == 0x70A} == {b"\x04"}
+            master.send(can.Message(arbitration_id=0, data=[130, 10], is_extended_id=False))
+            msgs = collect(monitor, 0.3)
+            hb = [bytes(m.data) for m in msgs if m.arbitration_id == 0x70A]
+            assert hb[0] == b"\x00" and set(hb[1:]) == {b"\x7f"}  # boot-up, PRE-OPERATIONAL
+            assert not [m for m in msgs if 0x180 <= m.arbitration_id < 0x500]
+            master.send(can.Message(arbitration_id=0, data=[1, 0], is_extended_id=False))
+            drain(monitor)
+            msgs = collect(monitor, 0.3)
+            assert sum(m.arbitration_id == 0x38A for m in msgs) >= 20
+            # another node's command is not ours
+            master.send(can.Message(arbitration_id=0, data=[2, 11], is_extended_id=False))
+            drain(monitor)
+            msgs = collect(monitor, 0.2)
+            assert sum(m.arbitration_id == 0x38A for m in msgs) >= 10
+    finally:
+        master.shutdown()
+
+
+def test_external_sync_and_remapping_by_sdo(bus_name: str, monitor: can.BusABC) -> None:
+    net = canopen.Network()
+    net.connect(interface="virtual", channel=bus_name)
+    try:
+        with node(bus_name, sync_producer=False, autostart=False) as n:
+            remote = net.add_node(10, str(eds_path()))
+            remote.tpdo.read()  # mapping by SDO from the node's own server
+            assert [v.name for v in remote.tpdo[3].map] == ["Pose.Roll", "Pose.Speed",
+                                                             "Pose.Time"]
+            assert remote.sdo[0x2002][3].raw == 2000  # lidar mount height, mm
+            remote.tpdo[1].trans_type = 2  # every second SYNC
+            remote.tpdo[1].save()
+            remote.nmt.state = "OPERATIONAL"
+            time.sleep(0.1)
+            collect(monitor, 0.05)
+            for _ in range(10):
+                net.sync.transmit()
+                time.sleep(0.01)
+            msgs = collect(monitor, 0.2)
+            ids = [m.arbitration_id for m in msgs]
+            assert ids.count(0x28A) == 10 and ids.count(0x38A) == 10
+            assert ids.count(0x18A) == 5
+            assert n.stats.syncs_received == 10 and n.stats.syncs_sent == 0
+    finally:
+        net.disconnect()
+
+
+def test_foreign_and_malformed_frames_are_counted_and_ignored(bus_name: str,
+                                                              monitor: can.BusABC) -> None:
+    other = can.Bus(interface="virtual", channel=bus_name)
+    try:
+        with node(bus_name) as n:
+            time.sleep(0.1)
+            for msg in (can.Message(arbitration_id=0x123, data=b"\x01"),
+                        can.Message(arbitration_id=0x1ABCDEF, data=b"", is_extended_id=True),
+                        can.Message(arbitration_id=0x80, data=b"\x01\x02\x03"),
+                        can.Message(arbitration_id=0, data=b"\x01"),
+                        can.Message(arbitration_id=0x60A, data=b"\x40\x00")):
+                msg.is_extended_id = msg.arbitration_id > 0x7FF
+                other.send(msg)
+            time.sleep(0.2)
+            assert n.stats.foreign_frames == 2
+            assert n.stats.malformed_frames == 3
+            assert n.state == "OPERATIONAL"
+            before = n.stats.tpdo_frames
+            time.sleep(0.2)
+            assert n.stats.tpdo_frames > before + 30
+    finally:
+        other.shutdown()
+
+
+def test_heartbeat_period_follows_an_sdo_write(bus_name: str, monitor: can.BusABC) -> None:
+    net = canopen.Network()
+    net.connect(interface="virtual", channel=bus_name)
+    try:
+        with node(bus_name, rate_hz=10.0):
+            remote = net.add_node(10, str(eds_path()))
+            remote.sdo[0x1017].raw = 20
+            collect(monitor, 0.1)
+            msgs = collect(monitor, 1.0)
+            hb = [m.timestamp for m in msgs if m.arbitration_id == 0x70A]
+            assert 40 <= len(hb) <= 55
+    finally:
+        net.disconnect()

@@ -1,0 +1,111 @@
+"""Run inside the VM (see .ci/vcan-vm.sh): the harvester on a real kernel vcan0, end to end.
+
+1. ``candump -L vcan0`` logs the bus;
+2. ``tcf-hil harvester run forest-ii --can auto`` must pick the kernel's vcan0 by itself;
+3. a consumer process, canopen RemoteNode with our EDS on socketcan vcan0, decodes the poses
+   and compares them with the trajectory truth at each frame's time stamp;
+4. candump's log and the harvester's own log hold the same TPDO frames.
+
+Python runs 10-20x slower under TCG: this checks function at a low pose rate, not timing.
+Prints one line per check; exits non-zero on the first failure.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+CONSUMER = r"""
+import json, sys, time, canopen
+from protocols.harvester import eds_path
+net = canopen.Network()
+net.connect(interface="socketcan", channel="vcan0")
+remote = net.add_node(10, str(eds_path()))
+remote.tpdo.read(from_od=True)
+rows = {1: [], 2: [], 3: []}
+def on(m):
+    rows[(m.cob_id - 10) >> 8].append({v.name: v.phys for v in m.map})
+for k in (1, 2, 3):
+    remote.tpdo[k].add_callback(on)
+print("ready", flush=True)
+sys.stdin.readline()  # "stop"
+time.sleep(0.5)
+net.disconnect()
+print(json.dumps(rows))
+"""
+
+
+def fail(msg: str) -> None:
+    print(f"HARVESTER-VCAN FAIL: {msg}", flush=True)
+    sys.exit(1)
+
+
+def main() -> None:
+    out = Path(os.environ.get("VM_OUT", "/tmp"))
+    py = sys.executable
+    candump_log = out / "candump.log"
+    own_log = out / "harvester-can.log"
+    with candump_log.open("w") as fh:
+        candump = subprocess.Popen(["candump", "-L", "vcan0"], stdout=fh)
+    consumer = subprocess.Popen([py, "-c", CONSUMER], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, text=True)
+    assert consumer.stdout is not None
+    if consumer.stdout.readline().strip() != "ready":
+        fail("consumer did not start")
+    t0 = time.monotonic()
+    run = subprocess.run([py, "-m", "tcf_hil.cli", "harvester", "run", "forest-ii", "--can",
+                          "auto", "--rate", "20", "--duration", "4", "--log", str(own_log)],
+                         capture_output=True, text=True, timeout=600)
+    print(f"harvester run: rc {run.returncode} in {time.monotonic() - t0:.0f} s: "
+          f"{run.stdout.strip().splitlines()[:3]}", flush=True)
+    if run.returncode != 0:
+        fail(f"harvester run failed: {run.stderr[-2000:]}")
+    if "socketcan:vcan0" not in run.stdout:
+        fail(f"--can auto did not pick the kernel's vcan0: {run.stdout}")
+    out_text = consumer.communicate("stop\n", timeout=120)[0]
+    candump.send_signal(signal.SIGINT)
+    candump.wait(10)
+    import json
+
+    from emulators.harvester import kernel_has_vcan
+    from tcf_hil.forest import generate_forest
+    from tcf_hil.harvester import HarvesterModel, heading_error_deg
+    from tcf_hil.scenario import load_scenario
+
+    assert kernel_has_vcan("vcan0")
+    lines = [ln for ln in out_text.splitlines() if ln.startswith("{")]
+    rows = {int(k): v for k, v in json.loads(lines[-1]).items()} if lines else {}
+    n = len(rows.get(3, []))
+    if n < 40:
+        fail(f"consumer decoded only {n} poses (expected ~80 at 20 Hz for 4 s)")
+    scn = load_scenario("forest-ii")
+    forest = generate_forest(scn)
+    model = HarvesterModel.from_scenario(scn, forest.terrain, forest.seed)
+    worst_pos = worst_ang = 0.0
+    for a, b, c in zip(rows[1], rows[2], rows[3], strict=False):
+        tr = model.truth_pose(round(c["Pose.Time"]))
+        worst_pos = max(worst_pos, abs(a["Pose.X"] - tr.x_m), abs(a["Pose.Y"] - tr.y_m),
+                        abs(b["Pose.Z"] - tr.z_m))
+        worst_ang = max(worst_ang, heading_error_deg(b["Pose.Heading"], tr.heading_deg))
+    print(f"consumer: {n} poses, worst position error {worst_pos * 1000:.2f} mm, "
+          f"heading {worst_ang:.4f} deg", flush=True)
+    if worst_pos > 0.0005 + 1e-9 or worst_ang > 0.005 + 1e-9:
+        fail("poses differ from the truth by more than the quantum")
+    import can
+
+    dump = [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(str(candump_log))
+            if 0x180 <= m.arbitration_id < 0x500]
+    own = [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(str(own_log))
+           if 0x180 <= m.arbitration_id < 0x500]
+    print(f"candump: {len(dump)} TPDO frames; harvester log: {len(own)}", flush=True)
+    if not dump or dump != own:
+        fail("candump and the harvester's log disagree")
+    print("HARVESTER-VCAN PASS", flush=True)
+
+
+if __name__ == "__main__":
+    main()
