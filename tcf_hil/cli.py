@@ -456,7 +456,10 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
         raise
     p50, p99 = r.pacing_us
     console.print(f"sent {r.packets} lidar packets in {r.frames} frames; pacing error p50 "
-                  f"{p50:.0f} us, p99 {p99:.0f} us; refused {r.refused}")
+                  f"{p50:.0f} us, p99 {p99:.0f} us "
+                  f"({'SCHED_FIFO' if r.realtime else 'ordinary scheduling: not permitted'}; "
+                  f"pacing loop {100 * r.sender_cpu_share:.0f} % of a core); "
+                  f"refused {r.refused}")
 
 
 # ----------------------------------------------------------------------- harvester / CAN

@@ -180,7 +180,7 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
     st = {k: v for k, v in vars(node.stats).items() if k != "batch_times_ns"}
     bt = np.diff(np.array(node.stats.batch_times_ns, dtype=np.float64)) / 1e3
     if len(bt):
-        period = 1e6 / cfg.rate_hz
+        period = 1e6 / cfg.rate_hz / clock.speed
         st["tpdo_period_us_p50"] = float(np.median(bt))
         st["tpdo_jitter_us_p99"] = float(np.percentile(np.abs(bt - period), 99))
     return HarvesterRunResult(str(spec), cfg.node_id,

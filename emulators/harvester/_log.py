@@ -59,11 +59,13 @@ class CanLog(can.Listener):
         log.warning("CAN log %s: bus error %s", self.path, exc)
 
     def stop(self) -> None:
-        if self._notifier is not None:
-            self._notifier.stop()
+        notifier, self._notifier = self._notifier, None
+        if notifier is not None:  # it calls stop() on its listeners: this one, again
+            notifier.stop()
         if self._bus is not None:
             with contextlib.suppress(Exception):
                 self._bus.shutdown()
+            self._bus = None
         with self._lock:
             if self._writer is not None:
                 self._writer.stop()

@@ -63,7 +63,7 @@ class NodeStats:
     nmt_commands: int = 0
     foreign_frames: int = 0
     malformed_frames: int = 0
-    send_errors: int = 0
+    bus_errors: int = 0  # sends or receives that failed (each leads to a reconnect)
     reconnects: int = 0
     pose_errors: int = 0
     #: monotonic ns of each SYNC-triggered TPDO batch (bounded; for jitter measurements)
@@ -83,6 +83,19 @@ class NodeConfig:
     mount_cdeg: tuple[int, int, int] = (0, 0, 0)  # yaw, pitch, roll in 0.01 deg
     unix_epoch_ns: int | None = None  # wall time (Unix ns) at simulation time t0; None: now
     reconnect_s: float = 0.5
+
+
+class _ReceiveErrors(can.Listener):
+    """Hands the notifier's receive errors to the node instead of killing its thread."""
+
+    def __init__(self, node: HarvesterNode) -> None:
+        self._node = node
+
+    def on_message_received(self, msg: can.Message) -> None:
+        pass
+
+    def on_error(self, exc: Exception) -> None:
+        self._node._receive_failed(exc)
 
 
 class HarvesterNode:
@@ -173,6 +186,7 @@ class HarvesterNode:
         self.network.subscribe(SYNC_COB, self._on_sync)
         assert self.network.notifier is not None
         self.network.notifier.add_listener(self._classify)
+        self.network.notifier.add_listener(_ReceiveErrors(self))
         self._connected = True
         log.info("node %d on %s", self.cfg.node_id, self.spec)
 
@@ -197,6 +211,17 @@ class HarvesterNode:
                 self._disconnect()
                 self._stop.wait(self.cfg.reconnect_s)
 
+    def _receive_failed(self, e: Exception) -> None:
+        """From the notifier's thread: the bus failed under a receive; the run loop
+        reconnects. Waits a little, so a dead socket does not spin the notifier."""
+        if self._connected:
+            self.stats.bus_errors += 1
+            log.warning("node %d: bus %s failed on receive (%s); reconnecting",
+                        self.cfg.node_id, self.spec, e)
+        self._connected = False
+        self._wake.set()
+        self._stop.wait(min(self.cfg.reconnect_s, 0.1))
+
     def _send(self, cob_id: int, data: bytes) -> bool:
         if not self._connected:
             return False
@@ -204,7 +229,7 @@ class HarvesterNode:
             with self._send_lock:
                 self.network.send_message(cob_id, data)
         except (can.CanError, OSError) as e:
-            self.stats.send_errors += 1
+            self.stats.bus_errors += 1
             if self._connected:
                 log.warning("node %d: bus %s failed (%s); reconnecting", self.cfg.node_id,
                             self.spec, e)
@@ -344,7 +369,8 @@ class HarvesterNode:
             self._apply_nmt()
             now = time.monotonic_ns()
             if self.cfg.sync_producer and now >= next_sync:
-                period = max(int(sd[0x1006].raw), 100) * 1000
+                # SYNC and event periods are simulation time: --speed 5 sends 5x as often
+                period = round(max(int(sd[0x1006].raw), 100) * 1000 / self.clock.speed)
                 next_sync = max(next_sync + period, now - period)
                 if self._state in (PRE_OPERATIONAL, OPERATIONAL) and self._send(SYNC_COB, b""):
                     self.stats.syncs_sent += 1
@@ -367,7 +393,8 @@ class HarvesterNode:
             for m in self._event_maps:
                 due = next_event.setdefault(m.number, now)
                 if m.event_timer_ms and now >= due:
-                    next_event[m.number] = max(due + m.event_timer_ms * 1_000_000, now)
+                    next_event[m.number] = max(
+                        due + round(m.event_timer_ms * 1_000_000 / self.clock.speed), now)
                     if self._state == OPERATIONAL:
                         raw = self._sample()
                         if raw is not None and self._send(m.cob_id(self.cfg.node_id),

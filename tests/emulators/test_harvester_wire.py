@@ -1,0 +1,171 @@
+"""The harvester on a bus shared by separate processes through the embedded socketcand server:
+`tcf-hil harvester run` in one process; a canopen RemoteNode with our EDS in this one decodes
+every pose within quantisation of the trajectory truth at the frame's time stamp; cantools with
+our DBC decodes the same candump log identically; python-can's own logger and player work on
+the bus; a server that goes away and comes back is survived."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import canopen
+import cantools
+import numpy as np
+import pytest
+
+from emulators.canbus import SocketcandServer
+from emulators.harvester import BusSpec, HarvesterNode, NodeConfig, SimClock
+from protocols.harvester import Pose, PoseAssembler, eds_path, render_dbc
+from tcf_hil.forest import generate_forest
+from tcf_hil.harvester import HarvesterModel, heading_error_deg
+from tcf_hil.scenario import load_scenario
+
+SCENARIO = "forest-iv"  # rolling terrain: pitch and roll are not zero
+
+
+@pytest.fixture
+def server() -> Iterator[SocketcandServer]:
+    srv = SocketcandServer("127.0.0.1", 0)
+    srv.start()
+    yield srv
+    srv.stop()
+
+
+def spec_of(srv: SocketcandServer) -> str:
+    return f"socketcand:127.0.0.1:{srv.port}:vcan0"
+
+
+def test_remote_node_decodes_every_pose_and_logs_agree(server: SocketcandServer,
+                                                       tmp_path: Path) -> None:
+    log = tmp_path / "can.log"
+    pylog = tmp_path / "python-can.log"
+    env = dict(os.environ, COLUMNS="200")
+    # python-can's own logger as a third process on the bus
+    logger = subprocess.Popen(
+        [sys.executable, "-m", "can.logger", "-i", "socketcand", "-c", "vcan0", "-f",
+         str(pylog), "--bus-kwargs", "host=127.0.0.1", f"port={server.port}"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    net = canopen.Network()
+    net.connect(interface="socketcand", host="127.0.0.1", port=server.port, channel="vcan0")
+    try:
+        remote = net.add_node(10, str(eds_path()))
+        remote.tpdo.read(from_od=True)
+        got: dict[int, list[dict[str, float]]] = {1: [], 2: [], 3: []}
+        lock = threading.Lock()
+
+        def on(m: canopen.pdo.PdoMap) -> None:
+            with lock:
+                got[(m.cob_id - 10) >> 8].append({v.name: v.phys for v in m.map})
+
+        for k in (1, 2, 3):
+            remote.tpdo[k].add_callback(on)
+        time.sleep(1.0)  # the logger process is up
+        proc = subprocess.run(
+            [sys.executable, "-m", "tcf_hil.cli", "harvester", "run", SCENARIO, "--can",
+             spec_of(server), "--duration", "4", "--speed", "5", "--log", str(log)],
+            capture_output=True, text=True, timeout=120, env=env)
+        assert proc.returncode == 0, proc.stderr
+        time.sleep(0.3)
+    finally:
+        net.disconnect()
+        logger.send_signal(signal.SIGINT)  # it closes its file on Ctrl-C
+        logger.wait(10)
+    scn = load_scenario(SCENARIO)
+    forest = generate_forest(scn)
+    model = HarvesterModel.from_scenario(scn, forest.terrain, forest.seed)
+    # frames of one SYNC arrive in order 1, 2, 3 (one TCP stream, in order)
+    n = len(got[3])
+    assert n >= 350, (n, proc.stdout)  # 4 s simulated at 100 Hz, within a few
+    assert len(got[1]) == len(got[2]) == n
+    worst = np.zeros(4)
+    for a, b, c in zip(got[1], got[2], got[3], strict=True):
+        t_us = round(c["Pose.Time"])
+        truth = model.truth_pose(t_us)
+        dpos = max(abs(a["Pose.X"] - truth.x_m), abs(a["Pose.Y"] - truth.y_m),
+                   abs(b["Pose.Z"] - truth.z_m))
+        dang = max(heading_error_deg(b["Pose.Heading"], truth.heading_deg),
+                   abs(b["Pose.Pitch"] - truth.pitch_deg), abs(c["Pose.Roll"] - truth.roll_deg))
+        worst = np.maximum(worst, [dpos, dang, abs(c["Pose.Speed"] - truth.speed_m_s), 0])
+    assert worst[0] <= 0.0005 + 1e-9  # 1 mm quantum: round-to-nearest
+    assert worst[1] <= 0.005 + 1e-9  # 0.01 deg quantum
+    assert worst[2] <= 0.0005 + 1e-9
+    assert any(abs(c["Pose.Roll"]) > 0.05 for c in got[3])  # the terrain tilts the machine
+    # our candump log and python-can's logger saw the same TPDO frames
+    ours = [m for m in can.LogReader(str(log)) if 0x180 <= m.arbitration_id < 0x500]
+    theirs = [m for m in can.LogReader(str(pylog)) if 0x180 <= m.arbitration_id < 0x500]
+    assert [(m.arbitration_id, bytes(m.data)) for m in ours] == \
+        [(m.arbitration_id, bytes(m.data)) for m in theirs]
+    # cantools with our DBC decodes the log exactly as canopen did
+    db = cantools.database.load_string(render_dbc(10), "dbc")
+    dec3 = [db.decode_message(m.arbitration_id, bytes(m.data)) for m in ours
+            if m.arbitration_id == 0x38A]
+    assert len(dec3) == n
+    for d, c in zip(dec3, got[3], strict=True):
+        assert d["Time"] == c["Pose.Time"]
+        assert d["Roll"] == pytest.approx(c["Pose.Roll"], abs=1e-12)
+    dec1 = [db.decode_message(m.arbitration_id, bytes(m.data)) for m in ours
+            if m.arbitration_id == 0x18A]
+    assert [(d["X"], d["Y"]) for d in dec1] == pytest.approx(
+        [(a["Pose.X"], a["Pose.Y"]) for a in got[1]], abs=1e-12)
+    # python-can's player puts the log back on the bus, frame for frame
+    rx = can.Bus(interface="socketcand", host="127.0.0.1", port=server.port, channel="vcan0")
+    try:
+        play = subprocess.run(
+            [sys.executable, "-m", "can.player", "-i", "socketcand", "-c", "vcan0", "-g",
+             "0.0005", "--ignore-timestamps", "--bus-kwargs", "host=127.0.0.1",
+             f"port={server.port}", "--", str(log)], capture_output=True, text=True,
+            timeout=120)
+        assert play.returncode == 0, play.stderr
+        replayed = []
+        while (m := rx.recv(1.0)) is not None:
+            replayed.append((m.arbitration_id, bytes(m.data)))
+    finally:
+        rx.shutdown()
+    assert replayed == [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(str(log))]
+
+
+def test_a_bus_that_goes_away_is_reconnected(tmp_path: Path) -> None:
+    srv = SocketcandServer("127.0.0.1", 0)
+    srv.start()
+    port = srv.port
+    spec = BusSpec("socketcand", "vcan0", "127.0.0.1", port)
+
+    def pose_at(t: int) -> Pose:
+        return Pose(1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.0, t // 1000)
+
+    node = HarvesterNode(spec, pose_at, SimClock.start(10**9), NodeConfig(reconnect_s=0.1))
+    node.start()
+    try:
+        time.sleep(0.3)
+        srv.stop()  # the bus goes away under the running node
+        time.sleep(0.5)
+        assert not node.connected
+        assert node.stats.bus_errors >= 1
+        srv = SocketcandServer("127.0.0.1", port)
+        srv.start()
+        deadline = time.monotonic() + 10
+        while not node.connected and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert node.connected and node.stats.reconnects >= 1
+        with can.Bus(interface="socketcand", host="127.0.0.1", port=port,
+                     channel="vcan0") as bus:
+            asm = PoseAssembler(10)
+            poses = []
+            end = time.monotonic() + 1.0
+            while time.monotonic() < end:
+                m = bus.recv(0.2)
+                if m is not None and (p := asm.feed(m.arbitration_id, bytes(m.data))):
+                    poses.append(p)
+        assert len(poses) >= 50
+        assert poses[-1].x_m == 1.0 and poses[-1].roll_deg == 6.0
+    finally:
+        node.stop()
+        srv.stop()
