@@ -507,6 +507,8 @@ def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: 
     with canopen and the EDS from `tcf-hil harvester files`, or with the DBC:
       python -m can.logger -i socketcand -c vcan0 --bus-kwargs host=127.0.0.1 port=29536
     """
+    import can
+
     from emulators.harvester import BusSpecError
     from tcf_hil.forest import generate_forest
     from tcf_hil.harvester import open_bus, run_harvester
@@ -538,7 +540,7 @@ def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: 
                     return
     except BusSpecError as err:
         raise click.BadParameter(str(err), param_hint="--can") from err
-    except (OSError, ConnectionError) as err:
+    except (OSError, can.CanError) as err:
         raise click.ClickException(f"CAN bus {can_spec}: {err}") from err
     s = r.stats
     console.print(f"{r.sim_seconds:.1f} s simulated: {s['tpdo_frames']} TPDO frames, "

@@ -18,10 +18,13 @@
 from __future__ import annotations
 
 import contextlib
+import select
 import socket
 import subprocess
 from dataclasses import dataclass, field
 from typing import Any
+
+import can
 
 DEFAULT_SOCKETCAND_PORT = 29536
 
@@ -44,6 +47,23 @@ class BusSpec:
         if self.interface == "socketcand":
             kw.update(host=self.host, port=self.port)
         return kw
+
+    def precheck(self) -> None:
+        """Fail at once where python-can would retry, printing a line per try, for 10 s: a
+        socketcand server that does not answer.
+
+        Raises:
+            can.CanInitializationError: nobody greets at host:port.
+        """
+        if self.interface == "socketcand" and not socketcand_answers(self.host, self.port, 1.0):
+            raise can.CanInitializationError(
+                f"no socketcand server answers at {self.host}:{self.port} (start one with "
+                f"'tcf-hil can-server --port {self.port}', or use --can auto)")
+
+    def open(self) -> can.BusABC:
+        """``can.Bus`` for this spec, after :meth:`precheck`."""
+        self.precheck()
+        return can.Bus(**self.kwargs())
 
     def __str__(self) -> str:
         if self.interface == "socketcand":
@@ -113,3 +133,21 @@ def socketcand_answers(host: str, port: int, timeout: float = 0.5) -> bool:
             return s.recv(16).startswith(b"< hi >")
     except OSError:
         return False
+
+
+def peer_closed(bus: can.BusABC) -> bool:
+    """True if ``bus`` is a socketcand client whose server closed the connection.
+
+    python-can's socketcand client treats the end of its TCP stream as "no message yet": its
+    ``recv`` spins until the timeout and returns None, for ever, and never raises. A receive-only
+    client therefore has to look for itself (sending clients get EPIPE soon enough)."""
+    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
+    if not isinstance(sock, socket.socket) or sock.fileno() < 0:
+        return False
+    try:
+        readable, _, _ = select.select([sock], [], [], 0)
+        return bool(readable) and sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except BlockingIOError:
+        return False
+    except OSError:
+        return True

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import can
 
-from emulators.harvester._bus import BusSpec
+from emulators.harvester._bus import BusSpec, peer_closed
 
 log = logging.getLogger("tcf_hil.harvester")
 
@@ -35,14 +35,45 @@ class CanLog(can.Listener):
         self._lock = threading.Lock()
         self.frames = 0
         self.spec = spec
+        self.bus_errors = 0
+        self.reconnects = 0
         self._bus: can.BusABC | None = None
-        self._notifier: can.Notifier | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
 
     def start(self) -> CanLog:
         if self.spec is not None:
-            self._bus = can.Bus(**self.spec.kwargs())
-            self._notifier = can.Notifier(self._bus, [self], timeout=0.2)
+            self._bus = self.spec.open()
+            self._thread = threading.Thread(target=self._run, name=f"can-log {self.path.name}",
+                                            daemon=True)
+            self._thread.start()
         return self
+
+    def _run(self) -> None:
+        """Receive until stopped; a bus that fails is reported once and rejoined."""
+        assert self.spec is not None
+        while not self._stop.is_set():
+            bus = self._bus
+            try:
+                if bus is None:
+                    bus = self._bus = self.spec.open()
+                    self.reconnects += 1
+                    log.warning("CAN log %s: bus %s back", self.path, self.spec)
+                msg = bus.recv(0.2)
+                if msg is None and peer_closed(bus):
+                    raise can.CanOperationError("connection closed by the server")
+            except (can.CanError, OSError) as e:
+                if bus is not None:
+                    log.warning("CAN log %s: bus %s failed (%s); rejoining", self.path,
+                                self.spec, e)
+                    self.bus_errors += 1
+                    with contextlib.suppress(Exception):
+                        bus.shutdown()
+                    self._bus = None
+                self._stop.wait(0.2)
+                continue
+            if msg is not None:
+                self.on_message_received(msg)
 
     def on_message_received(self, msg: can.Message) -> None:
         with self._lock:
@@ -55,13 +86,11 @@ class CanLog(can.Listener):
                 if fh is not None:
                     fh.flush()
 
-    def on_error(self, exc: Exception) -> None:
-        log.warning("CAN log %s: bus error %s", self.path, exc)
-
     def stop(self) -> None:
-        notifier, self._notifier = self._notifier, None
-        if notifier is not None:  # it calls stop() on its listeners: this one, again
-            notifier.stop()
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+            self._thread = None
         if self._bus is not None:
             with contextlib.suppress(Exception):
                 self._bus.shutdown()

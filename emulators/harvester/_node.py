@@ -181,6 +181,7 @@ class HarvesterNode:
 
     # -- bus ---------------------------------------------------------------------------------
     def _connect(self) -> None:
+        self.spec.precheck()
         self.network.connect(**self.spec.kwargs())
         self.network.subscribe(0, self._on_nmt)
         self.network.subscribe(SYNC_COB, self._on_sync)

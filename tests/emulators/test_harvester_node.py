@@ -7,12 +7,13 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import can
 import canopen
 import pytest
 
-from emulators.harvester import BusSpec, HarvesterNode, NodeConfig, SimClock
+from emulators.harvester import BusSpec, CanLog, HarvesterNode, NodeConfig, SimClock
 from protocols.harvester import Pose, PoseAssembler, decode_time, eds_path
 
 _names = itertools.count()
@@ -187,3 +188,30 @@ def test_heartbeat_period_follows_an_sdo_write(bus_name: str, monitor: can.BusAB
             assert 40 <= len(hb) <= 55
     finally:
         net.disconnect()
+
+
+def test_can_logs_in_candump_asc_and_blf_hold_the_same_frames(bus_name: str,
+                                                              tmp_path: Path) -> None:
+    spec = BusSpec("virtual", bus_name)
+    logs = [CanLog(tmp_path / f"bus{ext}", spec).start() for ext in (".log", ".asc", ".blf")]
+    try:
+        with node(bus_name):
+            time.sleep(1.0)
+    finally:
+        for lg in logs:
+            lg.stop()
+    seen = []
+    for lg in logs:
+        frames = [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(str(lg.path))]
+        assert len(frames) == lg.frames
+        stamps = [m.timestamp for m in can.LogReader(str(lg.path))]
+        assert stamps == sorted(stamps)
+        seen.append(frames)
+    assert len(seen[0]) > 300  # 1 s: SYNC + 4 frames per pose at 100 Hz, heartbeats, TIME
+    assert seen[0] == seen[1] == seen[2]
+    assert {0x80, 0x18A, 0x28A, 0x38A, 0x70A} <= {i for i, _ in seen[0]}
+
+
+def test_a_log_name_without_a_known_suffix_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"bus\.txt.*\.log, \.asc, \.blf"):
+        CanLog(tmp_path / "bus.txt")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -22,7 +23,7 @@ import numpy as np
 import pytest
 
 from emulators.canbus import SocketcandServer
-from emulators.harvester import BusSpec, HarvesterNode, NodeConfig, SimClock
+from emulators.harvester import BusSpec, CanLog, HarvesterNode, NodeConfig, SimClock
 from protocols.harvester import Pose, PoseAssembler, eds_path, render_dbc
 from tcf_hil.forest import generate_forest
 from tcf_hil.harvester import HarvesterModel, heading_error_deg
@@ -143,6 +144,7 @@ def test_a_bus_that_goes_away_is_reconnected(tmp_path: Path) -> None:
 
     node = HarvesterNode(spec, pose_at, SimClock.start(10**9), NodeConfig(reconnect_s=0.1))
     node.start()
+    can_log = CanLog(tmp_path / "bus.log", spec).start()
     try:
         time.sleep(0.3)
         srv.stop()  # the bus goes away under the running node
@@ -151,6 +153,7 @@ def test_a_bus_that_goes_away_is_reconnected(tmp_path: Path) -> None:
         assert node.stats.bus_errors >= 1
         srv = SocketcandServer("127.0.0.1", port)
         srv.start()
+        back_at = time.time()
         deadline = time.monotonic() + 10
         while not node.connected and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -167,5 +170,32 @@ def test_a_bus_that_goes_away_is_reconnected(tmp_path: Path) -> None:
         assert len(poses) >= 50
         assert poses[-1].x_m == 1.0 and poses[-1].roll_deg == 6.0
     finally:
+        can_log.stop()
         node.stop()
         srv.stop()
+    # the log, another client of the same server, rejoined too and recorded on
+    assert can_log.bus_errors >= 1 and can_log.reconnects >= 1
+    after = [m for m in can.LogReader(str(tmp_path / "bus.log")) if m.timestamp > back_at]
+    assert sum(m.arbitration_id == 0x38A for m in after) >= 50
+
+
+def test_a_server_that_is_not_there_is_one_clear_error(tmp_path: Path) -> None:
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "tcf_hil.cli", "harvester", "run", "forest-ii",
+                           "--can", f"socketcand:127.0.0.1:{port}:vcan0", "--duration", "1"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert f"no socketcand server answers at 127.0.0.1:{port}" in proc.stderr
+    # python-can alone would retry for 10 s and print a line per try
+    assert len(proc.stderr.splitlines()) == 1 and time.monotonic() - t0 < 9
+
+
+def test_can_server_on_a_taken_port_says_so() -> None:
+    with SocketcandServer("127.0.0.1", 0) as srv:
+        proc = subprocess.run([sys.executable, "-m", "tcf_hil.cli", "can-server", "--port",
+                               str(srv.port)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert f"cannot listen on 127.0.0.1:{srv.port}" in proc.stderr

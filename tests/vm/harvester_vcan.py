@@ -4,7 +4,8 @@
 2. ``tcf-hil harvester run forest-ii --can auto`` must pick the kernel's vcan0 by itself;
 3. a consumer process, canopen RemoteNode with our EDS on socketcan vcan0, decodes the poses
    and compares them with the trajectory truth at each frame's time stamp;
-4. candump's log and the harvester's own log hold the same TPDO frames.
+4. candump's log and the harvester's own log hold the same TPDO frames;
+5. a node whose vcan0 is deleted reports it, retries, and is back once vcan0 exists again.
 
 Python runs 10-20x slower under TCG: this checks function at a low pose rate, not timing.
 Prints one line per check; exits non-zero on the first failure.
@@ -104,7 +105,55 @@ def main() -> None:
     print(f"candump: {len(dump)} TPDO frames; harvester log: {len(own)}", flush=True)
     if not dump or dump != own:
         fail("candump and the harvester's log disagree")
+    vcan_deleted_and_back()
     print("HARVESTER-VCAN PASS", flush=True)
+
+
+def vcan_deleted_and_back() -> None:
+    """The node survives its interface being deleted: reported, retried, and back on the new
+    vcan0 once it exists again."""
+    import can
+
+    from emulators.harvester import BusSpec, HarvesterNode, NodeConfig, SimClock
+    from protocols.harvester import Pose, PoseAssembler
+
+    def pose_at(t: int) -> Pose:
+        return Pose(1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.0, t // 1000)
+
+    def ip(*args: str) -> None:
+        subprocess.run(["ip", "link", *args], check=True)
+
+    node = HarvesterNode(BusSpec("socketcan", "vcan0"), pose_at, SimClock.start(10**9),
+                         NodeConfig(rate_hz=20, reconnect_s=0.2)).start()
+    try:
+        time.sleep(2.0)
+        ip("del", "vcan0")
+        deadline = time.monotonic() + 30
+        while node.connected and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if node.connected or node.stats.bus_errors < 1:
+            fail(f"deleting vcan0 went unnoticed: {node.stats}")
+        time.sleep(1.0)
+        ip("add", "dev", "vcan0", "type", "vcan")
+        ip("set", "vcan0", "up")
+        deadline = time.monotonic() + 60
+        while not node.connected and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if not node.connected or node.stats.reconnects < 1:
+            fail(f"no reconnect to the new vcan0: {node.stats}")
+        asm, poses = PoseAssembler(10), []
+        with can.Bus(interface="socketcan", channel="vcan0") as bus:
+            end = time.monotonic() + 5.0
+            while time.monotonic() < end and len(poses) < 10:
+                m = bus.recv(0.5)
+                if m is not None and (p := asm.feed(m.arbitration_id, bytes(m.data))):
+                    poses.append(p)
+    finally:
+        node.stop()
+    if len(poses) < 10 or poses[-1].roll_deg != 6.0:
+        fail(f"after the new vcan0: {len(poses)} poses")
+    print(f"vcan0 deleted and re-added: {node.stats.bus_errors} bus errors, "
+          f"{node.stats.reconnects} reconnect(s), {len(poses)} poses after", flush=True)
 
 
 if __name__ == "__main__":
