@@ -127,6 +127,8 @@ class HarvesterNode:
                 plain_send(can_id, data, remote)
 
         self.network.send_message = locked_send  # type: ignore[method-assign]
+        # SDO reads of the pose objects answer the last sample (no OD writes per SYNC)
+        self.node.add_read_callback(self._read_pose_object)
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -322,6 +324,10 @@ class HarvesterNode:
                     self._read_mappings()
                 self._state = _NMT_TARGET[cs]
 
+    def _read_pose_object(self, *, index: int, subindex: int, od: object) -> int | None:
+        raw = self._last_raw
+        return None if raw is None else raw.get((index, subindex))
+
     def _sample(self) -> dict[tuple[int, int], int] | None:
         t = self.clock.now_ns()
         try:
@@ -352,10 +358,6 @@ class HarvesterNode:
         bt = self.stats.batch_times_ns
         if len(bt) < 1_000_000:
             bt.append(time.monotonic_ns())
-        with contextlib.suppress(Exception):  # the OD mirrors the last pose for SDO reads
-            sdo: Any = self.node.sdo
-            for (idx, sub), v in raw.items():
-                sdo[idx][sub].raw = v
 
     def _run(self) -> None:
         sd: Any = self.node.sdo

@@ -147,6 +147,15 @@ def test_external_sync_and_remapping_by_sdo(bus_name: str, monitor: can.BusABC) 
             assert ids.count(0x28A) == 10 and ids.count(0x38A) == 10
             assert ids.count(0x18A) == 5
             assert n.stats.syncs_received == 10 and n.stats.syncs_sent == 0
+            # SDO reads of the pose record answer the latest sample (the event TPDO samples
+            # too, so it may be newer than the last SYNC's): z = 2 s in pose_at
+            last = {m.arbitration_id: bytes(m.data) for m in msgs}
+            t_sent = int.from_bytes(last[0x38A][4:8], "little")
+            for _ in range(10):  # three reads; a new sample may land between them
+                t_us, z_mm = remote.sdo[0x2000][8].raw, remote.sdo[0x2000][3].raw
+                if remote.sdo[0x2000][8].raw == t_us:
+                    break
+            assert t_us >= t_sent and abs(z_mm - 2 * t_us / 1000) <= 1.0
     finally:
         net.disconnect()
 
