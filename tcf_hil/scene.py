@@ -9,6 +9,9 @@ origin back in float64.
 from __future__ import annotations
 
 import importlib
+import itertools
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -38,10 +41,24 @@ class Caster(Protocol):
         ...
 
 
-class EmbreeCaster:
-    name = "embree"
+def default_threads() -> int:
+    """Threads for one cast: the CPUs this process may use (``TCF_HIL_RAY_THREADS`` sets it)."""
+    env = os.environ.get("TCF_HIL_RAY_THREADS", "")
+    if env.isdigit() and int(env) > 0:
+        return int(env)
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+               else (os.cpu_count() or 1))
 
-    def __init__(self, vertices: FloatArray, faces: NDArray[np.int64]) -> None:
+
+class EmbreeCaster:
+    """embreex's scene, robust mode. embreex traces a batch on one core but releases the GIL,
+    so a large batch is split over ``threads`` threads (about 1.6x on 2 cores)."""
+
+    name = "embree"
+    MIN_RAYS_PER_THREAD = 16384
+
+    def __init__(self, vertices: FloatArray, faces: NDArray[np.int64],
+                 threads: int | None = None) -> None:
         from embreex import rtcore_scene
         from embreex.mesh_construction import TriangleMesh
 
@@ -49,13 +66,35 @@ class EmbreeCaster:
         self._scene = rtcore_scene.EmbreeScene(robust=True)
         TriangleMesh(scene=self._scene, vertices=vertices.astype(np.float32),
                      indices=faces.astype(np.int32))
+        self.threads = threads or default_threads()
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_pid = 0
+
+    def _run(self, o: NDArray[np.float32], d: NDArray[np.float32], t: NDArray[np.float32],
+             prim: NDArray[np.int64]) -> None:
+        r = self._scene.run(o, d, output=1)
+        prim[:] = r["primID"]
+        t[:] = r["tfar"]
 
     def cast(self, origins: FloatArray, directions: FloatArray
              ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
-        r = self._scene.run(np.ascontiguousarray(origins, dtype=np.float32),
-                            np.ascontiguousarray(directions, dtype=np.float32), output=1)
-        prim = r["primID"].astype(np.int64)
-        t = r["tfar"].astype(np.float32)
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        n = len(o)
+        t = np.empty(n, np.float32)
+        prim = np.empty(n, np.int64)
+        parts = min(self.threads, n // self.MIN_RAYS_PER_THREAD)
+        if parts <= 1:
+            self._run(o, d, t, prim)
+        else:
+            if self._pool is None or self._pool_pid != os.getpid():  # threads die in a fork
+                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="embree")
+                self._pool_pid = os.getpid()
+            cuts = np.linspace(0, n, parts + 1).astype(int)
+            jobs = [self._pool.submit(self._run, o[a:b], d[a:b], t[a:b], prim[a:b])
+                    for a, b in itertools.pairwise(cuts.tolist())]
+            for j in jobs:
+                j.result()
         miss = prim < 0
         t[miss] = np.inf
         prim[miss] = -1

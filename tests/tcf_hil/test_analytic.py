@@ -48,3 +48,33 @@ def test_refinement_is_exact_on_a_plane() -> None:
     exact, cos = refine_hits(forest, o, d, np.array([2.4, 3.1]), np.array([0, 0], np.int32))
     np.testing.assert_allclose(exact, [2.5, 3.0])
     np.testing.assert_allclose(cos, [0.8, 1.0])
+
+
+def test_embree_split_over_threads_gives_the_same_hits_and_survives_a_fork() -> None:
+    import multiprocessing as mp
+
+    forest = generate_forest(SCN)
+    scene = Scene.from_forest(forest, backend="embree")
+    track = Trajectory.from_config(SCN.track, forest.terrain)
+    emu = Os0Emulator(os0_64_metadata("1024x10"), scene, track, start_ns=track.t0_ns)
+    o, d, _, _ = emu.rays(12)
+    caster = scene.caster
+    caster.threads = 1  # type: ignore[attr-defined]
+    t1, p1 = caster.cast(o, d)
+    caster.threads = 3  # type: ignore[attr-defined]  # uneven parts: 65536 rays / 3
+    t3, p3 = caster.cast(o, d)
+    assert np.array_equal(t1, t3) and np.array_equal(p1, p3)
+    assert np.isfinite(t1).sum() > 10_000 and (p1 == -1).sum() > 0
+    # the pool's threads do not survive a fork: the child must make its own, not hang
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+
+    def child() -> None:
+        t, p = caster.cast(o, d)
+        q.put(bool(np.array_equal(t, t1) and np.array_equal(p, p1)))
+
+    proc = ctx.Process(target=child)
+    proc.start()
+    assert q.get(timeout=60) is True
+    proc.join(10)
+    assert proc.exitcode == 0
