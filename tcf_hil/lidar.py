@@ -220,6 +220,9 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(1)
+    caster = getattr(run.scene, "caster", None)
+    if caster is not None and hasattr(caster, "threads"):  # the same for the ray caster
+        caster.threads = max(1, caster.threads - 1)
     slot = 0
     try:
         for _fr, dgs in run.datagrams():

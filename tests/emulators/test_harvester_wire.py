@@ -28,6 +28,7 @@ from protocols.harvester import Pose, PoseAssembler, eds_path, render_dbc
 from tcf_hil.forest import generate_forest
 from tcf_hil.harvester import HarvesterModel, heading_error_deg
 from tcf_hil.scenario import load_scenario
+from tcf_hil.trajectory import rotation_ypr
 
 SCENARIO = "forest-iv"  # rolling terrain: pitch and roll are not zero
 
@@ -99,6 +100,23 @@ def test_remote_node_decodes_every_pose_and_logs_agree(server: SocketcandServer,
     assert worst[1] <= 0.005 + 1e-9  # 0.01 deg quantum
     assert worst[2] <= 0.0005 + 1e-9
     assert any(abs(c["Pose.Roll"]) > 0.05 for c in got[3])  # the terrain tilts the machine
+    # What a consumer rebuilds from the bus (pose + the mount in object 0x2002) is the sensor
+    # pose the lidar emulator casts from, at the same time stamp
+    cfg = model.node_config()
+    mount = np.array(cfg.mount_mm) / 1000.0
+    my, mp, mr = np.radians(np.array(cfg.mount_cdeg) / 100.0)
+    r_mount = rotation_ypr(np.array([my]), np.array([mp]), np.array([mr]))[0]
+    worst_lidar = 0.0
+    for a, b, c in list(zip(got[1], got[2], got[3], strict=True))[::25]:
+        yaw = np.radians(90.0 - b["Pose.Heading"])
+        r = rotation_ypr(np.array([yaw]), np.radians([b["Pose.Pitch"]]),
+                         np.radians([c["Pose.Roll"]]))[0]
+        sensor = np.array([a["Pose.X"], a["Pose.Y"], b["Pose.Z"]]) + r @ mount
+        pos, rot = model.trajectory.sensor_pose(np.array([round(c["Pose.Time"]) * 1000]))
+        worst_lidar = max(worst_lidar, float(np.abs(sensor - pos[0]).max()),
+                          float(np.abs(r @ r_mount - rot[0]).max()))
+    # 0.5 mm position quantum, plus 0.005 deg angle quanta over the 2 m mount lever (0.35 mm)
+    assert worst_lidar <= 0.0005 + 2.0 * np.radians(0.005) * 2 + 1e-6
     # our candump log and python-can's logger saw the same TPDO frames
     ours = [m for m in can.LogReader(str(log)) if 0x180 <= m.arbitration_id < 0x500]
     theirs = [m for m in can.LogReader(str(pylog)) if 0x180 <= m.arbitration_id < 0x500]
