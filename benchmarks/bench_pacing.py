@@ -8,10 +8,18 @@ Run: python benchmarks/bench_pacing.py [--scenario forest-x] [--mode 2048x10] [-
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 
 from tcf_hil.lidar import stream_lidar
 from tcf_hil.scenario import load_scenario
+
+
+def _steal_ms() -> float:
+    """CPU time the hypervisor gave to others while this VM wanted it (all CPUs), ms."""
+    with open("/proc/stat") as fh:
+        fields = fh.readline().split()
+    return int(fields[8]) * 1000 / os.sysconf("SC_CLK_TCK") if len(fields) > 8 else 0.0
 
 
 def main() -> None:
@@ -25,8 +33,12 @@ def main() -> None:
     rows: dict[bool, list[tuple[float, float, float, bool]]] = {True: [], False: []}
     for _ in range(a.repeats):
         for rt in (True, False):
+            steal = _steal_ms()
             r = stream_lidar(scn, mode=a.mode, max_frames=a.frames, realtime=rt)
+            steal = _steal_ms() - steal
             rows[rt].append((*r.pacing_us, r.sender_cpu_share, r.realtime))
+            print(f"  run: {'FIFO asked' if rt else 'ordinary'}: p50 {r.pacing_us[0]:.0f} us, "
+                  f"p99 {r.pacing_us[1]:.0f} us; hypervisor steal {steal:.0f} ms", flush=True)
     print(f"{a.scenario} {a.mode}, {a.frames} frames x {a.repeats} runs (medians)")
     print("scheduling | p50 us | p99 us | pacing loop CPU share")
     for rt, rs in rows.items():

@@ -447,6 +447,15 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
         return
     console.print(f"streaming {scn.name} {mode} {profile} from {sensor_address} to "
                   f"{dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
+    import signal
+
+    def first_ctrl_c(_sig: int, _frame: object) -> None:
+        # finish the frame on the wire, then write the recording: a second Ctrl-C aborts
+        err_console.print("stopping after this frame (Ctrl-C again aborts)")
+        stop.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = signal.signal(signal.SIGINT, first_ctrl_c)
     try:
         r = stream_lidar(scn, sensor_ip=sensor_address, dest=dest, speed=speed, record=record,
                          stop=stop, mode=mode, profile=profile, seed=seed, max_frames=frames,
@@ -454,6 +463,8 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     except KeyboardInterrupt:
         stop.set()
         raise
+    finally:
+        signal.signal(signal.SIGINT, previous)
     p50, p99 = r.pacing_us
     console.print(f"sent {r.packets} lidar packets in {r.frames} frames; pacing error p50 "
                   f"{p50:.0f} us, p99 {p99:.0f} us "
@@ -509,11 +520,15 @@ def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: 
     """
     import can
 
-    from emulators.harvester import BusSpecError
+    from emulators.harvester import LOG_SUFFIXES, BusSpecError
     from tcf_hil.forest import generate_forest
     from tcf_hil.harvester import open_bus, run_harvester
     from tcf_hil.scenario import load_scenario
 
+    if log_path is not None and log_path.suffix.lower() not in LOG_SUFFIXES:
+        raise click.BadParameter(f"{log_path}: expected a file ending in "
+                                 f"{', '.join(LOG_SUFFIXES)} (candump log, ASC, BLF)",
+                                 param_hint="--log")
     scn = load_scenario(scenario_name)
     with _blame(scenario_name):
         forest = generate_forest(scn, seed)
@@ -552,6 +567,9 @@ def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: 
                                    if "tpdo_period_us_p50" in s else ""))
     if log_path is not None:
         console.print(f"{r.log_frames} frames logged to {log_path}")
+        if r.log_error:
+            raise click.ClickException(f"CAN log {log_path}: {r.log_error} (logging stopped "
+                                       "there; the node ran on)")
 
 
 @harvester.command("files")

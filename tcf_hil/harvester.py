@@ -142,6 +142,7 @@ class HarvesterRunResult:
     stats: dict[str, Any]
     log_frames: int
     log_path: Path | None
+    log_error: str | None = None  # why the CAN log stopped early (e.g. the disk is full)
 
 
 def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int = 0,
@@ -160,9 +161,11 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
     stop = stop or threading.Event()
     cfg = model.node_config(node_id=node_id, rate_hz=rate_hz, sync_producer=sync_producer,
                             autostart=autostart)
-    can_log = CanLog(log_path, spec).start() if log_path is not None else None
+    can_log: CanLog | None = None
     node = HarvesterNode(spec, model.bus_pose, clock, cfg)
     try:
+        if log_path is not None:  # first, so that it sees the boot-up
+            can_log = CanLog(log_path, spec).start()
         node.start()
         total = (end_ns - clock.t0_ns) / 1e9
         while not stop.is_set():
@@ -185,7 +188,8 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
         st["tpdo_jitter_us_p99"] = float(np.percentile(np.abs(bt - period), 99))
     return HarvesterRunResult(str(spec), cfg.node_id,
                               (min(clock.now_ns(), end_ns) - clock.t0_ns) / 1e9, st,
-                              can_log.frames if can_log else 0, log_path)
+                              can_log.frames if can_log else 0, log_path,
+                              can_log.error if can_log else None)
 
 
 def heading_error_deg(a: float, b: float) -> float:

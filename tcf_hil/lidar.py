@@ -14,6 +14,7 @@ import math
 import multiprocessing as mp
 import os
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -210,10 +211,23 @@ def _slot_bytes(run: LidarRun) -> int:
     return packets * fmt.packet_bytes + imu * IMU_PACKET_BYTES
 
 
+@dataclass
+class _Recording:
+    """The pcap of a live stream, written by the producer process (off the pacing loop):
+    a frame's records go to the file once the sender has counted it sent."""
+
+    path: str
+    sensor_ip: str
+    dest: str
+
+
 def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
-             stop: Any) -> None:
+             stop: Any, sent: Any, rec: _Recording | None = None) -> None:
     """Producer process: writes each frame's datagrams into a shared-memory slot and sends
-    only (slot, [(t_ns, port, length)]) down the pipe; then the run's bookkeeping."""
+    only (slot, [(t_ns, port, length)]) down the pipe, then ("done", None) after the last.
+    ``sent`` (shared) counts the frames the sender has finished. When the sender sets
+    ``stop``, answers ("final", bookkeeping) as of exactly those frames (it runs a few frames
+    ahead), and with ``rec`` the pcap holds exactly those frames too."""
     with contextlib.suppress(OSError):
         os.nice(19)  # the pacing loop, not the frame factory, gets the CPU when both want it
     with contextlib.suppress(Exception):  # one core stays free for the pacing loop
@@ -223,12 +237,32 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
     caster = getattr(run.scene, "caster", None)
     if caster is not None and hasattr(caster, "threads"):  # the same for the ray caster
         caster.threads = max(1, caster.threads - 1)
-    slot = 0
+    fh = open(rec.path, "wb") if rec is not None else None  # closed in the finally below
+    writer = PcapWriter()
+    pending: collections.deque[bytes] = collections.deque()
+    written = 0
+    # bookkeeping after each produced frame, back as far as the sender can be behind
+    marks: collections.deque[tuple[int, np.ndarray, int, int]] = collections.deque(
+        [(0, run.counts.copy(), run._poses.tell(), run.packets)], maxlen=_SLOTS + 2)
+
+    def flush() -> None:
+        nonlocal written
+        if fh is None:
+            return
+        while written < sent.value and pending:
+            fh.write(pending.popleft())
+            written += 1
+
+    slot = produced = 0
     try:
+        if fh is not None:
+            fh.write(writer.header())
         for _fr, dgs in run.datagrams():
             while not free.acquire(timeout=0.2):
+                flush()
                 if stop.is_set():
-                    return
+                    break
+            flush()
             if stop.is_set():
                 break
             pos = slot * slot_bytes
@@ -238,11 +272,33 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
                 pos += n
             meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs], dtype=np.int64)
             conn.send(("frame", (slot, meta)))
+            if rec is not None:  # exactly what goes out, at its simulation time
+                pending.append(b"".join(writer.records(UdpDatagram(
+                    d.t_ns, rec.sensor_ip, rec.dest, d.port, d.port, bytes(d.payload)))
+                    for d in dgs))
+            produced += 1
+            marks.append((produced, run.counts.copy(), run._poses.tell(), run.packets))
             slot = (slot + 1) % _SLOTS
-        conn.send(("done", (run.counts, run._poses.getvalue(), run.packets)))
+        else:
+            conn.send(("done", None))
+        while not stop.wait(0.05):  # the last frames are still going out
+            flush()
+        flush()
+        n_sent = int(sent.value)
+        mark = next((m for m in marks if m[0] == n_sent), marks[-1])
+        conn.send(("final", (mark[1], run._poses.getvalue()[:mark[2]], mark[3])))
     except BaseException as err:  # reported by the sending side
         with contextlib.suppress(Exception):
             conn.send(("error", f"{type(err).__name__}: {err}"))
+    finally:
+        if fh is not None:
+            fh.close()
+
+
+def _release(dgs: list[Datagram]) -> None:
+    for d in dgs:
+        if isinstance(d.payload, memoryview):
+            d.payload.release()
 
 
 def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "127.0.0.1",
@@ -271,99 +327,117 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     rx, tx = ctx.Pipe(duplex=False)
     free = ctx.Semaphore(_SLOTS)
     child_stop = ctx.Event()
+    sent = ctx.RawValue("q", 0)  # frames finished by the sender, read by the producer
     stop = stop or threading.Event()
-    child = ctx.Process(target=_produce, args=(run, tx, free, shm, slot_bytes, child_stop),
-                        name="lidar-frames", daemon=True)
-    child.start()
-    tx.close()
-    ready: collections.deque[tuple[str, Any]] = collections.deque()
-
-    def next_item(timeout: float) -> tuple[str, Any] | None:
-        return ready.popleft() if ready else receive(timeout)
-
-    def receive(timeout: float) -> tuple[str, Any] | None:
-        try:
-            if rx.poll(timeout):
-                item: tuple[str, Any] = rx.recv()
-                return item
-        except (EOFError, OSError):
-            return ("error", "the frame producer died")
-        if not child.is_alive():
-            return ("error", "the frame producer died")
-        return None
-
-    # Start sending only with frames in hand, so the first ones are not late.
-    while len(ready) < _SLOTS - 1 and not stop.is_set():
-        item = receive(0.05)
-        if item is not None:
-            ready.append(item)
-            if item[0] != "frame":
-                break
-    writer = PcapWriter()
     out = Path(record) if record is not None else None
+    outputs = contextlib.ExitStack()
+    child: Any = None
+    dgs: list[Datagram] = []
+    frozen = False
     done = 0
     error: str | None = None
-    # A full collection walks every object of the scene and forest: milliseconds in which no
-    # packet leaves. Freeze what exists now; the loop itself makes little cyclic garbage.
-    gc.collect()
-    gc.freeze()
     try:
-        with contextlib.ExitStack() as stack:
-            fh = None
+        with outputs:  # the pcap is renamed into place only if all below succeeds
+            rec: _Recording | None = None
             if out is not None:
                 ensure_dir(out)
-                fh = stack.enter_context(open(stack.enter_context(
-                    atomic_path(out / "lidar.pcap")), "wb"))
-                fh.write(writer.header())
-            sender = stack.enter_context(PacedSender(sensor_ip, dest, speed=speed,
-                                                     realtime=realtime))
-            while not stop.is_set():
-                item = next_item(1.0)
+                rec = _Recording(str(outputs.enter_context(atomic_path(out / "lidar.pcap"))),
+                                 sensor_ip, dest)
+            child = ctx.Process(target=_produce, args=(run, tx, free, shm, slot_bytes,
+                                                       child_stop, sent, rec),
+                                name="lidar-frames", daemon=True)
+            child.start()
+            tx.close()
+            ready: collections.deque[tuple[str, Any]] = collections.deque()
+
+            def receive(timeout: float) -> tuple[str, Any] | None:
+                try:
+                    if rx.poll(timeout):
+                        item: tuple[str, Any] = rx.recv()
+                        return item
+                except (EOFError, OSError):
+                    return ("error", "the frame producer died")
+                if not child.is_alive():
+                    return ("error", "the frame producer died")
+                return None
+
+            # Start sending only with frames in hand, so the first ones are not late.
+            while len(ready) < _SLOTS - 1 and not stop.is_set():
+                item = receive(0.05)
+                if item is not None:
+                    ready.append(item)
+                    if item[0] != "frame":
+                        break
+            # A full collection walks every object of the scene and forest: milliseconds in
+            # which no packet leaves. Freeze what exists now; the loop makes little garbage.
+            gc.collect()
+            gc.freeze()
+            frozen = True
+            with PacedSender(sensor_ip, dest, speed=speed, realtime=realtime) as sender:
+                while not stop.is_set():
+                    item = ready.popleft() if ready else receive(1.0)
+                    if item is None:
+                        continue
+                    kind, body = item
+                    if kind == "error":
+                        error = body
+                        break
+                    if kind == "done":
+                        break
+                    slot, meta = body
+                    ends = (slot * slot_bytes + np.cumsum(meta[:, 2])).tolist()
+                    starts = [slot * slot_bytes, *ends[:-1]]
+                    view = shm.buf
+                    assert view is not None
+                    dgs = [Datagram(t, port, view[a:b]) for (t, port, _n), a, b in
+                           zip(meta.tolist(), starts, ends, strict=True)]
+                    del view
+                    sender.send(dgs)
+                    sent.value = done + 1  # before the slot goes back
+                    _release(dgs)
+                    dgs = []
+                    free.release()
+                    done += 1
+                    if progress:
+                        progress(done, run.frames)
+                stats = sender.stats
+            # the producer answers with the bookkeeping of exactly the frames sent, writes the
+            # pcap's last frames and closes it: only then is it renamed into place
+            child_stop.set()
+            deadline = time.monotonic() + 60.0
+            while error is None and time.monotonic() < deadline:
+                item = receive(0.2)
                 if item is None:
                     continue
-                kind, body = item
-                if kind == "error":
-                    error = body
-                    break
-                if kind == "done":
-                    run.counts, poses, run.packets = body
+                if item[0] == "error":
+                    error = item[1]
+                elif item[0] == "final":
+                    run.counts, poses, run.packets = item[1]
                     run._poses = io.StringIO(poses)
                     run._poses.seek(0, io.SEEK_END)
                     break
-                slot, meta = body
-                ends = (slot * slot_bytes + np.cumsum(meta[:, 2])).tolist()
-                starts = [slot * slot_bytes, *ends[:-1]]
-                view = shm.buf
-                assert view is not None
-                dgs = [Datagram(t, port, view[a:b]) for (t, port, _n), a, b in
-                       zip(meta.tolist(), starts, ends, strict=True)]
-                sender.send(dgs)
-                if fh is not None:  # exactly what was sent, at its simulation time
-                    fh.write(b"".join(writer.records(UdpDatagram(
-                        d.t_ns, sensor_ip, dest, d.port, d.port, bytes(d.payload)))
-                        for d in dgs))
-                for d in dgs:
-                    if isinstance(d.payload, memoryview):
-                        d.payload.release()
-                del dgs, view
-                free.release()
-                done += 1
-                if progress:
-                    progress(done, run.frames)
-            stats = sender.stats
+            else:
+                error = error or "the frame producer did not answer"
+            child.join(timeout=30.0)
+            if error is not None:  # no pcap of a failed run
+                raise RuntimeError(f"lidar frame producer failed: {error}")
     finally:
-        gc.unfreeze()
+        if frozen:
+            gc.unfreeze()
         child_stop.set()
+        _release(dgs)  # an interrupted send still holds views of the ring
         with contextlib.suppress(Exception):
             for _ in range(_SLOTS):
                 free.release()
-        child.join(timeout=5.0)
-        if child.is_alive():
-            child.terminate()
+        if child is not None:
             child.join(timeout=5.0)
+            if child.is_alive():
+                child.terminate()
+                child.join(timeout=5.0)
         rx.close()
-        shm.close()
         shm.unlink()
+        with contextlib.suppress(BufferError):
+            shm.close()
     if error is not None:
         raise RuntimeError(f"lidar frame producer failed: {error}")
     if out is not None:

@@ -8,6 +8,7 @@ import contextlib
 import logging
 import threading
 from pathlib import Path
+from typing import Any
 
 import can
 
@@ -28,10 +29,10 @@ class CanLog(can.Listener):
         if self.path.suffix.lower() not in SUFFIXES:
             raise ValueError(f"CAN log {self.path}: expected a file ending in "
                              f"{', '.join(SUFFIXES)}, got {self.path.suffix or 'no suffix'!r}")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        kw = {"channel": channel} if self.path.suffix.lower() == ".log" else {}
-        self._writer = can.Logger(str(self.path), **kw)
+        self._channel = channel
+        self._writer: Any = None  # made by start(), once the bus answers
         self._flush = self.path.suffix.lower() in (".log", ".asc")
+        self.error: str | None = None  # why writing stopped (e.g. the disk is full)
         self._lock = threading.Lock()
         self.frames = 0
         self.spec = spec
@@ -42,8 +43,21 @@ class CanLog(can.Listener):
         self._stop = threading.Event()
 
     def start(self) -> CanLog:
+        """Join the bus (if a spec was given), then create the file: a bus that is not there
+        leaves any older log of that name untouched."""
         if self.spec is not None:
             self._bus = self.spec.open()
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            kw = {"channel": self._channel} if self.path.suffix.lower() == ".log" else {}
+            self._writer = can.Logger(str(self.path), **kw)
+        except BaseException:
+            if self._bus is not None:
+                with contextlib.suppress(Exception):
+                    self._bus.shutdown()
+                self._bus = None
+            raise
+        if self.spec is not None:
             self._thread = threading.Thread(target=self._run, name=f"can-log {self.path.name}",
                                             daemon=True)
             self._thread.start()
@@ -79,12 +93,21 @@ class CanLog(can.Listener):
         with self._lock:
             if self._writer is None:
                 return
-            self._writer.on_message_received(msg)
+            try:
+                self._writer.on_message_received(msg)
+                if self._flush:
+                    fh = getattr(self._writer, "file", None)
+                    if fh is not None:
+                        fh.flush()
+            except (OSError, ValueError) as e:  # disk full, file gone: stop, say why
+                self.error = f"{type(e).__name__}: {e}"
+                log.error("CAN log %s: writing failed (%s); logging stopped", self.path, e)
+                self._stop.set()
+                with contextlib.suppress(Exception):
+                    self._writer.stop()
+                self._writer = None
+                return
             self.frames += 1
-            if self._flush:
-                fh = getattr(self._writer, "file", None)
-                if fh is not None:
-                    fh.flush()
 
     def stop(self) -> None:
         self._stop.set()
@@ -97,8 +120,11 @@ class CanLog(can.Listener):
             self._bus = None
         with self._lock:
             if self._writer is not None:
-                self._writer.stop()
-                self._writer = None  # type: ignore[assignment]
+                try:
+                    self._writer.stop()
+                except (OSError, ValueError) as e:
+                    self.error = self.error or f"{type(e).__name__}: {e}"
+                self._writer = None
 
     def __enter__(self) -> CanLog:
         return self.start()

@@ -13,6 +13,7 @@ deleted) is reported and reconnected; foreign and malformed frames are counted a
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import threading
 import time
@@ -63,6 +64,7 @@ class NodeStats:
     nmt_commands: int = 0
     foreign_frames: int = 0
     malformed_frames: int = 0
+    tx_dropped: int = 0  # frames refused by a full transmit queue (ENOBUFS)
     bus_errors: int = 0  # sends or receives that failed (each leads to a reconnect)
     reconnects: int = 0
     pose_errors: int = 0
@@ -130,6 +132,7 @@ class HarvesterNode:
         # SDO reads of the pose objects answer the last sample (no OD writes per SYNC)
         self.node.add_read_callback(self._read_pose_object)
         self._wake = threading.Event()
+        self._fail_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._state = INITIALISING
@@ -184,6 +187,9 @@ class HarvesterNode:
     # -- bus ---------------------------------------------------------------------------------
     def _connect(self) -> None:
         self.spec.precheck()
+        # canopen's notifier waits up to this long per receive; python-can's socketcand client
+        # spins through it when its server has gone, so keep it short
+        self.network.NOTIFIER_CYCLE = 0.1
         self.network.connect(**self.spec.kwargs())
         self.network.subscribe(0, self._on_nmt)
         self.network.subscribe(SYNC_COB, self._on_sync)
@@ -214,15 +220,20 @@ class HarvesterNode:
                 self._disconnect()
                 self._stop.wait(self.cfg.reconnect_s)
 
+    def _bus_failed(self, e: Exception, where: str) -> None:
+        """One failure, counted and reported once, however many threads see it."""
+        with self._fail_lock:
+            was, self._connected = self._connected, False
+        if was:
+            self.stats.bus_errors += 1
+            log.warning("node %d: bus %s failed on %s (%s); reconnecting", self.cfg.node_id,
+                        self.spec, where, e)
+        self._wake.set()
+
     def _receive_failed(self, e: Exception) -> None:
         """From the notifier's thread: the bus failed under a receive; the run loop
         reconnects. Waits a little, so a dead socket does not spin the notifier."""
-        if self._connected:
-            self.stats.bus_errors += 1
-            log.warning("node %d: bus %s failed on receive (%s); reconnecting",
-                        self.cfg.node_id, self.spec, e)
-        self._connected = False
-        self._wake.set()
+        self._bus_failed(e, "receive")
         self._stop.wait(min(self.cfg.reconnect_s, 0.1))
 
     def _send(self, cob_id: int, data: bytes) -> bool:
@@ -232,11 +243,13 @@ class HarvesterNode:
             with self._send_lock:
                 self.network.send_message(cob_id, data)
         except (can.CanError, OSError) as e:
-            self.stats.bus_errors += 1
-            if self._connected:
-                log.warning("node %d: bus %s failed (%s); reconnecting", self.cfg.node_id,
-                            self.spec, e)
-            self._connected = False
+            code = getattr(e, "error_code", None) or getattr(e, "errno", None)
+            if code == errno.ENOBUFS:
+                # a full transmit queue (real CAN with nobody acknowledging): the frame is
+                # lost, the bus is not
+                self.stats.tx_dropped += 1
+                return False
+            self._bus_failed(e, "send")
             return False
         if self._on_frame is not None:
             self._on_frame(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False,

@@ -226,3 +226,18 @@ def test_can_logs_in_candump_asc_and_blf_hold_the_same_frames(bus_name: str,
 def test_a_log_name_without_a_known_suffix_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"bus\.txt.*\.log, \.asc, \.blf"):
         CanLog(tmp_path / "bus.txt")
+
+
+def test_a_log_that_cannot_be_written_stops_with_the_reason(bus_name: str,
+                                                            tmp_path: Path) -> None:
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full here to make a full disk")
+    full = tmp_path / "bus.log"
+    full.symlink_to("/dev/full")  # every write: ENOSPC, as on a full disk
+    lg = CanLog(full, BusSpec("virtual", bus_name)).start()
+    with node(bus_name) as n:
+        time.sleep(0.3)
+        assert n.connected  # the node runs on
+    lg.stop()  # no exception: the reason is kept
+    assert lg.error is not None and "No space left" in lg.error
+    assert lg.frames == 0

@@ -201,14 +201,22 @@ def test_a_server_that_is_not_there_is_one_clear_error(tmp_path: Path) -> None:
     with socket.socket() as s:  # a port nobody listens on
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
+    old_log = tmp_path / "yesterday.blf"
+    old_log.write_bytes(b"an older log")
     t0 = time.monotonic()
     proc = subprocess.run([sys.executable, "-m", "tcf_hil.cli", "harvester", "run", "forest-ii",
-                           "--can", f"socketcand:127.0.0.1:{port}:vcan0", "--duration", "1"],
-                          capture_output=True, text=True, timeout=60)
+                           "--can", f"socketcand:127.0.0.1:{port}:vcan0", "--duration", "1",
+                           "--log", str(old_log)], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1
     assert f"no socketcand server answers at 127.0.0.1:{port}" in proc.stderr
     # python-can alone would retry for 10 s and print a line per try
     assert len(proc.stderr.splitlines()) == 1 and time.monotonic() - t0 < 9
+    assert old_log.read_bytes() == b"an older log"  # no bus, no new (empty) log over it
+    bad = subprocess.run([sys.executable, "-m", "tcf_hil.cli", "harvester", "run", "forest-ii",
+                          "--log", str(tmp_path / "bus.txt")], capture_output=True, text=True,
+                         timeout=60)
+    assert bad.returncode == 2 and "--log" in bad.stderr and ".blf" in bad.stderr
+    assert "Internal error" not in bad.stderr
 
 
 def test_can_server_on_a_taken_port_says_so() -> None:

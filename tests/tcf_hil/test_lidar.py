@@ -200,9 +200,39 @@ def test_live_stream_read_by_ouster_sdk(tmp_path: Path, profile: str, mode: str)
     assert r.refused == 0 and r.frames == 8
     rec = opcap.PcapFrameSetSource(str(tmp_path / "lidar.pcap"),
                                    meta=[str(tmp_path / "metadata.json")])
-    for (fid, _, rng), fs in zip(got, rec, strict=False):
+    recorded = list(rec)
+    assert [fs[0].frame_id for fs in recorded] == list(range(8))  # every frame sent
+    for (fid, _, rng), fs in zip(got, recorded, strict=False):
         assert fs[0].frame_id == fid
         np.testing.assert_array_equal(fs[0].field("RANGE"), rng)
+
+
+def test_a_stopped_stream_records_exactly_the_frames_it_sent(tmp_path: Path) -> None:
+    """The pcap is written off the pacing loop, by the frame producer, which runs ahead of
+    the sender: frames produced but never sent must not reach it."""
+    import threading
+
+    from tcf_hil.lidar import stream_lidar
+
+    stop = threading.Event()
+    timer = threading.Timer(0.6, stop.set)
+    timer.start()
+    r = stream_lidar(load_scenario("forest-ii"), mode="512x20", max_frames=200, stop=stop,
+                     record=tmp_path, udp_port_lidar=_free_udp_port(),
+                     udp_port_imu=_free_udp_port())
+    timer.cancel()
+    assert 3 <= r.frames < 200
+    rec = opcap.PcapFrameSetSource(str(tmp_path / "lidar.pcap"),
+                                   meta=[str(tmp_path / "metadata.json")])
+    ids = [fs[0].frame_id for fs in rec]
+    assert ids == list(range(r.frames))
+    assert not list(tmp_path.glob(".*.part"))  # no temporary left behind
+    # the sidecars describe exactly those frames: as a pcap run of that many frames does
+    ref = record_pcap(load_scenario("forest-ii"), tmp_path / "ref", mode="512x20",
+                      max_frames=r.frames)
+    assert (r.packets, r.returns, r.stems_seen) == (ref.packets, ref.returns, ref.stems_seen)
+    for name in ("sensor_poses.csv", "visibility.json"):
+        assert (tmp_path / name).read_text() == (tmp_path / "ref" / name).read_text()
 
 
 def test_refusing_destination_does_not_stop_the_stream() -> None:
@@ -270,3 +300,37 @@ def test_imu_packets_carry_the_trajectory_specific_force_and_rate(tmp_path: Path
     np.testing.assert_allclose([p.gyro_deg_s for p in imu], gyro, atol=1e-4)
     assert np.abs(gyro[:, 2]).max() == pytest.approx(np.degrees(3.0 / 3.0), rel=0.05)  # v/R
     assert np.median(np.linalg.norm(acc, axis=1)) == pytest.approx(1.0, abs=0.1)  # gravity
+
+
+def test_ctrl_c_ends_a_live_stream_cleanly_and_keeps_the_recording(tmp_path: Path) -> None:
+    """The user's Ctrl-C: the frame on the wire is finished, the recording and sidecars are
+    written, the shared-memory ring is gone, no traceback; a second Ctrl-C aborts."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    def shm() -> set[str]:
+        return set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
+
+    before = shm()
+    out = tmp_path / "rec"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tcf_hil.cli", "lidar", "stream", "forest-ii", "--mode", "512x20",
+         "--record", str(out), "--lidar-port", str(_free_udp_port()), "--imu-port",
+         str(_free_udp_port())], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    assert proc.stdout.readline().startswith("streaming forest-ii")
+    time.sleep(2.0)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 0, stderr
+    assert "Traceback" not in stderr and "Error" not in stderr
+    sent = int(stdout.split(" lidar packets in ")[1].split()[0])
+    assert sent >= 10
+    frames = list(opcap.PcapFrameSetSource(str(out / "lidar.pcap"),
+                                           meta=[str(out / "metadata.json")]))
+    assert len(frames) == sent
+    assert (out / "sensor_poses.csv").exists() and not list(out.glob(".*.part"))
+    assert not {n for n in shm() - before if n.startswith("psm_")}  # the ring is unlinked
