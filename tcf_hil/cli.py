@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import signal
 import sys
+import threading
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -420,7 +422,6 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     by `tcf-hil lidar pcap`):
       sensor.SensorFrameSetSource("127.0.0.1", sensor_info=[core.SensorInfo(json_text)])
     """
-    import threading
 
     from tcf_hil.lidar import serve_sensor, stream_lidar
     from tcf_hil.scenario import load_scenario
@@ -447,15 +448,16 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
         return
     console.print(f"streaming {scn.name} {mode} {profile} from {sensor_address} to "
                   f"{dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
-    import signal
 
     def first_ctrl_c(_sig: int, _frame: object) -> None:
         # finish the frame on the wire, then write the recording: a second Ctrl-C aborts
         err_console.print("stopping after this frame (Ctrl-C again aborts)")
         stop.set()
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, _terminate)
 
     previous = signal.signal(signal.SIGINT, first_ctrl_c)
+    previous_term = signal.signal(signal.SIGTERM, first_ctrl_c)
     try:
         r = stream_lidar(scn, sensor_ip=sensor_address, dest=dest, speed=speed, record=record,
                          stop=stop, mode=mode, profile=profile, seed=seed, max_frames=frames,
@@ -465,6 +467,7 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
         raise
     finally:
         signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGTERM, previous_term)
     p50, p99 = r.pacing_us
     console.print(f"sent {r.packets} lidar packets in {r.frames} frames; pacing error p50 "
                   f"{p50:.0f} us, p99 {p99:.0f} us "
@@ -678,9 +681,24 @@ def experiment_1(out: Path, seed: int | None, presets: tuple[str, ...], no_pcd: 
 # ----------------------------------------------------------------------------- main
 
 
+def _terminate(_sig: int, _frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: maps errors to exit codes (see the module docstring)."""
     args = sys.argv[1:] if argv is None else argv
+    if threading.current_thread() is not threading.main_thread():
+        return _main(args)
+    # kill / a service manager stops a server or stream as Ctrl-C does: cleanly
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        return _main(args)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _main(args: list[str]) -> int:
     try:
         cli.main(args=args, prog_name="tcf-hil", standalone_mode=False)
     except click.exceptions.Abort:

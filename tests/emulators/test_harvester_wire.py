@@ -225,3 +225,24 @@ def test_can_server_on_a_taken_port_says_so() -> None:
                                str(srv.port)], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1
     assert f"cannot listen on 127.0.0.1:{srv.port}" in proc.stderr
+
+
+def test_can_server_stops_cleanly_on_sigterm() -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "tcf_hil.cli", "can-server", "--port",
+                             str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    assert proc.stdout is not None
+    assert f"127.0.0.1:{port}" in proc.stdout.readline()
+    with can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel="vcan0") as a, \
+            can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel="vcan0") as b:
+        time.sleep(0.2)
+        a.send(can.Message(arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False))
+        m = b.recv(2.0)
+        assert m is not None and m.arbitration_id == 0x123
+        proc.send_signal(signal.SIGTERM)  # what kill and service managers send
+        out, err = proc.communicate(timeout=20)
+    assert "Traceback" not in err
+    assert "stopped:" in out and "frames_received=1" in out and "frames_relayed=1" in out

@@ -302,7 +302,9 @@ def test_imu_packets_carry_the_trajectory_specific_force_and_rate(tmp_path: Path
     assert np.median(np.linalg.norm(acc, axis=1)) == pytest.approx(1.0, abs=0.1)  # gravity
 
 
-def test_ctrl_c_ends_a_live_stream_cleanly_and_keeps_the_recording(tmp_path: Path) -> None:
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_ends_a_live_stream_cleanly_and_keeps_the_recording(tmp_path: Path,
+                                                                   sig: str) -> None:
     """The user's Ctrl-C: the frame on the wire is finished, the recording and sidecars are
     written, the shared-memory ring is gone, no traceback; a second Ctrl-C aborts."""
     import os
@@ -323,7 +325,7 @@ def test_ctrl_c_ends_a_live_stream_cleanly_and_keeps_the_recording(tmp_path: Pat
     assert proc.stdout is not None
     assert proc.stdout.readline().startswith("streaming forest-ii")
     time.sleep(2.0)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(getattr(signal, sig))
     stdout, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 0, stderr
     assert "Traceback" not in stderr and "Error" not in stderr
