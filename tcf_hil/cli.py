@@ -422,7 +422,6 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     by `tcf-hil lidar pcap`):
       sensor.SensorFrameSetSource("127.0.0.1", sensor_info=[core.SensorInfo(json_text)])
     """
-
     from tcf_hil.lidar import serve_sensor, stream_lidar
     from tcf_hil.scenario import load_scenario
 
@@ -523,15 +522,16 @@ def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: 
     """
     import can
 
-    from emulators.harvester import LOG_SUFFIXES, BusSpecError
+    from emulators.harvester import BusSpecError, check_log_path
     from tcf_hil.forest import generate_forest
     from tcf_hil.harvester import open_bus, run_harvester
     from tcf_hil.scenario import load_scenario
 
-    if log_path is not None and log_path.suffix.lower() not in LOG_SUFFIXES:
-        raise click.BadParameter(f"{log_path}: expected a file ending in "
-                                 f"{', '.join(LOG_SUFFIXES)} (candump log, ASC, BLF)",
-                                 param_hint="--log")
+    if log_path is not None:
+        try:
+            check_log_path(log_path)
+        except ValueError as err:
+            raise click.BadParameter(str(err), param_hint="--log") from err
     scn = load_scenario(scenario_name)
     with _blame(scenario_name):
         forest = generate_forest(scn, seed)

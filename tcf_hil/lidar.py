@@ -175,6 +175,13 @@ class LidarRun:
                             int(np.count_nonzero(self.counts[1:])), self.backend, **kw)
 
 
+def _pcap_records(writer: PcapWriter, dgs: list[Datagram], sensor_ip: str, dest: str
+                  ) -> bytes:
+    """One frame's datagrams as pcap records, each at its simulation time."""
+    return b"".join(writer.records(UdpDatagram(d.t_ns, sensor_ip, dest, d.port, d.port,
+                                               bytes(d.payload))) for d in dgs)
+
+
 def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
                 sensor_ip: str = "127.0.0.1",
                 progress: Callable[[int, int], None] | None = None,
@@ -192,8 +199,7 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
     with atomic_path(out / "lidar.pcap") as tmp, open(tmp, "wb") as fh:
         fh.write(writer.header())
         for k, (_fr, dgs) in enumerate(run.datagrams()):
-            fh.write(b"".join(writer.records(UdpDatagram(d.t_ns, sensor_ip, dest, d.port,
-                                                         d.port, bytes(d.payload))) for d in dgs))
+            fh.write(_pcap_records(writer, dgs, sensor_ip, dest))
             if progress:
                 progress(k + 1, run.frames)
     run.write_sidecars(out)
@@ -273,9 +279,7 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
             meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs], dtype=np.int64)
             conn.send(("frame", (slot, meta)))
             if rec is not None:  # exactly what goes out, at its simulation time
-                pending.append(b"".join(writer.records(UdpDatagram(
-                    d.t_ns, rec.sensor_ip, rec.dest, d.port, d.port, bytes(d.payload)))
-                    for d in dgs))
+                pending.append(_pcap_records(writer, dgs, rec.sensor_ip, rec.dest))
             produced += 1
             marks.append((produced, run.counts.copy(), run._poses.tell(), run.packets))
             slot = (slot + 1) % _SLOTS

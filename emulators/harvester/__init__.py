@@ -10,13 +10,11 @@ from emulators.harvester._bus import (
     socketcand_answers,
 )
 from emulators.harvester._clock import SimClock
-from emulators.harvester._log import SUFFIXES as LOG_SUFFIXES
-from emulators.harvester._log import CanLog
+from emulators.harvester._log import CanLog, check_log_path
 from emulators.harvester._node import HarvesterNode, NodeConfig, NodeStats, describe
 
 __all__ = [
-    "DEFAULT_SOCKETCAND_PORT", "LOG_SUFFIXES", "BusSpec", "BusSpecError", "CanLog",
-    "HarvesterNode",
-    "NodeConfig", "NodeStats", "SimClock", "describe", "kernel_has_vcan", "parse_bus_spec",
-    "socketcand_answers",
+    "DEFAULT_SOCKETCAND_PORT", "BusSpec", "BusSpecError", "CanLog", "HarvesterNode",
+    "NodeConfig", "NodeStats", "SimClock", "check_log_path", "describe", "kernel_has_vcan",
+    "parse_bus_spec", "socketcand_answers",
 ]

@@ -26,7 +26,9 @@ from typing import Any
 
 import can
 
-DEFAULT_SOCKETCAND_PORT = 29536
+from emulators.canbus import DEFAULT_PORT
+
+DEFAULT_SOCKETCAND_PORT = DEFAULT_PORT  # the CAN server's (tcf-hil can-server)
 
 
 class BusSpecError(ValueError):

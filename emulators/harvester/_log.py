@@ -19,6 +19,13 @@ log = logging.getLogger("tcf_hil.harvester")
 SUFFIXES = (".log", ".asc", ".blf")
 
 
+def check_log_path(path: Path) -> None:
+    """Raises ValueError unless ``path`` names a format we write (by its suffix)."""
+    if path.suffix.lower() not in SUFFIXES:
+        raise ValueError(f"CAN log {path}: expected a file ending in {', '.join(SUFFIXES)} "
+                         f"(candump log, ASC, BLF), got {path.suffix or 'no suffix'!r}")
+
+
 class CanLog(can.Listener):
     """A separate client on the bus (so it also sees the frames of this process's node) that
     writes every frame to ``path``. ``frames`` counts what was written."""
@@ -26,9 +33,7 @@ class CanLog(can.Listener):
     def __init__(self, path: Path, spec: BusSpec | None = None, *, channel: str = "vcan0"
                  ) -> None:
         self.path = Path(path)
-        if self.path.suffix.lower() not in SUFFIXES:
-            raise ValueError(f"CAN log {self.path}: expected a file ending in "
-                             f"{', '.join(SUFFIXES)}, got {self.path.suffix or 'no suffix'!r}")
+        check_log_path(self.path)
         self._channel = channel
         self._writer: Any = None  # made by start(), once the bus answers
         self._flush = self.path.suffix.lower() in (".log", ".asc")
