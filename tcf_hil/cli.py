@@ -89,14 +89,15 @@ def cli(ctx: click.Context, traceback: bool) -> None:
 def demo(out: Path | None, seed: int | None) -> None:
     """Run the main job end to end and print the score table.
 
-    The live bridge (emulated OS0-64 and CANopen harvester on the wire) is not built yet, so
-    the demo runs the offline Experiment 1 path: Forests V and VI are generated, their stem
+    The emulated OS0-64 and the CANopen harvester work on the wire (`lidar stream`,
+    `harvester run`), but the bridge that puts an onboard program between them is not built
+    yet, so the demo runs the offline Experiment 1 path: Forests V and VI are generated, their stem
     surfaces sampled (1000 points per stem, as the paper), the stem algorithm run with the
     tuned and the paper presets, and the result scored against the exact ground truth.
     """
     out = out or Path("runs") / _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
-    console.print("[bold]tcf-hil demo[/]: the live bridge (lidar and CAN on the wire) is not "
-                  "built yet; running the [bold]offline Experiment 1[/] path instead "
+    console.print("[bold]tcf-hil demo[/]: the bridge that puts an onboard program on the "
+                  "wire is not built yet; running the [bold]offline Experiment 1[/] path instead "
                   "(surface-sampled Forests V and VI -> stem algorithm -> evaluation).")
     _experiment1(out, seed, ("tuned", "paper"), write_pcd=True)
 
