@@ -120,6 +120,9 @@ class CanLog(can.Listener):
             self._thread.join(5.0)
             self._thread = None
         if self._bus is not None:
+            with contextlib.suppress(Exception):  # frames already received are written too
+                while (msg := self._bus.recv(0)) is not None:
+                    self.on_message_received(msg)
             with contextlib.suppress(Exception):
                 self._bus.shutdown()
             self._bus = None
