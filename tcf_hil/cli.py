@@ -81,25 +81,173 @@ def cli(ctx: click.Context, traceback: bool) -> None:
 # ----------------------------------------------------------------------------- demo
 
 
+_MODES = ["512x10", "1024x10", "2048x10", "512x20", "1024x20"]
+
+
+def _run_dir(out: Path | None) -> Path:
+    return out or Path("runs") / _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+
+
+def _bridge(scn: Any, sic: str, out: Path, **kw: Any) -> int:
+    """Run the bridge with a progress bar; Ctrl-C / SIGTERM end it cleanly (the partial
+    recording is kept and scored); prints the score table. Returns the exit status."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
+
+    from tcf_hil.bridge import run_bridge
+
+    stop = threading.Event()
+
+    def on_signal(_sig: int, _frame: object) -> None:
+        err_console.print("stopping the run: closing the recording and scoring what was "
+                          "published (Ctrl-C again aborts)")
+        stop.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, _terminate)
+
+    previous = signal.signal(signal.SIGINT, on_signal)
+    previous_term = signal.signal(signal.SIGTERM, on_signal)
+    try:
+        with Progress("[progress.description]{task.description}", BarColumn(),
+                      MofNCompleteColumn(), TimeRemainingColumn(), console=err_console,
+                      transient=True) as prog:
+            task = prog.add_task("frames on the wire", total=None)
+
+            def step(done: int, total: int) -> None:
+                prog.update(task, completed=done, total=total)
+
+            r = run_bridge(scn, sic, out, stop=stop, announce=err_console.print,
+                           progress=step, **kw)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGTERM, previous_term)
+    _print_run(r)
+    if r.status == "complete" and r.sic_returncode == 0 and r.scores is not None \
+            and r.publications > r.invalid_publications:
+        return 0
+    return 130 if r.status == "interrupted" else 3
+
+
+def _print_run(r: Any) -> None:
+    from tcf_hil.evaluation._report import ROWS
+
+    m = r.manifest
+    if r.scores is not None:
+        t = Table(title=f"{m.get('scenario')} {m.get('mode')}: the SIC's final forest",
+                  header_style="bold")
+        t.add_column("metric")
+        t.add_column("all trees", justify="right")
+        t.add_column("seen trees", justify="right")
+        a, b = r.scores.all.metrics, r.scores.seen.metrics
+        for key, label, fmt in ROWS[:1] + ROWS[7:13] + ROWS[13:15]:
+            t.add_row(label, fmt.format(a[key]), fmt.format(b[key]))
+        t.add_row("Ground-truth trees", str(a["n_ground_truth"]), str(b["n_ground_truth"]))
+        console.print(t)
+    lid = m.get("lidar", {})
+    console.print(f"frames sent {lid.get('frames_sent', 0)}, publications {r.publications} "
+                  f"({r.invalid_publications} invalid), SIC exit code {r.sic_returncode}")
+    if r.message:
+        err_console.print(f"[bold]{r.status}[/]: {r.message}")
+    console.print(f"run directory: {r.out}/  report: {r.out / 'report.html'}")
+
+
 @cli.command()
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Run directory (default ./runs/<UTC time stamp>/).")
-@click.option("--seed", type=click.IntRange(min=0), default=None,
-              help="Override the presets' seeds.")
-def demo(out: Path | None, seed: int | None) -> None:
-    """Run the main job end to end and print the score table.
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Override the seed.")
+@click.option("--preset", type=click.Choice(["tuned", "paper"]), default="tuned",
+              show_default=True, help="The reference SIC's parameters.")
+def demo(out: Path | None, seed: int | None, preset: str) -> None:
+    """The main job end to end, on loopback: Forest V at 1024x10.
 
-    The emulated OS0-64 and the CANopen harvester work on the wire (`lidar stream`,
-    `harvester run`), but the bridge that puts an onboard program between them is not built
-    yet, so the demo runs the offline Experiment 1 path: Forests V and VI are generated, their stem
-    surfaces sampled (1000 points per stem, as the paper), the stem algorithm run with the
-    tuned and the paper presets, and the result scored against the exact ground truth.
+    \b
+    The emulated OS0-64 streams over UDP (with its HTTP API), the harvester publishes its
+    pose as a CANopen node on the embedded CAN server, the reference onboard SIC
+    (`python -m tcf_hil.sic`) runs as a separate program on that wire, and the recorder
+    scores its forest. Writes ./runs/<UTC time stamp>/ (or --out): lidar.pcap, can.log,
+    metadata.json, ground_truth.json, visibility.json, sic/, manifest.json, score.json and
+    report.html. About two minutes.
     """
-    out = out or Path("runs") / _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
-    console.print("[bold]tcf-hil demo[/]: the bridge that puts an onboard program on the "
-                  "wire is not built yet; running the [bold]offline Experiment 1[/] path instead "
-                  "(surface-sampled Forests V and VI -> stem algorithm -> evaluation).")
-    _experiment1(out, seed, ("tuned", "paper"), write_pcd=True)
+    from tcf_hil.bridge import sic_reference_command
+    from tcf_hil.scenario import load_scenario
+
+    scn = load_scenario("forest-v")
+    code = _bridge(scn, sic_reference_command(preset), _run_dir(out), mode="1024x10",
+                   seed=seed)
+    if code:
+        raise SystemExit(code)
+
+
+@cli.command("run")
+@click.argument("scenario_name", metavar="SCENARIO", required=False)
+@click.option("--sic", "sic", default=None,
+              help="The onboard program to test, e.g. \"./my_sic --port {lidar_port}\" "
+                   "(default: the reference SIC). {placeholders} and TCF_* environment "
+                   "variables carry the endpoints (see README).")
+@click.option("--shell", is_flag=True, help="Run --sic through /bin/sh (default: no shell).")
+@click.option("--mode", type=click.Choice(_MODES), default="2048x10", show_default=True,
+              help="Columns x frames per second.")
+@click.option("--profile", type=click.Choice(["RNG19_RFL8_SIG16_NIR16", "LEGACY",
+                                              "RNG19_RFL8_SIG16_NIR16_DUAL", "RNG15_RFL8_NIR8"]),
+              default="RNG19_RFL8_SIG16_NIR16", show_default=True, help="UDP lidar profile.")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Override the seed.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Run directory (default ./runs/<UTC time stamp>/).")
+@click.option("--speed", type=click.FloatRange(min=0.05, max=20), default=1.0,
+              show_default=True, help="Simulation seconds per second (1 = real time).")
+@click.option("--duration", type=click.FloatRange(min=0.1), default=None,
+              help="Stop the stream after this many simulated seconds (default: the track).")
+@click.option("--can", "can_spec", default="auto", show_default=True,
+              help="CAN bus: auto, socketcan:IFACE, socketcand:HOST:PORT:CHANNEL.")
+@click.option("--grace", type=click.FloatRange(min=0), default=30.0, show_default=True,
+              help="Seconds the SIC gets after the stream ends to publish its final forest "
+                   "and exit (then SIGTERM, then SIGKILL).")
+@click.option("--replay", "replay_dir", type=click.Path(file_okay=False, exists=True,
+                                                         path_type=Path), default=None,
+              help="Send a recorded run's traffic instead of the live emulators.")
+def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, profile: str,
+            seed: int | None, out: Path | None, speed: float, duration: float | None,
+            can_spec: str, grace: float, replay_dir: Path | None) -> None:
+    """A hardware-in-the-loop run of an onboard SIC program against SCENARIO.
+
+    \b
+    Builds the forest, starts the harvester (CANopen on the CAN bus) and the OS0-64 (UDP and
+    its HTTP API) on one simulation clock, launches --sic as its own process with the
+    endpoints in its environment, records everything into the run directory, and scores
+    the SIC's last published forest against all trees and against the trees the sensor saw.
+    Exit status 0 when the run completed and the SIC published a valid forest, 3 when the
+    SIC failed (exited early or with an error, or published nothing valid), 130 when
+    stopped by Ctrl-C/SIGTERM (the partial run is still recorded and scored).
+    """
+    from tcf_hil.bridge import sic_reference_command
+    from tcf_hil.scenario import load_scenario
+
+    sic = sic or sic_reference_command()
+    if replay_dir is not None:
+        from tcf_hil.replay import replay_run
+
+        r = replay_run(replay_dir, sic, _run_dir(out), speed=speed, shell=shell,
+                       can=can_spec, grace_s=grace, announce=err_console.print)
+        _print_run(r)
+        if r.status != "complete" or r.publications == r.invalid_publications:
+            raise SystemExit(3)
+        return
+    if scenario_name is None:
+        raise click.UsageError("give a SCENARIO (a preset name or TOML file) or --replay RUN_DIR")
+    scn = load_scenario(scenario_name)
+    code = _bridge(scn, sic, _run_dir(out), mode=mode, profile=profile, seed=seed,
+                   speed=speed, duration_s=duration, can=can_spec, shell=shell, grace_s=grace)
+    if code:
+        raise SystemExit(code)
+
+
+@cli.command("sic", add_help_option=False,
+             context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
+@click.pass_context
+def sic_cmd(ctx: click.Context) -> None:
+    """The reference onboard SIC (the same as python -m tcf_hil.sic; --help for options)."""
+    from tcf_hil.sic._cli import sic_command
+
+    sic_command.main(args=list(ctx.args), prog_name="tcf-hil sic")
 
 
 # ------------------------------------------------------------------------- scenario

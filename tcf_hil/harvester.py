@@ -150,11 +150,11 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
                   log_path: Path | None = None, speed: float = 1.0,
                   duration_s: float | None = None, sync_producer: bool = True,
                   autostart: bool = True, stop: threading.Event | None = None,
-                  clock: SimClock | None = None,
+                  clock: SimClock | None = None, t0_ns: int = 1_000_000_000,
                   on_tick: Callable[[float, float], None] | None = None) -> HarvesterRunResult:
     """Drive the scenario's track in (scaled) real time with the node on ``spec`` until the
     track ends (plus one second standing), ``duration_s`` of simulation time, or ``stop``."""
-    model = HarvesterModel.from_scenario(scn, terrain, seed)
+    model = HarvesterModel.from_scenario(scn, terrain, seed, t0_ns)
     clock = clock or SimClock.start(model.trajectory.t0_ns, speed)
     end_ns = (model.trajectory.end_ns + 1_000_000_000 if duration_s is None
               else clock.t0_ns + round(duration_s * 1e9))

@@ -93,10 +93,10 @@ class LidarRun:
                  backend: str = "embree", model: ReturnModel | None = None,
                  max_frames: int | None = None, udp_dest: str = "127.0.0.1",
                  udp_port_lidar: int = 7502, udp_port_imu: int = 7503,
-                 meta: SensorMetadata | None = None) -> None:
+                 meta: SensorMetadata | None = None, t0_ns: int = 1_000_000_000) -> None:
         self.forest: Forest = generate_forest(scn, seed)
         self.scene = Scene.from_forest(self.forest, backend=backend)
-        self.track = Trajectory.from_config(scn.track, self.forest.terrain)
+        self.track = Trajectory.from_config(scn.track, self.forest.terrain, t0_ns)
         self.meta: SensorMetadata = meta or sensor_metadata(
             scn, mode=mode, profile=profile, seed=self.forest.seed, udp_dest=udp_dest,
             udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
@@ -309,7 +309,8 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                  speed: float = 1.0, record: str | Path | None = None,
                  stop: threading.Event | None = None,
                  progress: Callable[[int, int], None] | None = None,
-                 realtime: bool = True, **run_kw: Any) -> RecordResult:
+                 realtime: bool = True, run: LidarRun | None = None,
+                 clock: Any = None, **run_kw: Any) -> RecordResult:
     """Send the run live over UDP from ``sensor_ip`` to ``dest``, paced from the simulation
     clock (``speed`` 1.0 = real time, 0 = as fast as possible).
 
@@ -318,12 +319,14 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     shared memory and hands the slot back (one thread: nothing competes with the pacing loop
     for the interpreter lock, and no frame is copied through a pipe). With ``record``, the
     sidecar files and an exact pcap of what was sent go there. Stops at the end of the track
-    or when ``stop`` is set.
+    or when ``stop`` is set. ``run``: an already built :class:`LidarRun` (``run_kw`` are then
+    ignored); ``clock``: a shared :class:`~emulators.harvester.SimClock` that decides when
+    each packet is due (instead of the first packet's wall time; ``speed`` is the clock's).
     """
     from multiprocessing.shared_memory import SharedMemory
 
     run_kw.setdefault("udp_dest", dest)
-    run = LidarRun(scn, **run_kw)
+    run = run or LidarRun(scn, **run_kw)
     dest = run.meta.udp_dest
     ctx = mp.get_context("fork")
     slot_bytes = _slot_bytes(run)
@@ -377,7 +380,8 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
             gc.collect()
             gc.freeze()
             frozen = True
-            with PacedSender(sensor_ip, dest, speed=speed, realtime=realtime) as sender:
+            with PacedSender(sensor_ip, dest, speed=speed, realtime=realtime,
+                             clock=clock) as sender:
                 while not stop.is_set():
                     item = ready.popleft() if ready else receive(1.0)
                     if item is None:

@@ -19,6 +19,7 @@ import socket
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -52,6 +53,14 @@ class SendStats:
         return float(np.percentile(a, 50)), float(np.percentile(a, 99))
 
 
+class SimClockLike(Protocol):
+    """A shared simulation clock (emulators.harvester.SimClock)."""
+
+    speed: float
+
+    def monotonic_at(self, t_sim_ns: int) -> int: ...
+
+
 class PacedSender:
     """Sends datagrams from ``sensor_ip`` (an ephemeral port) to ``dest_ip``.
 
@@ -66,8 +75,8 @@ class PacedSender:
     """
 
     def __init__(self, sensor_ip: str = "127.0.0.1", dest_ip: str = "127.0.0.1", *,
-                 speed: float = 1.0, spin_us: int | None = None, realtime: bool = True
-                 ) -> None:
+                 speed: float = 1.0, spin_us: int | None = None, realtime: bool = True,
+                 clock: SimClockLike | None = None) -> None:
         if speed < 0:
             raise ValueError(f"speed {speed}; expected >= 0")
         self.dest_ip = dest_ip
@@ -82,6 +91,10 @@ class PacedSender:
         self.stats = SendStats()
         self._t0_sim: int | None = None
         self._t0_wall = 0
+        self.clock = clock
+        if clock is not None:  # one simulation clock with the other emulators of a run
+            self.speed = clock.speed
+            self._mono_minus_perf = time.monotonic_ns() - time.perf_counter_ns()
 
     def _enter_realtime(self) -> None:
         if not self._want_rt or self._old_sched is not None or not hasattr(os, "SCHED_FIFO"):
@@ -117,7 +130,10 @@ class PacedSender:
             self._t0_sim, self._t0_wall = t_ns, time.perf_counter_ns()
         if self.speed == 0:
             return time.perf_counter_ns()
-        due = self._t0_wall + int((t_ns - self._t0_sim) / self.speed)
+        if self.clock is not None:
+            due = self.clock.monotonic_at(t_ns) - self._mono_minus_perf
+        else:
+            due = self._t0_wall + int((t_ns - self._t0_sim) / self.speed)
         now = time.perf_counter_ns()
         if due - now > self.spin_ns:
             time.sleep((due - now - self.spin_ns) / 1e9)

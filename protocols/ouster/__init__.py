@@ -23,8 +23,10 @@ from protocols.ouster._metadata import (
 from protocols.ouster._packets import (
     DecodedFrame,
     LidarPacket,
+    PacketBatch,
     PacketFormat,
     decode_lidar_packet,
+    decode_lidar_packets,
     encode_lidar_frame,
     frame_from_packets,
 )
@@ -41,6 +43,7 @@ __all__ = [
     "LidarPacket",
     "MeasurementIdError",
     "MetadataError",
+    "PacketBatch",
     "PacketFormat",
     "PacketIdError",
     "PacketSizeError",
@@ -53,6 +56,7 @@ __all__ = [
     "crc64_xz_rows",
     "decode_imu_packet",
     "decode_lidar_packet",
+    "decode_lidar_packets",
     "encode_imu_packet",
     "encode_lidar_frame",
     "frame_from_packets",

@@ -24,8 +24,8 @@ from protocols.ouster._errors import (
 )
 from protocols.ouster._profiles import PROFILES, Field, Profile
 
-__all__ = ["LidarPacket", "PacketFormat", "decode_lidar_packet", "encode_lidar_frame",
-           "frame_from_packets"]
+__all__ = ["LidarPacket", "PacketBatch", "PacketFormat", "decode_lidar_packet",
+           "decode_lidar_packets", "encode_lidar_frame", "frame_from_packets"]
 
 CrcRows = Callable[[NDArray[np.uint8]], NDArray[np.uint64]]
 LEGACY_ENCODER_TICKS = 90112  # encoder counts per revolution (legacy column header)
@@ -264,3 +264,75 @@ def frame_from_packets(fmt: PacketFormat, packets: Sequence[LidarPacket]) -> Dec
             imgs[name][:, m] = img[:, ok]
     fid = packets[0].frame_id if packets else 0
     return DecodedFrame(fid, ts, st, imgs, int(np.count_nonzero(st & 1)))
+
+
+@dataclass(frozen=True)
+class PacketBatch:
+    """Many lidar packets decoded at once (a receiver's frame): per packet ``frame_id`` (n,),
+    per column ``timestamps_ns``, ``measurement_id`` and ``status`` (n, columns), and the
+    asked-for fields as (H, n * columns) images in packet order."""
+
+    frame_id: NDArray[np.uint16]
+    timestamps_ns: NDArray[np.uint64]
+    measurement_id: NDArray[np.uint16]
+    status: NDArray[np.uint32]
+    fields: dict[str, NDArray[np.uint32]] = field(repr=False)
+
+
+def decode_lidar_packets(fmt: PacketFormat, packets: NDArray[np.uint8], *,
+                         init_id: int | None = None, prod_sn: int | None = None,
+                         check_crc: bool = True, crc_rows: CrcRows | None = None,
+                         fields: Sequence[str] | None = None) -> PacketBatch:
+    """Decode and validate an (n, packet_bytes) array of lidar packets in one pass (the same
+    checks as :func:`decode_lidar_packet`; the first bad packet raises, naming its index).
+    ``fields`` limits the decoded fields (default: all of the profile's)."""
+    p = fmt.profile
+    arr = np.asarray(packets, dtype=np.uint8)
+    if arr.ndim != 2 or arr.shape[1] != fmt.packet_bytes:
+        raise PacketSizeError(
+            f"lidar packets of shape {arr.shape}; {p.name} with {fmt.pixels_per_column} "
+            f"pixels and {fmt.columns_per_packet} columns per packet is {fmt.packet_bytes} "
+            "bytes each")
+    n = arr.shape[0]
+    cols = fmt._columns(arr)
+    ts = _word_view(cols, 0, "<u8").astype(np.uint64)
+    mid = _word_view(cols, 8, "<u2").astype(np.uint16)
+    if p.legacy:
+        frame_id = _word_view(cols, 10, "<u2")[:, 0].astype(np.uint16)
+        status = _word_view(cols, fmt.col_bytes - 4, "<u4").astype(np.uint32)
+    else:
+        ptype = arr[:, 0:2].copy().view("<u2")[:, 0]
+        bad = np.flatnonzero(ptype != 1)
+        if len(bad):
+            raise PacketTypeError(f"packet {bad[0]}: packet_type {ptype[bad[0]]}; a lidar "
+                                  "packet carries 1")
+        frame_id = arr[:, 2:4].copy().view("<u2")[:, 0]
+        weights = np.uint64(1) << (np.arange(5, dtype=np.uint64) * np.uint64(8))
+        pid = arr[:, 4:7].astype(np.uint64) @ weights[:3]
+        psn = arr[:, 7:12].astype(np.uint64) @ weights
+        status = _word_view(cols, 10, "<u2").astype(np.uint32)
+        if check_crc:
+            crc = arr[:, -8:].copy().view("<u8")[:, 0]
+            want = (crc_rows or crc64_xz_rows)(arr[:, :-8])
+            bad = np.flatnonzero(want != crc)
+            if len(bad):
+                i = bad[0]
+                raise CrcError(f"packet {i}: CRC-64/XZ footer 0x{int(crc[i]):016x}; the "
+                               f"packet's bytes give 0x{int(want[i]):016x}")
+        for name, have, want_id in (("init_id", pid, init_id), ("prod_sn", psn, prod_sn)):
+            if want_id:
+                bad = np.flatnonzero((have != 0) & (have != want_id))
+                if len(bad):
+                    raise PacketIdError(f"packet {bad[0]}: {name} {have[bad[0]]}; the metadata "
+                                        f"says {want_id}")
+    bad_mid = mid >= fmt.columns_per_frame
+    if bad_mid.any():
+        i, j = np.argwhere(bad_mid)[0]
+        raise MeasurementIdError(
+            f"packet {i}: measurement_id {int(mid[i, j])}; must be below columns_per_frame "
+            f"{fmt.columns_per_frame}")
+    pix = fmt._pixels(cols)
+    want_fields = [f for f in p.fields if fields is None or f.name in fields]
+    out = {f.name: _decode_value(f, _word_view(pix, f.offset, f.dtype)).reshape(
+        n * fmt.columns_per_packet, fmt.pixels_per_column).T for f in want_fields}
+    return PacketBatch(frame_id, ts, mid, status, out)

@@ -237,19 +237,30 @@ def _tree_properties(p: FloatArray, ground_z: float, prm: StemParams) -> dict[st
     return out
 
 
-def identify_stems(points: FloatArray, params: StemParams | None = None) -> dict[str, Any]:
+def identify_stems(points: FloatArray, params: StemParams | None = None, *,
+                   ground_z: FloatArray | None = None) -> dict[str, Any]:
     """Run the stem algorithm on an (n, 3) float64 cloud (world metres).
+
+    ``ground_z`` (n,): the ground height under every point, when the caller keeps the ground
+    grid itself (the onboard SIC keeps only the points above it); default: the paper's grid
+    filter on ``points``.
 
     Returns:
         The observed-forest document (paper's Algorithm 1 fields), objects ordered by x, y.
     """
     prm = params or StemParams()
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    finite = np.all(np.isfinite(pts), axis=1)
+    pts = pts[finite]
     # Work in local offsets: circle fits at UTM-sized coordinates would lose precision.
     ref = np.array([*np.floor(pts[:, :2].min(axis=0)), 0.0]) if len(pts) else np.zeros(3)
     local = pts - ref
-    ground, cell, zmin = remove_ground(local, prm.ground_cell_m, prm.ground_threshold_m)
+    if ground_z is None:
+        ground, cell, zmin = remove_ground(local, prm.ground_cell_m, prm.ground_threshold_m)
+    else:
+        zmin = np.asarray(ground_z, dtype=np.float64).reshape(-1)[finite] - ref[2]
+        cell = np.arange(len(zmin))
+        ground = local[:, 2] <= zmin + prm.ground_threshold_m
     above = np.flatnonzero(~ground)
     labels = cluster_points(local[above], prm.cluster_radius_m, prm.neighbors)
     objects: list[dict[str, Any]] = []

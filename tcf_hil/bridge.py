@@ -1,0 +1,401 @@
+"""A hardware-in-the-loop run: the harvester on CAN and the OS0-64 on UDP (+ HTTP API) on one
+simulation clock, the SIC under test as a separate process with its endpoints in the
+environment, the recorder keeping everything in the run directory, and the score at the end.
+
+Order of events: the scene is built first (seconds for a hectare), then the SIC is launched,
+then the clock starts with a lead (the harvester node publishes the standing machine's pose
+while the SIC starts; the first lidar packet is due when the clock reaches the track's start),
+then the stream runs until the track ends, the SIC ends, or the user stops the run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import os
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from emulators.harvester import BusSpec, SimClock
+from emulators.lidar import SensorApi
+from protocols.harvester import eds_path
+from tcf_hil._io import ensure_dir, read_json, write_bytes_atomic, write_json_atomic
+from tcf_hil.evaluation import EvalConfig
+from tcf_hil.harvester import open_bus, run_harvester
+from tcf_hil.recorder import (
+    FileWatcher,
+    Inbox,
+    PublishServer,
+    Scores,
+    empty_forest,
+    score_forest,
+)
+from tcf_hil.scenario import Scenario
+
+RUN_T0_NS = 60_000_000_000
+ENV_DOC: tuple[tuple[str, str], ...] = (
+    ("TCF_RUN_DIR", "the run directory"),
+    ("TCF_METADATA", "the sensor's metadata JSON file"),
+    ("TCF_SENSOR_URL", "the sensor's HTTP API, http://HOST:PORT"),
+    ("TCF_SENSOR_HOST", "the address lidar packets come from"),
+    ("TCF_LIDAR_BIND", "the address they go to (the metadata's udp_dest)"),
+    ("TCF_LIDAR_PORT", "lidar UDP port"),
+    ("TCF_IMU_PORT", "IMU UDP port"),
+    ("TCF_CAN_SPEC", "the bus as tcf-hil writes it (socketcand:HOST:PORT:CHANNEL, ...)"),
+    ("TCF_CAN_INTERFACE", "python-can interface (socketcand, socketcan, virtual)"),
+    ("TCF_CAN_CHANNEL", "CAN channel (vcan0)"),
+    ("TCF_CAN_HOST", "socketcand host (socketcand only)"),
+    ("TCF_CAN_PORT", "socketcand port (socketcand only)"),
+    ("TCF_CAN_NODE_ID", "the harvester's CANopen node id"),
+    ("TCF_EDS", "the harvester node's EDS file"),
+    ("TCF_PUBLISH_URL", "POST forests here (http://127.0.0.1:PORT/publish)"),
+    ("TCF_PUBLISH_FILE", "or rewrite this file atomically with each forest"),
+)
+
+
+def free_udp_port(host: str, preferred: int) -> int:
+    """``preferred`` if nobody listens there, else an ephemeral port."""
+    for port in (preferred, 0):
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            s.bind((host, port))
+            return int(s.getsockname()[1])
+        except OSError:
+            continue
+        finally:
+            s.close()
+    raise OSError(f"no free UDP port on {host}")
+
+
+def sic_command(command: str, env: dict[str, str], shell: bool) -> list[str] | str:
+    """The COMMAND with ``{placeholders}`` (lower-case names of the TCF_ variables without
+    the prefix, e.g. ``{lidar_port}``) filled in; split without a shell unless asked."""
+    values = {k[4:].lower(): v for k, v in env.items() if k.startswith("TCF_")}
+    values["python"] = sys.executable
+
+    def fill(s: str) -> str:
+        try:
+            return s.format_map(values)
+        except (KeyError, ValueError, IndexError) as err:
+            raise ValueError(f"--sic {command!r}: unknown placeholder {err}; known: "
+                             + ", ".join("{" + k + "}" for k in sorted(values))) from err
+
+    if shell:
+        return fill(command)
+    args = [fill(a) for a in shlex.split(command)]
+    if not args:
+        raise ValueError("--sic: empty command")
+    return args
+
+
+@dataclass
+class RunResult:
+    out: Path
+    status: str  # complete | sic-exited | interrupted | failed
+    message: str
+    scores: Scores | None
+    manifest: dict[str, Any]
+    sic_returncode: int | None
+    publications: int
+    invalid_publications: int
+    timeline: list[dict[str, Any]] = field(default_factory=list)
+
+
+class _SicProcess:
+    """The SIC under test: stdout read line by line (NDJSON forests; other lines kept as its
+    log), stderr straight to a file."""
+
+    def __init__(self, argv: list[str] | str, env: dict[str, str], out: Path, inbox: Inbox,
+                 shell: bool) -> None:
+        self.stdout_log: IO[bytes] = open(out / "sic" / "stdout.log", "wb")
+        self.stderr_log: IO[bytes] = open(out / "sic" / "stderr.log", "wb")
+        self.inbox = inbox
+        self.proc = subprocess.Popen(argv, shell=shell, env=env, stdin=subprocess.DEVNULL,
+                                     stdout=subprocess.PIPE, stderr=self.stderr_log,
+                                     start_new_session=True)
+        self.reader = threading.Thread(target=self._read, name="sic-stdout", daemon=True)
+        self.reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.stdout_log.write(line)
+            self.stdout_log.flush()
+            s = line.strip()
+            if s.startswith(b"{"):
+                self.inbox.record(s, "stdout")
+            elif s:
+                self.inbox.non_json_lines += 1
+
+    def poll(self) -> int | None:
+        return self.proc.poll()
+
+    def end(self, grace_s: float) -> int:
+        """Wait ``grace_s`` for it to finish, then SIGTERM (its cue to publish and exit),
+        then SIGKILL: the whole process group, so its children go too."""
+        try:
+            return self.proc.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            pass
+        for sig, wait in ((signal.SIGTERM, 15.0), (signal.SIGKILL, 5.0)):
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(self.proc.pid, sig)
+            try:
+                return self.proc.wait(wait)
+            except subprocess.TimeoutExpired:
+                continue
+        return self.proc.wait()
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.end(0.0)
+        self.reader.join(timeout=5.0)
+        self.stdout_log.close()
+        self.stderr_log.close()
+
+
+def _versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {"python": sys.version.split()[0]}
+    for pkg in ("tcf-hil", "numpy", "scipy", "python-can", "canopen", "embreex", "trimesh"):
+        with contextlib.suppress(PackageNotFoundError):
+            out[pkg] = version(pkg)
+    return out
+
+
+def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
+               profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
+               speed: float = 1.0, can: str = "auto", shell: bool = False,
+               sensor_ip: str = "127.0.0.1", lead_s: float = 3.0, grace_s: float = 30.0,
+               duration_s: float | None = None, backend: str = "embree",
+               eval_cfg: EvalConfig | None = None, stop: threading.Event | None = None,
+               announce: Callable[[str], None] = lambda s: None,
+               progress: Callable[[int, int], None] | None = None) -> RunResult:
+    """One live run into ``out`` (see the module docstring). ``stop`` ends it early (Ctrl-C):
+    everything is closed, and the forest published so far is scored."""
+    from tcf_hil.lidar import LidarRun, stream_lidar
+
+    stop = stop or threading.Event()
+    out = ensure_dir(out)
+    ensure_dir(out / "sic")
+    started = _dt.datetime.now(_dt.UTC)
+    t_mono0 = time.monotonic()
+    lidar_port = free_udp_port(sensor_ip, 7502)
+    imu_port = free_udp_port(sensor_ip, 7503)
+    if lead_s * speed * 1e9 >= RUN_T0_NS:
+        raise ValueError(f"lead {lead_s} s at speed {speed} reaches before simulation time 0")
+    announce(f"building {scn.name} ({mode}, {profile}) ...")
+    # the track starts at simulation time 60 s: the harvester's lead before it never
+    # reaches negative times (the CAN pose time is an unsigned 32-bit microsecond count)
+    run = LidarRun(scn, mode=mode, profile=profile, seed=seed, backend=backend,
+                   udp_dest="127.0.0.1", udp_port_lidar=lidar_port, udp_port_imu=imu_port,
+                   t0_ns=RUN_T0_NS)
+    if duration_s is not None:
+        run.frames = max(1, min(run.frames, round(duration_s * run.meta.frequency_hz)))
+    meta_path = out / "metadata.json"
+    write_bytes_atomic(meta_path, run.meta.dumps().encode())
+    manifest: dict[str, Any] = {
+        "tcf_hil_run": 1, "status": "running", "versions": _versions(),
+        "scenario": scn.name, "seed": run.forest.seed, "mode": mode, "profile": profile,
+        "speed": speed, "backend": backend, "sic": {"command": sic, "shell": shell},
+        "started": started.isoformat(), "stopped": None, "frames_planned": run.frames,
+    }
+    inbox = Inbox(out / "sic", t_mono0)
+    server = PublishServer(inbox).start()
+    watcher: FileWatcher | None = None
+    sic_proc: _SicProcess | None = None
+    status, message = "complete", ""
+    rc: int | None = None
+    lidar_result: Any = None
+    lidar_error: list[BaseException] = []
+    harv_result: list[Any] = []
+    try:
+        with open_bus(can, announce=announce) as spec, SensorApi(
+                run.meta, "127.0.0.1", 0) as api:
+            env = _environment(out, run, spec, api, server.url, sensor_ip, scn)
+            manifest["endpoints"] = {k: v for k, v in env.items() if k.startswith("TCF_")}
+            write_json_atomic(out / "manifest.json", manifest)
+            watcher = FileWatcher(inbox, Path(env["TCF_PUBLISH_FILE"]))
+            watcher.start()
+            argv = sic_command(sic, env, shell)
+            announce(f"SIC: {argv if isinstance(argv, str) else shlex.join(argv)}")
+            sic_proc = _SicProcess(argv, env, out, inbox, shell)
+            t0 = run.track.t0_ns
+            lead_ns = round(lead_s * 1e9)  # wall time before the first lidar packet is due
+            clock = SimClock.start(t0, speed, lead_ns=lead_ns)
+            # the harvester's view of the same clock starts now, lead_ns * speed before t0
+            harv_clock = SimClock(t0 - round(lead_ns * speed),
+                                  clock.origin_monotonic_ns - lead_ns, speed)
+            unix_at_t0 = time.time_ns() + (clock.origin_monotonic_ns - time.monotonic_ns())
+            manifest["clock"] = {"sim_t0_ns": t0, "unix_ns_at_sim_t0": unix_at_t0,
+                                 "speed": speed, "lead_s": lead_s}
+            end_stream = threading.Event()
+            harv_stop = threading.Event()
+            seconds = run.frames / run.meta.frequency_hz + 1.0
+
+            def harvester() -> None:
+                harv_result.append(run_harvester(
+                    scn, run.forest.terrain, spec, seed=run.forest.seed, log_path=out / "can.log",
+                    speed=speed, stop=harv_stop, clock=harv_clock, t0_ns=t0,
+                    duration_s=lead_s * speed + seconds))
+
+            def lidar() -> None:
+                nonlocal lidar_result
+                try:
+                    lidar_result = stream_lidar(scn, sensor_ip=sensor_ip, record=out, run=run,
+                                                stop=end_stream, clock=clock, progress=progress)
+                except BaseException as err:
+                    lidar_error.append(err)
+
+            th_h = threading.Thread(target=harvester, name="harvester", daemon=True)
+            th_l = threading.Thread(target=lidar, name="lidar", daemon=True)
+            th_h.start()
+            th_l.start()
+            announce(f"run: lidar to 127.0.0.1:{lidar_port}, sensor API {env['TCF_SENSOR_URL']}, "
+                     f"CAN {spec}; {run.frames} frames")
+            while th_l.is_alive():
+                th_l.join(0.2)
+                if stop.is_set():
+                    status, message = "interrupted", "stopped by the user"
+                    break
+                if sic_proc.poll() is not None:
+                    rc = sic_proc.poll()
+                    status = "sic-exited"
+                    message = (f"the SIC exited with code {rc} before the stream ended "
+                               f"(see {out / 'sic' / 'stderr.log'})")
+                    break
+            end_stream.set()
+            th_l.join()
+            if lidar_error:
+                raise lidar_error[0]
+            if status == "complete":
+                announce("stream ended; waiting for the SIC's final forest ...")
+            rc = sic_proc.end(grace_s if status == "complete" else 0.0)
+            harv_stop.set()
+            th_h.join(timeout=30.0)
+    except BaseException as err:
+        status = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
+        message = message or f"{type(err).__name__}: {err}"
+        if status == "failed":
+            raise
+    finally:
+        if sic_proc is not None:
+            sic_proc.close()
+            rc = sic_proc.proc.returncode
+        if watcher is not None:
+            watcher.close()
+        server.close()
+        inbox.close()
+        manifest["stopped"] = _dt.datetime.now(_dt.UTC).isoformat()
+        manifest["status"] = status
+        manifest["message"] = message
+        manifest["sic"]["returncode"] = rc
+        if lidar_result is not None:
+            manifest["lidar"] = {"frames_sent": lidar_result.frames,
+                                 "packets_sent": lidar_result.packets,
+                                 "pacing_us_p50_p99": list(lidar_result.pacing_us),
+                                 "sender_cpu_share": lidar_result.sender_cpu_share,
+                                 "refused": lidar_result.refused}
+        if harv_result:
+            h = harv_result[0]
+            manifest["can"] = {"bus": h.spec, "node_id": h.node_id, "frames_logged": h.log_frames,
+                               "log_error": h.log_error,
+                               "tpdo_batches": h.stats.get("batches", None)}
+        manifest["publications"] = {"total": len(inbox.items), "valid": len(inbox.valid),
+                                    "invalid": len(inbox.invalid),
+                                    "non_json_stdout_lines": inbox.non_json_lines}
+        write_json_atomic(out / "manifest.json", manifest)
+    if status == "complete" and rc not in (0, None):
+        message = f"the SIC exited with code {rc} (see {out / 'sic' / 'stderr.log'})"
+    if not inbox.valid:
+        message = (message + "; " if message else "") + (
+            f"no valid forest published ({len(inbox.invalid)} invalid, "
+            f"{inbox.non_json_lines} non-JSON stdout lines; see {out / 'sic'})")
+    return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)
+
+
+def _environment(out: Path, run: Any, spec: BusSpec, api: SensorApi, publish_url: str,
+                 sensor_ip: str, scn: Scenario) -> dict[str, str]:
+    env = dict(os.environ)
+    env.update({
+        "TCF_RUN_DIR": str(out.resolve()),
+        "TCF_METADATA": str((out / "metadata.json").resolve()),
+        "TCF_SENSOR_URL": f"http://{api.address[0]}:{api.address[1]}",
+        "TCF_SENSOR_HOST": sensor_ip,
+        "TCF_LIDAR_BIND": run.meta.udp_dest,
+        "TCF_LIDAR_PORT": str(run.meta.udp_port_lidar),
+        "TCF_IMU_PORT": str(run.meta.udp_port_imu),
+        "TCF_CAN_SPEC": str(spec),
+        "TCF_CAN_INTERFACE": spec.interface,
+        "TCF_CAN_CHANNEL": spec.channel,
+        "TCF_CAN_HOST": spec.host,
+        "TCF_CAN_PORT": str(spec.port or ""),
+        "TCF_CAN_NODE_ID": str(scn.harvester.node_id),
+        "TCF_EDS": str(eds_path()),
+        "TCF_PUBLISH_URL": publish_url,
+        "TCF_PUBLISH_FILE": str((out / "sic" / "published.json").resolve()),
+        "PYTHONUNBUFFERED": "1",
+    })
+    # the SIC's own --publish default is stdout; tcf-hil's reference SIC reads TCF_PUBLISH
+    env.setdefault("TCF_PUBLISH", "stdout")
+    return env
+
+
+def finish_run(out: Path, manifest: dict[str, Any], inbox: Inbox, status: str, message: str,
+               rc: int | None, eval_cfg: EvalConfig | None = None) -> RunResult:
+    """Score the latest valid forest (and every valid publication, as a timeline) against
+    the run's ground truth; write score.json and report.html."""
+    from tcf_hil.report import write_report
+
+    gt_doc = read_json(out / "ground_truth.json") if (out / "ground_truth.json").exists() \
+        else None
+    scores: Scores | None = None
+    timeline: list[dict[str, Any]] = []
+    valid = inbox.valid
+    if gt_doc is not None:
+        latest = valid[-1].table if valid else empty_forest()
+        assert latest is not None
+        scores = score_forest(gt_doc, latest, eval_cfg)
+        for p in valid:
+            assert p.table is not None
+            s = score_forest(gt_doc, p.table, eval_cfg)
+            timeline.append({"n": p.n, "arrival_s": round(p.arrival_s, 3), "objects": p.objects,
+                             "wc_all": s.all.metrics["evaluation_score_percent"],
+                             "wc_seen": s.seen.metrics["evaluation_score_percent"],
+                             "f1_all": s.all.metrics["f1"], "f1_seen": s.seen.metrics["f1"]})
+    score_doc: dict[str, Any] = {
+        "status": status, "message": message, "sic_returncode": rc,
+        "scored_publication": valid[-1].n if valid else None,
+        "publications": len(inbox.items), "invalid_publications": [
+            {"n": p.n, "file": f"sic/{p.file}", "error": p.error} for p in inbox.invalid],
+        "timeline": timeline,
+    }
+    if scores is not None:
+        score_doc.update(scores.summary())
+    write_json_atomic(out / "score.json", score_doc)
+    result = RunResult(out, status, message, scores, manifest, rc, len(inbox.items),
+                       len(inbox.invalid), timeline)
+    if scores is not None:
+        write_report(out / "report.html", result)
+    return result
+
+
+def sic_reference_command(preset: str = "tuned") -> str:
+    """The reference SIC as an external program."""
+    return f"{{python}} -m tcf_hil.sic --preset {preset}"
+
+
+def summary_json(result: RunResult) -> str:
+    return json.dumps({"status": result.status, "message": result.message,
+                       "out": str(result.out)})

@@ -1,0 +1,250 @@
+"""The onboard SIC's world model: a ground grid (running minimum per 1 m cell, the paper's
+ground filter kept incrementally), a bounded voxel map of the points above it, split into
+square tiles, and the stem algorithm re-run only on tiles that got new points.
+
+Pure numpy/scipy on arrays; no I/O. Coordinates are local: world minus the pose datum, so
+float32 storage loses nothing (micrometres over kilometres).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from protocols.stems import QUALITY_BY_CLASS
+from tcf_hil.sic._stems import StemParams, identify_stems
+
+FloatArray = NDArray[np.float64]
+
+
+class GroundGrid:
+    """Minimum z per ``cell`` x ``cell`` m square, on a grid that grows as the map does."""
+
+    def __init__(self, cell_m: float = 1.0) -> None:
+        self.cell = cell_m
+        self.i0 = self.j0 = 0
+        self.z = np.full((0, 0), np.inf)
+
+    def _ij(self, xy: FloatArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        ij = np.floor(xy / self.cell).astype(np.int64)
+        return ij[:, 0], ij[:, 1]
+
+    def _grow(self, i: NDArray[np.int64], j: NDArray[np.int64]) -> None:
+        ni, nj = self.z.shape
+        lo_i, hi_i = min(int(i.min()), self.i0), max(int(i.max()) + 1, self.i0 + ni)
+        lo_j, hi_j = min(int(j.min()), self.j0), max(int(j.max()) + 1, self.j0 + nj)
+        if (lo_i, hi_i, lo_j, hi_j) == (self.i0, self.i0 + ni, self.j0, self.j0 + nj):
+            return
+        # grow by a margin so that a moving machine does not reallocate every frame
+        pad = 32
+        lo_i, lo_j = lo_i - pad, lo_j - pad
+        hi_i, hi_j = hi_i + pad, hi_j + pad
+        z = np.full((hi_i - lo_i, hi_j - lo_j), np.inf)
+        z[self.i0 - lo_i:self.i0 - lo_i + ni, self.j0 - lo_j:self.j0 - lo_j + nj] = self.z
+        self.z, self.i0, self.j0 = z, lo_i, lo_j
+
+    def add(self, pts: FloatArray) -> None:
+        if len(pts) == 0:
+            return
+        i, j = self._ij(pts[:, :2])
+        self._grow(i, j)
+        np.minimum.at(self.z, (i - self.i0, j - self.j0), pts[:, 2])
+
+    def height(self, xy: FloatArray) -> FloatArray:
+        """Minimum z of each point's cell (inf where the cell is unseen)."""
+        if len(xy) == 0:
+            return np.zeros(0)
+        i, j = self._ij(xy)
+        ni, nj = self.z.shape
+        a, b = i - self.i0, j - self.j0
+        ok = (a >= 0) & (a < ni) & (b >= 0) & (b < nj)
+        out = np.full(len(xy), np.inf)
+        out[ok] = self.z[a[ok], b[ok]]
+        return out
+
+
+@dataclass
+class _Tile:
+    chunks: list[NDArray[np.float32]] = field(default_factory=list)
+    points: int = 0  # after the last compaction
+    pending: int = 0  # in chunks not yet compacted
+    dirty: bool = False
+    stems: list[dict[str, Any]] = field(default_factory=list)
+
+
+@dataclass
+class MapStats:
+    points: int = 0
+    tiles: int = 0
+    evicted_points: int = 0
+    tile_runs: int = 0
+    tile_seconds: float = 0.0
+
+
+class StemMap:
+    """Points above the ground, one per ``voxel_m`` cube, in ``tile_m`` tiles.
+
+    ``add`` takes a frame's points; ``update`` re-runs the stem algorithm on dirty tiles (each
+    with a ``margin_m`` border from its neighbours, keeping the stems whose centre lies inside
+    it) for at most ``budget_s``; ``forest`` assembles the observed document. The map holds
+    at most ``max_points``: beyond that the tiles farthest from the machine lose their
+    points (their stems stay, final: the sensor no longer reaches them).
+    """
+
+    def __init__(self, params: StemParams, *, voxel_m: float = 0.03, tile_m: float = 10.0,
+                 margin_m: float = 1.5, max_points: int = 6_000_000,
+                 datum: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+        if not (voxel_m > 0 and tile_m > 2 * margin_m > 0):
+            raise ValueError("voxel_m > 0 and tile_m > 2 * margin_m > 0 required")
+        self.params = params
+        self.voxel = voxel_m
+        self.tile = tile_m
+        self.margin = margin_m
+        self.max_points = max_points
+        self.datum = np.asarray(datum, dtype=np.float64)
+        self.ground = GroundGrid(params.ground_cell_m)
+        self.tiles: dict[tuple[int, int], _Tile] = {}
+        self.stats = MapStats()
+        self._last_xy = np.zeros(2)
+
+    # -- input ------------------------------------------------------------------------------
+    def add(self, pts: FloatArray, sensor_xy: FloatArray | None = None) -> int:
+        """Add a frame's points (local metres, (n, 3)); returns how many were above ground."""
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        if sensor_xy is not None:
+            self._last_xy = np.asarray(sensor_xy, dtype=np.float64)
+        if len(pts) == 0:
+            return 0
+        self.ground.add(pts)
+        gz = self.ground.height(pts[:, :2])
+        keep = pts[pts[:, 2] > gz + self.params.ground_threshold_m]
+        if len(keep) == 0:
+            return 0
+        # one point per voxel within the frame (the first), then per tile
+        key = self._keys(keep)
+        _, first = np.unique(key, return_index=True)
+        keep = keep[np.sort(first)]
+        t = np.floor(keep[:, :2] / self.tile).astype(np.int64)
+        order = np.lexsort((t[:, 1], t[:, 0]))
+        keep, t = keep[order], t[order]
+        starts = np.flatnonzero(np.r_[True, np.any(np.diff(t, axis=0) != 0, axis=1)])
+        ends = np.r_[starts[1:], len(keep)]
+        f32 = keep.astype(np.float32)
+        for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+            tid = (int(t[a, 0]), int(t[a, 1]))
+            tile = self.tiles.get(tid)
+            if tile is None:
+                tile = self.tiles[tid] = _Tile()
+            tile.chunks.append(f32[a:b])
+            tile.pending += b - a
+            tile.dirty = True
+            if tile.pending > max(tile.points, 50_000):
+                self._compact(tile)
+        self.stats.points += len(keep)
+        if self.stats.points > self.max_points:
+            self._evict()
+        return len(keep)
+
+    def _keys(self, pts: NDArray[np.floating]) -> NDArray[np.int64]:
+        v = np.floor(np.asarray(pts, dtype=np.float64) / self.voxel).astype(np.int64)
+        v += 1 << 20  # 21 bits a coordinate: +-31 km at 3 cm
+        return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
+
+    def _compact(self, tile: _Tile) -> NDArray[np.float32]:
+        if len(tile.chunks) == 1 and tile.pending == 0:
+            return tile.chunks[0]
+        pts = np.concatenate(tile.chunks) if tile.chunks else np.zeros((0, 3), np.float32)
+        if len(pts):
+            _, first = np.unique(self._keys(pts), return_index=True)
+            pts = pts[np.sort(first)]
+        self.stats.points -= tile.points + tile.pending - len(pts)
+        tile.chunks = [pts]
+        tile.points, tile.pending = len(pts), 0
+        return pts
+
+    def _evict(self) -> None:
+        """Drop the points of the tiles farthest from the machine until 80 % of the cap."""
+        ids = list(self.tiles)
+        centres = (np.array(ids, dtype=np.float64) + 0.5) * self.tile
+        far = np.argsort(-np.hypot(*(centres - self._last_xy).T))
+        for k in far:
+            if self.stats.points <= 0.8 * self.max_points:
+                break
+            tile = self.tiles[ids[k]]
+            n = tile.points + tile.pending
+            if n == 0:
+                continue
+            if tile.dirty:
+                self._run_tile(ids[k])
+            tile.chunks, tile.points, tile.pending = [], 0, 0
+            self.stats.points -= n
+            self.stats.evicted_points += n
+
+    # -- stems ------------------------------------------------------------------------------
+    def dirty_tiles(self) -> list[tuple[int, int]]:
+        """Dirty tiles, farthest from the machine first (they are the closest to final)."""
+        ids = [k for k, t in self.tiles.items() if t.dirty]
+        c = (np.array(ids, dtype=np.float64).reshape(-1, 2) + 0.5) * self.tile
+        d = np.hypot(*(c - self._last_xy).T) if len(ids) else np.zeros(0)
+        return [ids[i] for i in np.argsort(-d)]
+
+    def update(self, budget_s: float = math.inf) -> int:
+        """Re-run dirty tiles until ``budget_s`` is spent; returns how many ran."""
+        t0 = time.perf_counter()
+        n = 0
+        for tid in self.dirty_tiles():
+            if n and time.perf_counter() - t0 >= budget_s:
+                break
+            self._run_tile(tid)
+            n += 1
+        return n
+
+    def _run_tile(self, tid: tuple[int, int]) -> None:
+        t0 = time.perf_counter()
+        i, j = tid
+        parts = []
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                nb = self.tiles.get((i + di, j + dj))
+                if nb is not None and (nb.points or nb.pending):
+                    parts.append(self._compact(nb))
+        tile = self.tiles[tid]
+        tile.dirty = False
+        pts = np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 3))
+        lo = np.array([i, j], dtype=np.float64) * self.tile - self.margin
+        hi = lo + self.tile + 2 * self.margin
+        pts = pts[np.all((pts[:, :2] >= lo) & (pts[:, :2] < hi), axis=1)]
+        stems: list[dict[str, Any]] = []
+        if len(pts):
+            gz = self.ground.height(pts[:, :2])
+            ok = np.isfinite(gz)
+            doc = identify_stems(pts[ok], self.params, ground_z=gz[ok])
+            x0, y0 = i * self.tile, j * self.tile
+            for o in doc["objects"]:
+                x, y = o["cp"][0], o["cp"][1]
+                if x0 <= x < x0 + self.tile and y0 <= y < y0 + self.tile:
+                    stems.append(o)
+        tile.stems = stems
+        self.stats.tile_runs += 1
+        self.stats.tile_seconds += time.perf_counter() - t0
+
+    def forest(self, timestamp: str) -> dict[str, Any]:
+        """The observed-forest document of every tile's latest stems, in world coordinates,
+        ordered by x, y (ids 1..n)."""
+        objs = [o for t in self.tiles.values() for o in t.stems]
+        objs.sort(key=lambda o: (o["cp"][0], o["cp"][1]))
+        cx0, cy0 = self.params.scene_centre
+        out = []
+        for k, o in enumerate(objs, 1):
+            cp = [round(float(o["cp"][a]) + float(self.datum[a]), 4) for a in range(3)]
+            obj = {**o, "id": k, "name": f"tree_{k}", "cp": cp,
+                   "d": round(math.hypot(cp[0] - cx0, cp[1] - cy0), 4)}
+            obj["quality"] = QUALITY_BY_CLASS[obj["class"]]
+            out.append(obj)
+        self.stats.tiles = len(self.tiles)
+        return {"timestamp": timestamp, "total_objects_count": len(out), "objects": out}

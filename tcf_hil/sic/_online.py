@@ -1,0 +1,539 @@
+"""The reference onboard SIC: what a harvester's stem program does, on the wire only.
+
+- lidar: Ouster UDP packets on the lidar port (decoded with :mod:`protocols.ouster`, CRC
+  checked), the metadata from a file or the sensor's HTTP API;
+- pose: the harvester's CANopen TPDOs, read through the node's EDS with canopen (datum and
+  lidar mount by SDO);
+- every column is put into the world with the pose interpolated at its own time stamp; the
+  points above the ground go into a bounded voxel map (:class:`~tcf_hil.sic._map.StemMap`)
+  whose tiles re-run the stem algorithm when they get new points, between frames, within a
+  time budget;
+- the forest is published every ``publish_s`` and at the end of the stream (no packet for
+  ``idle_s``, or SIGTERM/SIGINT): NDJSON on stdout, a file rewritten atomically, or an HTTP
+  POST.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import datetime as _dt
+import json
+import math
+import os
+import queue
+import signal
+import socket
+import sys
+import threading
+import time
+import urllib.request
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from protocols.harvester import DATUM, MOUNT, eds_path, unwrap_time_us
+from protocols.harvester._codec import TIME_WRAP_US
+from protocols.ouster import ProtocolError, SensorMetadata, beam_rays, decode_lidar_packets
+from tcf_hil.sic._map import StemMap
+from tcf_hil.sic._stems import StemParams, stem_params
+from tcf_hil.trajectory import rotation_ypr
+
+FloatArray = NDArray[np.float64]
+
+
+def _log(msg: str) -> None:
+    sys.stderr.write(f"sic: {msg}\n")
+    sys.stderr.flush()
+
+
+# ----------------------------------------------------------------------------------- config
+@dataclass
+class SicConfig:
+    """Where the SIC finds its inputs and puts its output (defaults: the environment
+    variables ``tcf-hil run`` sets; see README, "The SIC contract")."""
+
+    metadata: str = ""  # file path, or empty to ask sensor_url
+    sensor_url: str = ""  # http://HOST[:PORT] of the sensor's HTTP API
+    lidar_bind: str = "127.0.0.1"
+    lidar_port: int = 0  # 0: the metadata's udp_port_lidar
+    can_interface: str = "socketcand"
+    can_channel: str = "vcan0"
+    can_host: str = "127.0.0.1"
+    can_port: int = 29536
+    node_id: int = 10
+    eds: str = ""
+    publish: str = "stdout"  # stdout | file:PATH | http://...
+    preset: str = "tuned"
+    publish_s: float = 2.0
+    idle_s: float = 3.0
+    voxel_m: float = 0.03
+    max_points: int = 6_000_000
+    max_seconds: float = 0.0  # stop after this long (0: no limit)
+
+    @classmethod
+    def from_env(cls, env: dict[str, str] | None = None) -> SicConfig:
+        e = os.environ if env is None else env
+        c = cls()
+        pub = e.get("TCF_PUBLISH_URL") or (f"file:{e['TCF_PUBLISH_FILE']}"
+                                           if e.get("TCF_PUBLISH_FILE") else "stdout")
+        c.metadata = e.get("TCF_METADATA", "")
+        c.sensor_url = e.get("TCF_SENSOR_URL", "")
+        c.lidar_bind = e.get("TCF_LIDAR_BIND", c.lidar_bind)
+        c.lidar_port = int(e.get("TCF_LIDAR_PORT", "0") or 0)
+        c.can_interface = e.get("TCF_CAN_INTERFACE", c.can_interface)
+        c.can_channel = e.get("TCF_CAN_CHANNEL", c.can_channel)
+        c.can_host = e.get("TCF_CAN_HOST", c.can_host)
+        c.can_port = int(e.get("TCF_CAN_PORT", str(c.can_port)) or 0)
+        c.node_id = int(e.get("TCF_CAN_NODE_ID", str(c.node_id)))
+        c.eds = e.get("TCF_EDS", "")
+        c.publish = e.get("TCF_PUBLISH", pub)
+        return c
+
+    def can_kwargs(self) -> dict[str, Any]:
+        kw: dict[str, Any] = {"interface": self.can_interface, "channel": self.can_channel}
+        if self.can_interface == "socketcand":
+            kw.update(host=self.can_host, port=self.can_port)
+        return kw
+
+
+def load_metadata(cfg: SicConfig, timeout_s: float = 10.0) -> SensorMetadata:
+    """From the file, else from the sensor's HTTP API (retrying until ``timeout_s``)."""
+    if cfg.metadata:
+        return SensorMetadata.loads(Path(cfg.metadata).read_text(encoding="utf-8"))
+    if not cfg.sensor_url:
+        raise SystemExit("sic: no metadata: set TCF_METADATA or TCF_SENSOR_URL "
+                         "(--metadata / --sensor-url)")
+    url = cfg.sensor_url.rstrip("/") + "/api/v1/sensor/metadata"
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with urllib.request.urlopen(url, timeout=2.0) as r:
+                return SensorMetadata.loads(r.read().decode())
+        except OSError as err:
+            if time.monotonic() > deadline:
+                raise SystemExit(f"sic: cannot read the metadata from {url}: {err}") from err
+            time.sleep(0.2)
+
+
+# ------------------------------------------------------------------------------------- pose
+class PoseTrack:
+    """Poses from the bus, interpolated at any time stamp (linear in position and in the
+    unwrapped angles)."""
+
+    def __init__(self, capacity: int = 60_000) -> None:
+        self._lock = threading.Lock()
+        self._rows: collections.deque[tuple[float, ...]] = collections.deque(maxlen=capacity)
+        self._last_us: int | None = None
+        self._arr: FloatArray | None = None
+        self.received = 0
+
+    def add(self, time_raw_us: int, x: float, y: float, z: float, heading_deg: float,
+            pitch_deg: float, roll_deg: float) -> None:
+        with self._lock:
+            t_us = unwrap_time_us(time_raw_us, self._last_us)
+            if self._last_us is not None and t_us <= self._last_us:
+                return  # repeated or out of order: keep the track monotonic
+            self._last_us = t_us
+            yaw = math.radians(90.0 - heading_deg)
+            if self._rows:
+                prev = self._rows[-1][4]
+                yaw = prev + (yaw - prev + math.pi) % (2 * math.pi) - math.pi
+            self._rows.append((t_us * 1000.0, x, y, z, yaw, math.radians(pitch_deg),
+                               math.radians(roll_deg)))
+            self._arr = None
+            self.received += 1
+
+    def _shift_ns(self, t_ns: float) -> float:
+        """The pose time is a 32-bit microsecond count (unwrapped from the first pose on):
+        the multiple of 2^32 us that brings a lidar time stamp nearest the latest pose."""
+        last = self._rows[-1][0]
+        wrap = TIME_WRAP_US * 1000.0
+        return round((last - t_ns) / wrap) * wrap
+
+    def covers(self, t_ns: float) -> bool:
+        with self._lock:
+            if not self._rows:
+                return False
+            return self._rows[-1][0] >= t_ns + self._shift_ns(t_ns)
+
+    def at(self, t_ns: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+        """(positions (n, 3), rotations (n, 3, 3)) of the machine base at ``t_ns`` (lidar
+        time stamps); None before the first two poses."""
+        with self._lock:
+            if len(self._rows) < 2:
+                return None
+            if self._arr is None:
+                self._arr = np.array(self._rows)
+            a = self._arr
+            shift = self._shift_ns(float(np.max(t_ns)))
+        t = np.asarray(t_ns, dtype=np.float64) + shift
+        cols = [np.interp(t, a[:, 0], a[:, k]) for k in range(1, 7)]
+        pos = np.column_stack(cols[:3])
+        rot = rotation_ypr(cols[3], cols[4], cols[5])
+        return pos, rot
+
+
+class CanPose:
+    """The harvester node on the bus through its EDS: TPDO1-3 of one SYNC make one pose."""
+
+    def __init__(self, cfg: SicConfig, track: PoseTrack) -> None:
+        import canopen
+
+        self.track = track
+        self.net = canopen.Network()
+        self.net.connect(**cfg.can_kwargs())
+        self.node = self.net.add_node(cfg.node_id, cfg.eds or str(eds_path()))
+        self.node.tpdo.read(from_od=True)
+        self._part: dict[str, float] = {}
+        for k in (1, 2, 3):
+            self.node.tpdo[k].add_callback(self._on_pdo)
+        self.datum = (0.0, 0.0, 0.0)
+        self.mount = np.zeros(3)
+        self.mount_rot = np.eye(3)
+
+    def read_constants(self, timeout_s: float = 10.0) -> None:
+        """Datum and lidar mount by SDO (retried while the node boots)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                sdo = self.node.sdo
+                self.datum = tuple(float(sdo[DATUM][k].phys) for k in (1, 2, 3))  # type: ignore[assignment]
+                m = [float(sdo[MOUNT][k].phys) for k in range(1, 7)]
+                break
+            except Exception as err:  # canopen raises SdoCommAbortedError/timeouts
+                if time.monotonic() > deadline:
+                    raise SystemExit(f"sic: the harvester node {self.node.id} does not answer "
+                                     f"SDO reads of the datum and mount: {err}") from err
+                time.sleep(0.2)
+        self.mount = np.array(m[:3])
+        y, p, r = np.radians(m[3:])
+        self.mount_rot = rotation_ypr(np.array([y]), np.array([p]), np.array([r]))[0]
+
+    def _on_pdo(self, m: Any) -> None:
+        for v in m.map:
+            self._part[v.name] = float(v.phys)
+        if "Pose.Time" in self._part and m.cob_id - self.node.id == 0x380:
+            p = self._part
+            with contextlib.suppress(KeyError):
+                self.track.add(int(p["Pose.Time"]), p["Pose.X"], p["Pose.Y"], p["Pose.Z"],
+                               p["Pose.Heading"], p["Pose.Pitch"], p["Pose.Roll"])
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.net.disconnect()
+
+
+# ------------------------------------------------------------------------------------ lidar
+@dataclass
+class LidarStats:
+    packets: int = 0
+    bad_packets: int = 0
+    frames: int = 0
+    frames_lost: int = 0  # frame ids never seen (gaps) plus frames dropped when behind
+    frames_dropped: int = 0  # complete frames dropped because processing fell behind
+    incomplete: int = 0
+    last_packet: float = 0.0
+    first_error: str = ""
+
+
+class LidarReceiver(threading.Thread):
+    """Receives lidar packets and hands whole frames (an (n, packet_bytes) uint8 array) to a
+    bounded queue; a full queue drops the oldest frame (counted)."""
+
+    def __init__(self, meta: SensorMetadata, bind: str, port: int, depth: int = 4) -> None:
+        super().__init__(name="sic-lidar", daemon=True)
+        self.meta = meta
+        self.fmt = meta.packet_format
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+            if opt is None:
+                continue
+            with contextlib.suppress(OSError):
+                self.sock.setsockopt(socket.SOL_SOCKET, opt, 32 << 20)
+                break
+        self.sock.bind((bind, port))
+        self.sock.settimeout(0.2)
+        self.frames: queue.Queue[tuple[int, NDArray[np.uint8]] | None] = queue.Queue(depth)
+        self.stats = LidarStats()
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        pb = self.fmt.packet_bytes
+        legacy = self.fmt.profile.legacy
+        fid_at = self.fmt.profile.header_bytes + 10 if legacy else 2
+        ppf = self.fmt.packets_per_frame
+        buf = bytearray(65536)
+        cur: int | None = None
+        last_fid: int | None = None
+        packets: list[bytes] = []
+        st = self.stats
+        while not self.stop.is_set():
+            try:
+                n = self.sock.recv_into(buf)
+            except TimeoutError:
+                continue
+            except OSError:
+                break
+            st.last_packet = time.monotonic()
+            if n != pb:
+                st.bad_packets += 1
+                continue
+            st.packets += 1
+            fid = buf[fid_at] | (buf[fid_at + 1] << 8)
+            if fid != cur and packets:
+                self._push(cur, packets, ppf)  # type: ignore[arg-type]
+                packets = []
+            if fid != cur:
+                if last_fid is not None:
+                    gap = (fid - last_fid - 1) % 65536
+                    if gap < 1000:
+                        st.frames_lost += gap
+                last_fid = cur = fid
+            packets.append(bytes(buf[:n]))
+            if len(packets) == ppf:
+                self._push(fid, packets, ppf)
+                packets = []
+        if packets and cur is not None:
+            self._push(cur, packets, ppf)
+        self._put(None)
+
+    def _push(self, fid: int, packets: list[bytes], ppf: int) -> None:
+        if len(packets) < ppf:
+            self.stats.incomplete += 1
+        arr = np.frombuffer(b"".join(packets), dtype=np.uint8).reshape(len(packets), -1)
+        self._put((fid, arr))
+
+    def _put(self, item: tuple[int, NDArray[np.uint8]] | None) -> None:
+        while True:
+            try:
+                self.frames.put_nowait(item)
+                return
+            except queue.Full:
+                with contextlib.suppress(queue.Empty):
+                    if self.frames.get_nowait() is not None:
+                        self.stats.frames_dropped += 1
+                        self.stats.frames_lost += 1
+
+    def close(self) -> None:
+        self.stop.set()
+        self.join(timeout=2.0)
+        self.sock.close()
+
+
+def _crc_rows() -> Any:
+    try:
+        import fastcrc
+    except ImportError:
+        return None
+
+    def rows(a: NDArray[np.uint8]) -> NDArray[np.uint64]:
+        return np.fromiter((fastcrc.crc64.xz(r.tobytes()) for r in a), np.uint64, len(a))
+    return rows
+
+
+# -------------------------------------------------------------------------------- publisher
+class Publisher:
+    """Sends each forest document: ``stdout`` (one JSON line), ``file:PATH`` (rewritten
+    atomically) or an ``http://`` URL (POST, application/json)."""
+
+    def __init__(self, target: str, out: TextIO | None = None) -> None:
+        self.target = target
+        self.out = out or sys.stdout
+        self.count = 0
+        self.failures = 0
+
+    def publish(self, doc: dict[str, Any]) -> None:
+        text = json.dumps(doc, separators=(",", ":"))
+        try:
+            if self.target == "stdout":
+                self.out.write(text + "\n")
+                self.out.flush()
+            elif self.target.startswith("file:"):
+                path = Path(self.target[5:])
+                tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+                tmp.write_text(text, encoding="utf-8")
+                os.replace(tmp, path)
+            else:
+                req = urllib.request.Request(self.target, data=text.encode(), method="POST",
+                                             headers={"Content-Type": "application/json"})
+                with urllib.request.urlopen(req, timeout=5.0) as r:
+                    r.read()
+            self.count += 1
+        except OSError as err:
+            self.failures += 1
+            _log(f"publishing to {self.target} failed: {err}")
+
+
+# ------------------------------------------------------------------------------------- main
+@dataclass
+class FrameCost:
+    ms: list[float] = field(default_factory=list)
+
+    def summary(self) -> dict[str, float]:
+        if not self.ms:
+            return {"frames": 0}
+        a = np.array(self.ms)
+        return {"frames": len(a), "p50_ms": round(float(np.median(a)), 3),
+                "p99_ms": round(float(np.percentile(a, 99)), 3),
+                "max_ms": round(float(a.max()), 3)}
+
+
+class OnboardSic:
+    """Wires receiver, pose, map and publisher together; :meth:`run` until the end."""
+
+    def __init__(self, cfg: SicConfig, params: StemParams | None = None) -> None:
+        self.cfg = cfg
+        self.params = params or stem_params(cfg.preset)
+        self.stop = threading.Event()
+        self.cost = FrameCost()
+        self.stem_cost = FrameCost()
+
+    def _world_points(self, batch: Any, pose: tuple[FloatArray, FloatArray],
+                      rays: tuple[FloatArray, FloatArray], n_mm: float,
+                      mount: FloatArray, mount_rot: FloatArray,
+                      cols: NDArray[np.int64]) -> FloatArray:
+        r = batch.fields["RANGE"].astype(np.float64) / 1000.0  # (H, k)
+        o, d = rays[0][:, cols], rays[1][:, cols]
+        hit = r > 0
+        p_s = o + ((r - n_mm)[..., None]) * d  # sensor frame (H, k, 3)
+        # sensor -> machine -> local world, per column
+        p_m = p_s @ mount_rot.T + mount
+        pos, rot = pose
+        p_w = np.einsum("kij,hkj->hki", rot, p_m) + pos[None, :, :]
+        out: FloatArray = p_w[hit]
+        return out
+
+    def run(self) -> dict[str, Any]:
+        cfg = self.cfg
+        meta = load_metadata(cfg)
+        port = cfg.lidar_port or meta.udp_port_lidar
+        track = PoseTrack()
+        can = CanPose(cfg, track)
+        rx: LidarReceiver | None = None
+        pub = Publisher(cfg.publish)
+        t_start = time.monotonic()
+        try:
+            can.read_constants()
+            smap = StemMap(self.params, voxel_m=cfg.voxel_m, max_points=cfg.max_points,
+                           datum=can.datum)
+            rx = LidarReceiver(meta, cfg.lidar_bind, port)
+            rx.start()
+            _log(f"listening for {meta.mode} {meta.profile} on {cfg.lidar_bind}:{port}; "
+                 f"pose from node {cfg.node_id} on {cfg.can_interface}:{cfg.can_channel}; "
+                 f"preset {cfg.preset}; publishing to {cfg.publish}")
+            fmt = meta.packet_format
+            rays = beam_rays(meta)
+            n_mm = meta.lidar_origin_to_beam_origin_mm / 1000.0
+            crc = _crc_rows()
+            frame_budget = 1.0 / meta.frequency_hz
+            next_pub = time.monotonic() + cfg.publish_s
+            seen_data = False
+            while not self.stop.is_set():
+                if cfg.max_seconds and time.monotonic() - t_start > cfg.max_seconds:
+                    break
+                try:
+                    item = rx.frames.get(timeout=0.1)
+                except queue.Empty:
+                    item = ...  # type: ignore[assignment]
+                now = time.monotonic()
+                if item is None:
+                    break
+                if item is not ...:
+                    seen_data = True
+                    t0 = time.perf_counter()
+                    self._frame(item, fmt, meta, crc, track, rays, n_mm, can, smap, rx.stats)
+                    spent = time.perf_counter() - t0
+                    self.cost.ms.append(spent * 1000.0)
+                    # the rest of this frame's time goes to the stem algorithm (within 60 %)
+                    budget = 0.6 * frame_budget - spent
+                    if budget > 0.005 and rx.frames.empty():
+                        t1 = time.perf_counter()
+                        if smap.update(budget):
+                            self.stem_cost.ms.append((time.perf_counter() - t1) * 1000.0)
+                elif seen_data and now - rx.stats.last_packet > cfg.idle_s:
+                    _log(f"no lidar packet for {cfg.idle_s:g} s: end of stream")
+                    break
+                elif not seen_data:
+                    smap.update(0.05)
+                if now >= next_pub and seen_data:
+                    pub.publish(self._document(smap, rx.stats, track, final=False))
+                    next_pub = now + cfg.publish_s
+            # end: every dirty tile, then the final forest
+            smap.update()
+            pub.publish(self._document(smap, rx.stats, track, final=True))
+        finally:
+            if rx is not None:
+                rx.close()
+            can.close()
+        summary = self._summary(rx.stats if rx else LidarStats(), track, smap, pub)
+        _log("done: " + json.dumps(summary))
+        return summary
+
+    def _frame(self, item: tuple[int, NDArray[np.uint8]], fmt: Any, meta: SensorMetadata,
+               crc: Any, track: PoseTrack, rays: tuple[FloatArray, FloatArray], n_mm: float,
+               can: CanPose, smap: StemMap, st: LidarStats) -> None:
+        _fid, arr = item
+        try:
+            batch = decode_lidar_packets(fmt, arr, init_id=meta.init_id, prod_sn=meta.prod_sn,
+                                         crc_rows=crc, fields=("RANGE",))
+        except ProtocolError as err:
+            st.bad_packets += len(arr)
+            if not st.first_error:
+                st.first_error = str(err)
+                _log(f"dropped a frame: {err}")
+            return
+        valid = (batch.status.reshape(-1) & 1).astype(bool)
+        cols = batch.measurement_id.reshape(-1).astype(np.int64)
+        ts = batch.timestamps_ns.reshape(-1).astype(np.float64)
+        # the pose of the frame's last column comes with the next SYNC: wait a little
+        deadline = time.monotonic() + 0.2
+        while not track.covers(float(ts.max())) and time.monotonic() < deadline:
+            time.sleep(0.002)
+        pose = track.at(ts)
+        if pose is None:
+            return
+        st.frames += 1
+        pts = self._world_points(_Cols(batch, valid), (pose[0][valid], pose[1][valid]), rays,
+                                 n_mm, can.mount, can.mount_rot, cols[valid])
+        smap.add(pts, pose[0][-1, :2])
+
+    def _document(self, smap: StemMap, st: LidarStats, track: PoseTrack, *, final: bool
+                  ) -> dict[str, Any]:
+        doc = smap.forest(_dt.datetime.now(_dt.UTC).strftime("%Y%m%d_%H%M%S"))
+        doc["algorithm"] = {"name": "tcf-hil reference onboard SIC", "preset": self.cfg.preset,
+                            "params": asdict(self.params)}
+        doc["sic"] = {"final": final, "frames": st.frames, "frames_lost": st.frames_lost,
+                      "poses": track.received, "map_points": smap.stats.points,
+                      "frame_cost": self.cost.summary()}
+        return doc
+
+    def _summary(self, st: LidarStats, track: PoseTrack, smap: Any, pub: Publisher
+                 ) -> dict[str, Any]:
+        return {"packets": st.packets, "bad_packets": st.bad_packets, "frames": st.frames,
+                "frames_lost": st.frames_lost, "frames_dropped": st.frames_dropped,
+                "incomplete_frames": st.incomplete, "poses": track.received,
+                "publications": pub.count, "frame_cost": self.cost.summary(),
+                "stem_cost": self.stem_cost.summary()}
+
+
+class _Cols:
+    """A batch with only its valid columns' RANGE."""
+
+    def __init__(self, batch: Any, valid: NDArray[np.bool_]) -> None:
+        self.fields = {"RANGE": batch.fields["RANGE"][:, valid]}
+
+
+def main_with(cfg: SicConfig) -> int:
+    sic = OnboardSic(cfg)
+
+    def on_signal(_sig: int, _frm: Any) -> None:
+        sic.stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    sic.run()
+    return 0
