@@ -223,7 +223,8 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
     try:
         with open_bus(can, announce=announce) as spec, SensorApi(
                 run.meta, "127.0.0.1", 0) as api:
-            env = _environment(out, run, spec, api, server.url, sensor_ip, scn)
+            env = _environment(out, run.meta, spec, api, server.url, sensor_ip,
+                               scn.harvester.node_id)
             manifest["endpoints"] = {k: v for k, v in env.items() if k.startswith("TCF_")}
             write_json_atomic(out / "manifest.json", manifest)
             watcher = FileWatcher(inbox, Path(env["TCF_PUBLISH_FILE"]))
@@ -325,23 +326,23 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
     return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)
 
 
-def _environment(out: Path, run: Any, spec: BusSpec, api: SensorApi, publish_url: str,
-                 sensor_ip: str, scn: Scenario) -> dict[str, str]:
+def _environment(out: Path, meta: Any, spec: BusSpec, api: SensorApi, publish_url: str,
+                 sensor_ip: str, node_id: int) -> dict[str, str]:
     env = dict(os.environ)
     env.update({
         "TCF_RUN_DIR": str(out.resolve()),
         "TCF_METADATA": str((out / "metadata.json").resolve()),
         "TCF_SENSOR_URL": f"http://{api.address[0]}:{api.address[1]}",
         "TCF_SENSOR_HOST": sensor_ip,
-        "TCF_LIDAR_BIND": run.meta.udp_dest,
-        "TCF_LIDAR_PORT": str(run.meta.udp_port_lidar),
-        "TCF_IMU_PORT": str(run.meta.udp_port_imu),
+        "TCF_LIDAR_BIND": meta.udp_dest,
+        "TCF_LIDAR_PORT": str(meta.udp_port_lidar),
+        "TCF_IMU_PORT": str(meta.udp_port_imu),
         "TCF_CAN_SPEC": str(spec),
         "TCF_CAN_INTERFACE": spec.interface,
         "TCF_CAN_CHANNEL": spec.channel,
         "TCF_CAN_HOST": spec.host,
         "TCF_CAN_PORT": str(spec.port or ""),
-        "TCF_CAN_NODE_ID": str(scn.harvester.node_id),
+        "TCF_CAN_NODE_ID": str(node_id),
         "TCF_EDS": str(eds_path()),
         "TCF_PUBLISH_URL": publish_url,
         "TCF_PUBLISH_FILE": str((out / "sic" / "published.json").resolve()),

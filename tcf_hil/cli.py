@@ -226,7 +226,7 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
         from tcf_hil.replay import replay_run
 
         r = replay_run(replay_dir, sic, _run_dir(out), speed=speed, shell=shell,
-                       can=can_spec, grace_s=grace, announce=err_console.print)
+                       can_spec=can_spec, grace_s=grace, announce=err_console.print)
         _print_run(r)
         if r.status != "complete" or r.publications == r.invalid_publications:
             raise SystemExit(3)
@@ -238,6 +238,56 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
                    speed=speed, duration_s=duration, can=can_spec, shell=shell, grace_s=grace)
     if code:
         raise SystemExit(code)
+
+
+@cli.command("replay")
+@click.argument("run_dir", metavar="RUN_DIR",
+                type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option("--speed", type=click.FloatRange(min=0.05, max=20), default=1.0,
+              show_default=True, help="Playback speed (1 = the original timing).")
+@click.option("--loop", is_flag=True, help="Start over at the end (frame_id, column time "
+                                           "stamps and pose time continue) until Ctrl-C.")
+@click.option("--sensor-address", default="127.0.0.1", show_default=True,
+              help="Address the packets come from.")
+@click.option("--dest", default=None, help="Where packets go (default: the recorded "
+                                           "udp_dest).")
+@click.option("--http-port", type=click.IntRange(0, 65535), default=None,
+              help="Serve the HTTP API from the recorded metadata on this port.")
+@click.option("--can", "can_spec", default="auto", show_default=True,
+              help="CAN bus for the recorded frames (auto, socketcan:IFACE, "
+                   "socketcand:HOST:PORT:CHANNEL).")
+def replay_cmd(run_dir: Path, speed: float, loop: bool, sensor_address: str, dest: str | None,
+               http_port: int | None, can_spec: str) -> None:
+    """Send a recorded run's lidar, IMU and CAN traffic to live endpoints.
+
+    \b
+    The pcap and the CAN log go out with their original relative timing (times --speed),
+    from --sensor-address to the recorded ports; your program listens as in the run. To
+    score another SIC on this traffic use: tcf-hil run --replay RUN_DIR --sic "COMMAND".
+    """
+    from tcf_hil.harvester import open_bus
+    from tcf_hil.replay import Recording, replay, serve_metadata
+
+    rec = Recording.load(run_dir)
+    stop = threading.Event()
+    api = serve_metadata(rec.meta, sensor_address, http_port) if http_port is not None \
+        else None
+    try:
+        with open_bus(can_spec, announce=err_console.print) as spec:
+            console.print(f"replaying {run_dir}: {rec.frames} frames, {len(rec.can)} CAN "
+                          f"frames at {speed:g}x to {dest or rec.meta.udp_dest}:"
+                          f"{rec.meta.udp_port_lidar}/{rec.meta.udp_port_imu}, CAN {spec}"
+                          + (" (looping; Ctrl-C stops)" if loop else ""))
+            try:
+                sent = replay(run_dir, speed=speed, loop=loop, sensor_ip=sensor_address,
+                              dest=dest, spec=spec, stop=stop, rec=rec)
+            except KeyboardInterrupt:
+                stop.set()
+                return
+    finally:
+        if api is not None:
+            api.close()
+    console.print(f"sent {sent['udp']} UDP datagrams and {sent['can']} CAN frames")
 
 
 @cli.command("sic", add_help_option=False,

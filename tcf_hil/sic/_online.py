@@ -73,6 +73,7 @@ class SicConfig:
     voxel_m: float = 0.03
     max_points: int = 6_000_000
     max_seconds: float = 0.0  # stop after this long (0: no limit)
+    cluster_voxel_m: float | None = None  # None: 0.1 for the tuned preset, exact for paper
 
     @classmethod
     def from_env(cls, env: dict[str, str] | None = None) -> SicConfig:
@@ -387,24 +388,42 @@ class OnboardSic:
 
     def __init__(self, cfg: SicConfig, params: StemParams | None = None) -> None:
         self.cfg = cfg
-        self.params = params or stem_params(cfg.preset)
+        cv = cfg.cluster_voxel_m
+        if cv is None:
+            cv = 0.1 if cfg.preset == "tuned" else 0.0
+        self.params = params or stem_params(cfg.preset, cluster_voxel_m=cv)
         self.stop = threading.Event()
         self.cost = FrameCost()
+        self.waited_s = 0.0
         self.stem_cost = FrameCost()
 
-    def _world_points(self, batch: Any, pose: tuple[FloatArray, FloatArray],
-                      rays: tuple[FloatArray, FloatArray], n_mm: float,
-                      mount: FloatArray, mount_rot: FloatArray,
-                      cols: NDArray[np.int64]) -> FloatArray:
-        r = batch.fields["RANGE"].astype(np.float64) / 1000.0  # (H, k)
-        o, d = rays[0][:, cols], rays[1][:, cols]
+    @staticmethod
+    def mounted_rays(meta: SensorMetadata, mount: FloatArray, mount_rot: FloatArray
+                     ) -> tuple[FloatArray, FloatArray]:
+        """The SDK's ray model moved into the machine frame once: (origins, directions), each
+        (3, H, W) by component, with the beam-origin offset folded into the origins (a
+        return of encoded range r mm lies at origin + r / 1000 * direction)."""
+        o, d = beam_rays(meta)
+        o = o - (meta.lidar_origin_to_beam_origin_mm / 1000.0) * d
+        om = o @ mount_rot.T + mount
+        dm = d @ mount_rot.T
+        return (np.ascontiguousarray(np.moveaxis(om, -1, 0)),
+                np.ascontiguousarray(np.moveaxis(dm, -1, 0)))
+
+    @staticmethod
+    def world_points(range_mm: NDArray[np.uint32], cols: NDArray[np.int64],
+                     pos: FloatArray, rot: FloatArray, rays: tuple[FloatArray, FloatArray]
+                     ) -> FloatArray:
+        """Returns (n, 3) in the local world: ``range_mm`` (H, k) of the columns ``cols``,
+        ``pos`` (k, 3) and ``rot`` (k, 3, 3) the machine pose at each column's time."""
+        om, dm = rays
+        r = range_mm.astype(np.float64) * 1e-3
         hit = r > 0
-        p_s = o + ((r - n_mm)[..., None]) * d  # sensor frame (H, k, 3)
-        # sensor -> machine -> local world, per column
-        p_m = p_s @ mount_rot.T + mount
-        pos, rot = pose
-        p_w = np.einsum("kij,hkj->hki", rot, p_m) + pos[None, :, :]
-        out: FloatArray = p_w[hit]
+        m = [om[c][:, cols] + r * dm[c][:, cols] for c in range(3)]  # machine frame (H, k)
+        out = np.empty((int(hit.sum()), 3))
+        for i in range(3):
+            w = rot[:, i, 0] * m[0] + rot[:, i, 1] * m[1] + rot[:, i, 2] * m[2] + pos[:, i]
+            out[:, i] = w[hit]
         return out
 
     def run(self) -> dict[str, Any]:
@@ -426,8 +445,7 @@ class OnboardSic:
                  f"pose from node {cfg.node_id} on {cfg.can_interface}:{cfg.can_channel}; "
                  f"preset {cfg.preset}; publishing to {cfg.publish}")
             fmt = meta.packet_format
-            rays = beam_rays(meta)
-            n_mm = meta.lidar_origin_to_beam_origin_mm / 1000.0
+            rays = self.mounted_rays(meta, can.mount, can.mount_rot)
             crc = _crc_rows()
             frame_budget = 1.0 / meta.frequency_hz
             next_pub = time.monotonic() + cfg.publish_s
@@ -445,8 +463,9 @@ class OnboardSic:
                 if item is not ...:
                     seen_data = True
                     t0 = time.perf_counter()
-                    self._frame(item, fmt, meta, crc, track, rays, n_mm, can, smap, rx.stats)
-                    spent = time.perf_counter() - t0
+                    self.waited_s = 0.0
+                    self._frame(item, fmt, meta, crc, track, rays, smap, rx.stats)
+                    spent = time.perf_counter() - t0 - self.waited_s
                     self.cost.ms.append(spent * 1000.0)
                     # the rest of this frame's time goes to the stem algorithm (within 60 %)
                     budget = 0.6 * frame_budget - spent
@@ -474,8 +493,8 @@ class OnboardSic:
         return summary
 
     def _frame(self, item: tuple[int, NDArray[np.uint8]], fmt: Any, meta: SensorMetadata,
-               crc: Any, track: PoseTrack, rays: tuple[FloatArray, FloatArray], n_mm: float,
-               can: CanPose, smap: StemMap, st: LidarStats) -> None:
+               crc: Any, track: PoseTrack, rays: tuple[FloatArray, FloatArray],
+               smap: StemMap, st: LidarStats) -> None:
         _fid, arr = item
         try:
             batch = decode_lidar_packets(fmt, arr, init_id=meta.init_id, prod_sn=meta.prod_sn,
@@ -490,15 +509,17 @@ class OnboardSic:
         cols = batch.measurement_id.reshape(-1).astype(np.int64)
         ts = batch.timestamps_ns.reshape(-1).astype(np.float64)
         # the pose of the frame's last column comes with the next SYNC: wait a little
+        w0 = time.perf_counter()
         deadline = time.monotonic() + 0.2
         while not track.covers(float(ts.max())) and time.monotonic() < deadline:
-            time.sleep(0.002)
+            time.sleep(0.001)
+        self.waited_s = time.perf_counter() - w0  # not the frame's cost
         pose = track.at(ts)
         if pose is None:
             return
         st.frames += 1
-        pts = self._world_points(_Cols(batch, valid), (pose[0][valid], pose[1][valid]), rays,
-                                 n_mm, can.mount, can.mount_rot, cols[valid])
+        pts = self.world_points(batch.fields["RANGE"][:, valid], cols[valid], pose[0][valid],
+                                pose[1][valid], rays)
         smap.add(pts, pose[0][-1, :2])
 
     def _document(self, smap: StemMap, st: LidarStats, track: PoseTrack, *, final: bool
@@ -518,13 +539,6 @@ class OnboardSic:
                 "incomplete_frames": st.incomplete, "poses": track.received,
                 "publications": pub.count, "frame_cost": self.cost.summary(),
                 "stem_cost": self.stem_cost.summary()}
-
-
-class _Cols:
-    """A batch with only its valid columns' RANGE."""
-
-    def __init__(self, batch: Any, valid: NDArray[np.bool_]) -> None:
-        self.fields = {"RANGE": batch.fields["RANGE"][:, valid]}
 
 
 def main_with(cfg: SicConfig) -> int:

@@ -1,0 +1,290 @@
+"""Replay a recorded run: its pcap (lidar and IMU) and CAN log go back on the wire with their
+original relative timing (scaled by ``speed``), the HTTP API serves the recorded metadata.
+
+Both recordings are put on one time line: pcap records carry simulation time; the CAN log's
+wall-clock time stamps are mapped onto it through the run manifest's clock
+(``unix_ns_at_sim_t0``). With ``loop``, each pass shifts frame_id (16 bits, continuing where
+the last pass ended, which ouster-sdk's own replay does not do), the column time stamps and
+the pose time on CAN by the recording's length, so that a consumer sees one continuous drive.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+
+from emulators.harvester import BusSpec
+from emulators.lidar import SensorApi
+from protocols.harvester import HARVESTER_OD, POSE, decode_pdo, encode_pdo
+from protocols.harvester._codec import TIME_WRAP_US
+from protocols.ouster import SensorMetadata, crc64_xz_rows
+from protocols.pcap import read_udp
+from tcf_hil._io import read_json
+from tcf_hil.errors import InputError
+
+_TIME_KEY = (POSE, 8)
+
+
+@dataclass
+class Recording:
+    """A run directory's traffic on one simulation time line."""
+
+    meta: SensorMetadata
+    lidar: list[tuple[int, int, bytes]]  # (sim ns, dst port, payload)
+    can: list[tuple[int, can.Message]]  # (sim ns, frame)
+    frames: int
+    span_ns: int
+
+    @classmethod
+    def load(cls, run_dir: Path) -> Recording:
+        for name in ("lidar.pcap", "metadata.json", "manifest.json"):
+            if not (run_dir / name).exists():
+                raise InputError(str(run_dir / name), "", "missing: not a tcf-hil run directory")
+        meta = SensorMetadata.loads((run_dir / "metadata.json").read_text(encoding="utf-8"))
+        man = read_json(run_dir / "manifest.json")
+        try:
+            clock = man["clock"]
+            t0, unix0, speed = (int(clock["sim_t0_ns"]), int(clock["unix_ns_at_sim_t0"]),
+                                float(clock["speed"]))
+        except (KeyError, TypeError, ValueError) as err:
+            raise InputError(str(run_dir / "manifest.json"), "clock",
+                             f"missing or malformed ({err})") from err
+        lidar = [(d.timestamp_ns, d.dst_port, d.payload)
+                 for d in read_udp((run_dir / "lidar.pcap").read_bytes())
+                 if d.dst_port in (meta.udp_port_lidar, meta.udp_port_imu)]
+        frames: list[tuple[int, can.Message]] = []
+        if (run_dir / "can.log").exists():
+            for m in can.LogReader(str(run_dir / "can.log")):
+                frames.append((t0 + round((m.timestamp * 1e9 - unix0) * speed), m))
+        n_frames = sum(1 for _t, p, _b in lidar if p == meta.udp_port_lidar) // max(
+            1, meta.packet_format.packets_per_frame)
+        times = [t for t, _p, _b in lidar] + [t for t, _m in frames]
+        span = (max(times) - min(times) + 10_000_000) if times else 0
+        return cls(meta, lidar, frames, n_frames, span)
+
+
+def _shift_lidar(meta: SensorMetadata, payload: bytes, dframe: int, dt_ns: int) -> bytes:
+    fmt = meta.packet_format
+    if len(payload) != fmt.packet_bytes or (dframe == 0 and dt_ns == 0):
+        return payload
+    arr = np.frombuffer(payload, np.uint8).copy().reshape(1, -1)
+    cols = fmt._columns(arr)
+    ts = cols[..., 0:8].view("<u8")
+    ts += np.uint64(dt_ns)
+    if fmt.profile.legacy:
+        fid = cols[..., 10:12].view("<u2")
+        fid[...] = (fid.astype(np.int64) + dframe) % 65536
+    else:
+        fid = arr[:, 2:4].view("<u2")
+        fid[...] = (fid.astype(np.int64) + dframe) % 65536
+        arr[:, -8:].view("<u8")[:, 0] = crc64_xz_rows(arr[:, :-8])
+    return arr.tobytes()
+
+
+def _shift_can(msg: can.Message, node_id: int, dt_ns: int) -> can.Message:
+    if dt_ns == 0:
+        return msg
+    for m in HARVESTER_OD.tpdos:
+        if msg.arbitration_id == m.cob_id(node_id) and _TIME_KEY in m.variables:
+            raw = decode_pdo(m, bytes(msg.data))
+            raw[_TIME_KEY] = (raw[_TIME_KEY] + dt_ns // 1000) % TIME_WRAP_US
+            return can.Message(arbitration_id=msg.arbitration_id, data=encode_pdo(m, raw),
+                               is_extended_id=False)
+    return msg
+
+
+def events(rec: Recording, loop: bool, node_id: int) -> Iterator[tuple[int, str, Any]]:
+    """(sim ns, "udp"/"can", item) in time order, forever when ``loop``."""
+    merged = sorted([(t, 0, i) for i, (t, _p, _b) in enumerate(rec.lidar)]
+                    + [(t, 1, i) for i, (t, _m) in enumerate(rec.can)])
+    k = 0
+    while True:
+        dt = k * rec.span_ns
+        dframe = k * rec.frames
+        for t, kind, i in merged:
+            if kind == 0:
+                _t, port, payload = rec.lidar[i]
+                if port == rec.meta.udp_port_lidar:
+                    payload = _shift_lidar(rec.meta, payload, dframe, dt)
+                yield t + dt, "udp", (port, payload)
+            else:
+                yield t + dt, "can", _shift_can(rec.can[i][1], node_id, dt)
+        if not loop:
+            return
+        k += 1
+
+
+def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
+           sensor_ip: str = "127.0.0.1", dest: str | None = None,
+           spec: BusSpec | None = None, node_id: int = 10,
+           stop: threading.Event | None = None,
+           on_progress: Callable[[int, int], None] | None = None,
+           rec: Recording | None = None) -> dict[str, int]:
+    """Send the recording until it ends (or forever with ``loop``) or ``stop``."""
+    rec = rec or Recording.load(run_dir)
+    stop = stop or threading.Event()
+    dest = dest or rec.meta.udp_dest
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
+    sock.bind((sensor_ip, 0))
+    bus = spec.open() if spec is not None and rec.can else None
+    sent = {"udp": 0, "can": 0, "refused": 0}
+    total = len(rec.lidar) + len(rec.can)
+    start: tuple[int, float] | None = None
+    try:
+        for n, (t, kind, item) in enumerate(events(rec, loop, node_id)):
+            if stop.is_set():
+                break
+            if start is None:
+                start = (t, time.perf_counter())
+            due = start[1] + (t - start[0]) / 1e9 / speed
+            wait = due - time.perf_counter()
+            if wait > 0.0005:
+                time.sleep(wait - 0.0003)
+            while time.perf_counter() < due:
+                pass
+            if kind == "udp":
+                port, payload = item
+                try:
+                    sock.sendto(payload, (dest, port))
+                    sent["udp"] += 1
+                except OSError:
+                    sent["refused"] += 1
+            elif bus is not None:
+                with contextlib.suppress(can.CanError):
+                    bus.send(item)
+                    sent["can"] += 1
+            if on_progress is not None and n % 256 == 0:
+                on_progress(n % total if total else 0, total)
+    finally:
+        sock.close()
+        if bus is not None:
+            bus.shutdown()
+    return sent
+
+
+def copy_recording(src: Path, out: Path) -> None:
+    """The replayed run's inputs beside its new SIC output (what was sent is what was
+    recorded: the same bytes)."""
+    for name in ("lidar.pcap", "can.log", "metadata.json", "ground_truth.json",
+                 "visibility.json", "sensor_poses.csv"):
+        if (src / name).exists():
+            shutil.copyfile(src / name, out / name)
+
+
+def serve_metadata(meta: SensorMetadata, host: str = "127.0.0.1", port: int = 0) -> SensorApi:
+    return SensorApi(meta, host, port).start()
+
+
+def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: bool = False,
+               can_spec: str = "auto", grace_s: float = 30.0, lead_s: float = 3.0,
+               sensor_ip: str = "127.0.0.1", stop: threading.Event | None = None,
+               announce: Callable[[str], None] = lambda s: None,
+               eval_cfg: Any = None) -> Any:
+    """``tcf-hil run --replay SRC --sic COMMAND``: another SIC scored on recorded traffic.
+    The new run directory holds the same recording, this SIC's publications and score."""
+    import datetime as _dt
+    import shlex
+
+    from tcf_hil._io import ensure_dir, write_bytes_atomic, write_json_atomic
+    from tcf_hil.bridge import (
+        _environment,
+        _SicProcess,
+        _versions,
+        finish_run,
+        free_udp_port,
+        sic_command,
+    )
+    from tcf_hil.harvester import open_bus
+    from tcf_hil.recorder import FileWatcher, Inbox, PublishServer
+
+    stop = stop or threading.Event()
+    rec = Recording.load(src)
+    src_man = read_json(src / "manifest.json")
+    out = ensure_dir(out)
+    ensure_dir(out / "sic")
+    copy_recording(src, out)
+    lidar_port = free_udp_port(sensor_ip, rec.meta.udp_port_lidar)
+    imu_port = free_udp_port(sensor_ip, rec.meta.udp_port_imu)
+    meta = rec.meta.with_changes(udp_port_lidar=lidar_port, udp_port_imu=imu_port)
+    write_bytes_atomic(out / "metadata.json", meta.dumps().encode())
+    node_id = int(src_man.get("endpoints", {}).get("TCF_CAN_NODE_ID", 10))
+    port_map = {rec.meta.udp_port_lidar: lidar_port, rec.meta.udp_port_imu: imu_port}
+    rec.lidar = [(t, port_map.get(p, p), b) for t, p, b in rec.lidar]
+    rec.meta = meta
+    manifest: dict[str, Any] = {
+        "tcf_hil_run": 1, "status": "running", "versions": _versions(),
+        "replay_of": str(src.resolve()), "scenario": src_man.get("scenario"),
+        "seed": src_man.get("seed"), "mode": src_man.get("mode"),
+        "profile": src_man.get("profile"), "speed": speed, "clock": src_man.get("clock"),
+        "sic": {"command": sic, "shell": shell},
+        "started": _dt.datetime.now(_dt.UTC).isoformat(), "stopped": None,
+    }
+    inbox = Inbox(out / "sic")
+    server = PublishServer(inbox).start()
+    watcher: FileWatcher | None = None
+    proc: _SicProcess | None = None
+    status, message, rc = "complete", "", None
+    sent: dict[str, int] = {}
+    try:
+        with open_bus(can_spec, announce=announce) as spec, \
+                SensorApi(meta, "127.0.0.1", 0) as api:
+            env = _environment(out, meta, spec, api, server.url, sensor_ip, node_id)
+            manifest["endpoints"] = {k: v for k, v in env.items() if k.startswith("TCF_")}
+            write_json_atomic(out / "manifest.json", manifest)
+            watcher = FileWatcher(inbox, Path(env["TCF_PUBLISH_FILE"]))
+            watcher.start()
+            argv = sic_command(sic, env, shell)
+            announce(f"SIC: {argv if isinstance(argv, str) else shlex.join(argv)}")
+            proc = _SicProcess(argv, env, out, inbox, shell)
+            end = threading.Event()
+
+            def send() -> None:
+                sent.update(replay(src, speed=speed, sensor_ip=sensor_ip, spec=spec,
+                                   node_id=node_id, stop=end, rec=rec))
+
+            stop.wait(lead_s)
+            th = threading.Thread(target=send, name="replay", daemon=True)
+            th.start()
+            announce(f"replaying {src} at {speed:g}x to 127.0.0.1:{lidar_port}, CAN {spec}")
+            while th.is_alive():
+                th.join(0.2)
+                if stop.is_set():
+                    status, message = "interrupted", "stopped by the user"
+                    break
+                if proc.poll() is not None:
+                    rc = proc.poll()
+                    status = "sic-exited"
+                    message = f"the SIC exited with code {rc} before the replay ended"
+                    break
+            end.set()
+            th.join()
+            rc = proc.end(grace_s if status == "complete" else 0.0)
+    finally:
+        if proc is not None:
+            proc.close()
+            rc = proc.proc.returncode
+        if watcher is not None:
+            watcher.close()
+        server.close()
+        inbox.close()
+        manifest.update(status=status, message=message,
+                        stopped=_dt.datetime.now(_dt.UTC).isoformat(), replay_sent=sent)
+        manifest["sic"]["returncode"] = rc
+        manifest["publications"] = {"total": len(inbox.items), "valid": len(inbox.valid),
+                                    "invalid": len(inbox.invalid),
+                                    "non_json_stdout_lines": inbox.non_json_lines}
+        write_json_atomic(out / "manifest.json", manifest)
+    if not inbox.valid:
+        message = (message + "; " if message else "") + "no valid forest published"
+    return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)
