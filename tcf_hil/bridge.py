@@ -14,6 +14,7 @@ import contextlib
 import datetime as _dt
 import json
 import os
+import re
 import shlex
 import signal
 import socket
@@ -31,7 +32,7 @@ from emulators.lidar import SensorApi
 from protocols.harvester import eds_path
 from tcf_hil._io import ensure_dir, read_json, write_bytes_atomic, write_json_atomic
 from tcf_hil.evaluation import EvalConfig
-from tcf_hil.harvester import open_bus, run_harvester
+from tcf_hil.harvester import HarvesterModel, open_bus, run_harvester
 from tcf_hil.recorder import (
     FileWatcher,
     Inbox,
@@ -77,25 +78,46 @@ def free_udp_port(host: str, preferred: int) -> int:
     raise OSError(f"no free UDP port on {host}")
 
 
+_PLACEHOLDER = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*)\}")
+
+
 def sic_command(command: str, env: dict[str, str], shell: bool) -> list[str] | str:
     """The COMMAND with ``{placeholders}`` (lower-case names of the TCF_ variables without
-    the prefix, e.g. ``{lidar_port}``) filled in; split without a shell unless asked."""
+    the prefix, e.g. ``{lidar_port}``, and ``{python}``) filled in; other braces are left
+    alone. Split without a shell unless asked.
+
+    Raises:
+        ValueError: an unknown placeholder, or an empty command.
+    """
     values = {k[4:].lower(): v for k, v in env.items() if k.startswith("TCF_")}
     values["python"] = sys.executable
 
     def fill(s: str) -> str:
-        try:
-            return s.format_map(values)
-        except (KeyError, ValueError, IndexError) as err:
-            raise ValueError(f"--sic {command!r}: unknown placeholder {err}; known: "
-                             + ", ".join("{" + k + "}" for k in sorted(values))) from err
+        def one(m: re.Match[str]) -> str:
+            if m.group(1) not in values:
+                raise ValueError(f"--sic {command!r}: unknown placeholder {m.group(0)}; "
+                                 "known: " + ", ".join("{" + k + "}" for k in sorted(values)))
+            return values[m.group(1)]
+        return _PLACEHOLDER.sub(one, s)
 
     if shell:
+        if not command.strip():
+            raise ValueError("--sic: empty command")
         return fill(command)
-    args = [fill(a) for a in shlex.split(command)]
+    try:
+        args = [fill(a) for a in shlex.split(command)]
+    except ValueError as err:
+        if "placeholder" in str(err):
+            raise
+        raise ValueError(f"--sic {command!r}: {err}") from err
     if not args:
         raise ValueError("--sic: empty command")
     return args
+
+
+def check_sic_command(command: str, shell: bool) -> None:
+    """Fail before anything starts when COMMAND cannot be filled in."""
+    sic_command(command, {k: "x" for k, _ in ENV_DOC}, shell)
 
 
 @dataclass
@@ -123,6 +145,7 @@ class _SicProcess:
         self.proc = subprocess.Popen(argv, shell=shell, env=env, stdin=subprocess.DEVNULL,
                                      stdout=subprocess.PIPE, stderr=self.stderr_log,
                                      start_new_session=True)
+        self.signalled: str | None = None  # the signal the bench had to send, if any
         self.reader = threading.Thread(target=self._read, name="sic-stdout", daemon=True)
         self.reader.start()
 
@@ -148,6 +171,7 @@ class _SicProcess:
         except subprocess.TimeoutExpired:
             pass
         for sig, wait in ((signal.SIGTERM, 15.0), (signal.SIGKILL, 5.0)):
+            self.signalled = sig.name
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(self.proc.pid, sig)
             try:
@@ -203,6 +227,8 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                    t0_ns=RUN_T0_NS)
     if duration_s is not None:
         run.frames = max(1, min(run.frames, round(duration_s * run.meta.frequency_hz)))
+    node_cfg = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed,
+                                            RUN_T0_NS).node_config()
     meta_path = out / "metadata.json"
     write_bytes_atomic(meta_path, run.meta.dumps().encode())
     manifest: dict[str, Any] = {
@@ -210,6 +236,10 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
         "scenario": scn.name, "seed": run.forest.seed, "mode": mode, "profile": profile,
         "speed": speed, "backend": backend, "sic": {"command": sic, "shell": shell},
         "started": started.isoformat(), "stopped": None, "frames_planned": run.frames,
+        # what the harvester node answers by SDO (replay serves the same)
+        "can_node": {"node_id": node_cfg.node_id, "datum_mm": list(node_cfg.datum_mm),
+                     "mount_mm": list(node_cfg.mount_mm),
+                     "mount_cdeg": list(node_cfg.mount_cdeg)},
     }
     inbox = Inbox(out / "sic", t_mono0)
     server = PublishServer(inbox).start()
@@ -232,6 +262,7 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             argv = sic_command(sic, env, shell)
             announce(f"SIC: {argv if isinstance(argv, str) else shlex.join(argv)}")
             sic_proc = _SicProcess(argv, env, out, inbox, shell)
+            manifest["sic"]["pid"] = sic_proc.proc.pid
             t0 = run.track.t0_ns
             lead_ns = round(lead_s * 1e9)  # wall time before the first lidar packet is due
             clock = SimClock.start(t0, speed, lead_ns=lead_ns)
@@ -302,6 +333,7 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
         manifest["status"] = status
         manifest["message"] = message
         manifest["sic"]["returncode"] = rc
+        manifest["sic"]["ended_by"] = sic_proc.signalled if sic_proc is not None else None
         if lidar_result is not None:
             manifest["lidar"] = {"frames_sent": lidar_result.frames,
                                  "packets_sent": lidar_result.packets,
@@ -317,7 +349,12 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                                     "invalid": len(inbox.invalid),
                                     "non_json_stdout_lines": inbox.non_json_lines}
         write_json_atomic(out / "manifest.json", manifest)
-    if status == "complete" and rc not in (0, None):
+    ended_by = sic_proc.signalled if sic_proc is not None else None
+    if status == "complete" and ended_by:
+        message = (f"the SIC did not exit within {grace_s:g} s after the stream; ended with "
+                   f"{ended_by}")
+    elif status == "complete" and rc not in (0, None):
+        status = "sic-failed"
         message = f"the SIC exited with code {rc} (see {out / 'sic' / 'stderr.log'})"
     if not inbox.valid:
         message = (message + "; " if message else "") + (

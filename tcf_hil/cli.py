@@ -121,7 +121,7 @@ def _bridge(scn: Any, sic: str, out: Path, **kw: Any) -> int:
         signal.signal(signal.SIGINT, previous)
         signal.signal(signal.SIGTERM, previous_term)
     _print_run(r)
-    if r.status == "complete" and r.sic_returncode == 0 and r.scores is not None \
+    if r.status == "complete" and r.scores is not None \
             and r.publications > r.invalid_publications:
         return 0
     return 130 if r.status == "interrupted" else 3
@@ -143,7 +143,10 @@ def _print_run(r: Any) -> None:
         t.add_row("Ground-truth trees", str(a["n_ground_truth"]), str(b["n_ground_truth"]))
         console.print(t)
     lid = m.get("lidar", {})
-    console.print(f"frames sent {lid.get('frames_sent', 0)}, publications {r.publications} "
+    sent = (f"frames sent {lid.get('frames_sent', 0)}" if "replay_sent" not in m else
+            f"replayed {m['replay_sent'].get('udp', 0)} datagrams, "
+            f"{m['replay_sent'].get('can', 0)} CAN frames")
+    console.print(f"{sent}, publications {r.publications} "
                   f"({r.invalid_publications} invalid), SIC exit code {r.sic_returncode}")
     if r.message:
         err_console.print(f"[bold]{r.status}[/]: {r.message}")
@@ -218,10 +221,14 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     SIC failed (exited early or with an error, or published nothing valid), 130 when
     stopped by Ctrl-C/SIGTERM (the partial run is still recorded and scored).
     """
-    from tcf_hil.bridge import sic_reference_command
+    from tcf_hil.bridge import check_sic_command, sic_reference_command
     from tcf_hil.scenario import load_scenario
 
     sic = sic or sic_reference_command()
+    try:
+        check_sic_command(sic, shell)
+    except ValueError as err:
+        raise click.BadParameter(str(err), param_hint="--sic") from err
     if replay_dir is not None:
         from tcf_hil.replay import replay_run
 
@@ -265,10 +272,12 @@ def replay_cmd(run_dir: Path, speed: float, loop: bool, sensor_address: str, des
     from --sensor-address to the recorded ports; your program listens as in the run. To
     score another SIC on this traffic use: tcf-hil run --replay RUN_DIR --sic "COMMAND".
     """
+    from tcf_hil._io import read_json
     from tcf_hil.harvester import open_bus
-    from tcf_hil.replay import Recording, replay, serve_metadata
+    from tcf_hil.replay import Recording, SdoResponder, replay, serve_metadata
 
     rec = Recording.load(run_dir)
+    node = dict(read_json(run_dir / "manifest.json").get("can_node") or {})
     stop = threading.Event()
     api = serve_metadata(rec.meta, sensor_address, http_port) if http_port is not None \
         else None
@@ -278,12 +287,16 @@ def replay_cmd(run_dir: Path, speed: float, loop: bool, sensor_address: str, des
                           f"frames at {speed:g}x to {dest or rec.meta.udp_dest}:"
                           f"{rec.meta.udp_port_lidar}/{rec.meta.udp_port_imu}, CAN {spec}"
                           + (" (looping; Ctrl-C stops)" if loop else ""))
+            sdo = SdoResponder(spec, node)
             try:
                 sent = replay(run_dir, speed=speed, loop=loop, sensor_ip=sensor_address,
-                              dest=dest, spec=spec, stop=stop, rec=rec)
+                              dest=dest, spec=spec, stop=stop, rec=rec,
+                              node_id=int(node.get("node_id", 10)))
             except KeyboardInterrupt:
                 stop.set()
                 return
+            finally:
+                sdo.close()
     finally:
         if api is not None:
             api.close()

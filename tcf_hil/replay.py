@@ -118,7 +118,10 @@ def events(rec: Recording, loop: bool, node_id: int) -> Iterator[tuple[int, str,
                     payload = _shift_lidar(rec.meta, payload, dframe, dt)
                 yield t + dt, "udp", (port, payload)
             else:
-                yield t + dt, "can", _shift_can(rec.can[i][1], node_id, dt)
+                msg = rec.can[i][1]
+                if msg.arbitration_id in (0x580 + node_id, 0x600 + node_id):
+                    continue  # the recorded SDO exchanges answer nobody now
+                yield t + dt, "can", _shift_can(msg, node_id, dt)
         if not loop:
             return
         k += 1
@@ -173,6 +176,32 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
     return sent
 
 
+class SdoResponder:
+    """The harvester node's SDO server alone (datum and lidar mount as recorded), for
+    consumers that read them at start: the recorded TPDOs carry the poses."""
+
+    def __init__(self, spec: BusSpec, node: dict[str, Any]) -> None:
+        import canopen
+
+        from protocols.harvester import DATUM, MOUNT, eds_path
+
+        self.network = canopen.Network()
+        self.node = canopen.LocalNode(int(node.get("node_id", 10)), str(eds_path()))
+        self.network.add_node(self.node)
+        od: Any = self.node.sdo
+        for i, v in enumerate(node.get("datum_mm", (0, 0, 0)), 1):
+            od[DATUM][i].raw = int(v)
+        for i, v in enumerate((*node.get("mount_mm", (0, 0, 2000)),
+                               *node.get("mount_cdeg", (0, 0, 0))), 1):
+            od[MOUNT][i].raw = int(v)
+        self.network.NOTIFIER_CYCLE = 0.1
+        self.network.connect(**spec.kwargs())
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.network.disconnect()
+
+
 def copy_recording(src: Path, out: Path) -> None:
     """The replayed run's inputs beside its new SIC output (what was sent is what was
     recorded: the same bytes)."""
@@ -218,7 +247,8 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
     imu_port = free_udp_port(sensor_ip, rec.meta.udp_port_imu)
     meta = rec.meta.with_changes(udp_port_lidar=lidar_port, udp_port_imu=imu_port)
     write_bytes_atomic(out / "metadata.json", meta.dumps().encode())
-    node_id = int(src_man.get("endpoints", {}).get("TCF_CAN_NODE_ID", 10))
+    node = dict(src_man.get("can_node") or {})
+    node_id = int(node.get("node_id", 10))
     port_map = {rec.meta.udp_port_lidar: lidar_port, rec.meta.udp_port_imu: imu_port}
     rec.lidar = [(t, port_map.get(p, p), b) for t, p, b in rec.lidar]
     rec.meta = meta
@@ -246,6 +276,7 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
             watcher.start()
             argv = sic_command(sic, env, shell)
             announce(f"SIC: {argv if isinstance(argv, str) else shlex.join(argv)}")
+            sdo = SdoResponder(spec, {**node, "node_id": node_id})
             proc = _SicProcess(argv, env, out, inbox, shell)
             end = threading.Event()
 
@@ -270,6 +301,7 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
             end.set()
             th.join()
             rc = proc.end(grace_s if status == "complete" else 0.0)
+            sdo.close()
     finally:
         if proc is not None:
             proc.close()

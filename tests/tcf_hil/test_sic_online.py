@@ -1,0 +1,227 @@
+"""The onboard SIC's parts without the bench around them: batch packet decoding against the
+per-packet decoder (hypothesis), the pose track across the 32-bit time wrap, the world
+transform against the emulator's own sensor poses, the incremental stem map against the
+one-shot algorithm, and the recorder's publication channels."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from protocols.ouster import (
+    PROFILES,
+    ProtocolError,
+    decode_lidar_packet,
+    decode_lidar_packets,
+    encode_lidar_frame,
+    os0_64_metadata,
+)
+from tcf_hil.bridge import sic_command
+from tcf_hil.recorder import FileWatcher, Inbox, PublishServer
+from tcf_hil.sic import identify_stems, stem_params
+from tcf_hil.sic._map import StemMap
+from tcf_hil.sic._online import OnboardSic, PoseTrack
+from tcf_hil.trajectory import rotation_ypr
+
+
+@settings(max_examples=25, deadline=None)
+@given(profile=st.sampled_from(sorted(PROFILES)), mode=st.sampled_from(["512x10", "1024x10"]),
+       seed=st.integers(0, 2**32 - 1), frame_id=st.integers(0, 0xFFFF))
+def test_batch_decode_equals_the_per_packet_decoder(profile: str, mode: str, seed: int,
+                                                    frame_id: int) -> None:
+    meta = os0_64_metadata(mode, profile, init_id=12345)
+    fmt = meta.packet_format
+    rng = np.random.default_rng(seed)
+    H, W = fmt.pixels_per_column, fmt.columns_per_frame
+    fields = {f.name: rng.integers(0, 1 << 20, (H, W)) for f in fmt.profile.fields}
+    ts = 10**9 + np.arange(W, dtype=np.int64) * 97_000
+    arr = encode_lidar_frame(fmt, fields, ts, frame_id=frame_id, init_id=meta.init_id,
+                             prod_sn=meta.prod_sn)
+    batch = decode_lidar_packets(fmt, arr, init_id=meta.init_id, prod_sn=meta.prod_sn)
+    one = [decode_lidar_packet(fmt, row, init_id=meta.init_id, prod_sn=meta.prod_sn)
+           for row in arr]
+    assert (batch.frame_id == frame_id).all()
+    np.testing.assert_array_equal(batch.timestamps_ns, np.stack([p.timestamps_ns for p in one]))
+    np.testing.assert_array_equal(batch.measurement_id,
+                                  np.stack([p.measurement_id for p in one]))
+    for name in fmt.field_names:
+        np.testing.assert_array_equal(batch.fields[name],
+                                      np.concatenate([p.fields[name] for p in one], axis=1))
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.binary(min_size=0, max_size=64), where=st.integers(0, 10**6),
+       n=st.integers(1, 3))
+def test_batch_decode_of_damaged_packets_raises_only_protocol_errors(data: bytes, where: int,
+                                                                     n: int) -> None:
+    meta = os0_64_metadata("512x10", "RNG19_RFL8_SIG16_NIR16", init_id=7)
+    fmt = meta.packet_format
+    arr = encode_lidar_frame(fmt, {"RANGE": np.ones((64, 512), np.int64)},
+                             np.arange(512, dtype=np.int64), frame_id=1, init_id=7,
+                             prod_sn=meta.prod_sn)[:n].copy()
+    flat = arr.reshape(-1)
+    pos = where % len(flat)
+    chunk = np.frombuffer(data, np.uint8)[: len(flat) - pos]
+    flat[pos:pos + len(chunk)] = chunk
+    try:
+        b = decode_lidar_packets(fmt, arr, init_id=7, prod_sn=meta.prod_sn)
+    except ProtocolError:
+        return
+    assert b.fields["RANGE"].shape == (64, n * fmt.columns_per_packet)
+
+
+def test_pose_track_interpolates_across_the_32_bit_time_wrap() -> None:
+    tr = PoseTrack()
+    wrap_us = 1 << 32
+    t0_us = wrap_us - 5_000  # 5 ms before the count wraps
+    for k in range(20):
+        t_us = t0_us + k * 1000
+        # 1 m/s north, heading 0 = north, turning 1 deg per sample through 359 -> 0
+        tr.add(t_us % wrap_us, 0.0, k * 0.001, 0.0, (359.0 + k) % 360.0, 0.0, 0.0)
+    q = np.array([(t0_us + 7_500) * 1000.0])  # a lidar time stamp (ns, not wrapped)
+    assert tr.covers(float(q[0]))
+    pos, rot = tr.at(q)
+    assert pos[0, 1] == pytest.approx(0.0075, abs=1e-12)
+    heading = (359.0 + 7.5) % 360.0
+    yaw = math.radians(90.0 - heading)
+    np.testing.assert_allclose(rot[0], rotation_ypr(np.array([yaw]), np.zeros(1),
+                                                    np.zeros(1))[0], atol=1e-12)
+    # beyond the last pose, the track does not cover the time yet
+    assert not tr.covers((t0_us + 30_000) * 1000.0)
+
+
+def test_world_points_land_where_the_sdk_ray_model_puts_them() -> None:
+    meta = os0_64_metadata("512x10", "RNG19_RFL8_SIG16_NIR16")
+    mount = np.array([1.5, -0.5, 2.0])
+    mrot = rotation_ypr(np.radians([10.0]), np.radians([-3.0]), np.radians([2.0]))[0]
+    rays = OnboardSic.mounted_rays(meta, mount, mrot)
+    rng = np.random.default_rng(3)
+    cols = np.array([0, 7, 300, 511])
+    r = rng.integers(1000, 40000, (64, 4)).astype(np.uint32)
+    r[5, 1] = 0  # no return
+    pos = rng.normal(size=(4, 3)) * 10
+    rot = rotation_ypr(rng.uniform(-3, 3, 4), rng.uniform(-0.2, 0.2, 4),
+                       rng.uniform(-0.2, 0.2, 4))
+    got = OnboardSic.world_points(r, cols, pos, rot, rays)
+    from protocols.ouster import xyz_from_range
+
+    full = np.zeros((64, 512), np.uint32)
+    full[:, cols] = r
+    sensor = xyz_from_range(meta, full)[:, cols]  # (64, 4, 3) in the sensor frame
+    want = np.einsum("kij,hkj->hki", rot, sensor @ mrot.T + mount) + pos
+    np.testing.assert_allclose(got, want[r > 0], atol=1e-9)
+    assert len(got) == 64 * 4 - 1
+
+
+def _cylinder_cloud(centres: list[tuple[float, float]], rng: np.random.Generator
+                    ) -> np.ndarray:
+    pts = []
+    for cx, cy in centres:
+        a = rng.uniform(0, 2 * np.pi, 6000)
+        z = rng.uniform(0, 12, 6000)
+        r = 0.15
+        pts.append(np.column_stack([cx + r * np.cos(a), cy + r * np.sin(a), z]))
+    g = rng.uniform(-25, 25, (40000, 2))
+    pts.append(np.column_stack([g, np.zeros(len(g))]))
+    return np.concatenate(pts)
+
+
+def test_incremental_map_finds_what_the_one_shot_algorithm_finds() -> None:
+    rng = np.random.default_rng(0)
+    # stems inside tiles and right on tile borders (10 m tiles)
+    centres = [(-12.0, 3.0), (0.05, 0.05), (9.97, -4.0), (15.0, 15.0), (-5.0, -19.99)]
+    cloud = _cylinder_cloud(centres, rng)
+    prm = stem_params("tuned")
+    smap = StemMap(prm, voxel_m=0.01)
+    for chunk in np.array_split(rng.permutation(cloud), 7):  # arriving frame by frame
+        smap.add(chunk)
+        smap.update(0.0)  # one tile per frame
+    smap.update()
+    inc = smap.forest("t")
+    one = identify_stems(cloud, prm)
+    got = np.array(sorted((o["cp"][0], o["cp"][1]) for o in inc["objects"]))
+    want = np.array(sorted((o["cp"][0], o["cp"][1]) for o in one["objects"]))
+    assert len(got) == len(want) == len(centres)
+    np.testing.assert_allclose(got, want, atol=0.02)
+    np.testing.assert_allclose(got, sorted(centres), atol=0.03)
+    for o in inc["objects"]:
+        assert o["dbh"] == pytest.approx(0.30, abs=0.01)
+
+
+def test_map_eviction_keeps_the_stems_of_dropped_tiles() -> None:
+    rng = np.random.default_rng(1)
+    cloud = _cylinder_cloud([(-20.0, 0.0), (20.0, 0.0)], rng)
+    smap = StemMap(stem_params("tuned"), voxel_m=0.01, max_points=11_000)
+    left, right = cloud[cloud[:, 0] < 0], cloud[cloud[:, 0] >= 0]
+    smap.add(left, np.array([-20.0, 0.0]))
+    smap.add(right, np.array([20.0, 0.0]))  # the machine moved: the left tiles go
+    smap.update()
+    assert smap.stats.evicted_points > 0
+    assert smap.stats.points <= 11_000
+    xs = sorted(round(o["cp"][0]) for o in smap.forest("t")["objects"])
+    assert xs == [-20, 20]
+
+
+def test_publications_over_http_and_file_are_kept_and_checked(tmp_path: Path) -> None:
+    inbox = Inbox(tmp_path / "sic")
+    server = PublishServer(inbox).start()
+    target = tmp_path / "published.json"
+    watcher = FileWatcher(inbox, target, period_s=0.02)
+    watcher.start()
+    try:
+        def post(body: bytes, path: str = "/publish") -> tuple[int, dict]:
+            url = server.url.replace("/publish", path)
+            req = urllib.request.Request(url, data=body, method="POST")
+            try:
+                with urllib.request.urlopen(req) as r:
+                    return r.status, json.loads(r.read())
+            except urllib.error.HTTPError as e:
+                return e.code, json.loads(e.read())
+
+        ok = json.dumps({"objects": [{"cp": [1.0, 2.0, 0.0], "quality": 1}]}).encode()
+        assert post(ok) == (200, {"n": 1, "valid": True, "error": None})
+        code, body = post(b'{"objects": [{"cp": [1, 2, 3], "class": "Q"}]}')
+        assert code == 400 and "class" in body["error"]
+        assert post(ok, "/elsewhere")[0] == 404
+        tmp = target.with_suffix(".tmp")
+        tmp.write_text('{"objects": []}')
+        tmp.replace(target)
+        for _ in range(100):
+            if len(inbox.items) == 3:
+                break
+            threading.Event().wait(0.02)
+    finally:
+        watcher.close()
+        server.close()
+        inbox.close()
+    assert [(p.via, p.valid) for p in inbox.items] == [("http", True), ("http", False),
+                                                       ("file", True)]
+    assert (tmp_path / "sic" / "0002.json").read_bytes() == \
+        b'{"objects": [{"cp": [1, 2, 3], "class": "Q"}]}'
+    rows = [json.loads(x) for x in (tmp_path / "sic" / "index.ndjson").read_text()
+            .splitlines()]
+    assert [r["n"] for r in rows] == [1, 2, 3]
+    assert inbox.valid[-1].objects == 0
+
+
+def test_sic_command_fills_placeholders_without_a_shell() -> None:
+    env = {"TCF_LIDAR_PORT": "7502", "TCF_METADATA": "/r/metadata.json"}
+    argv = sic_command("my_sic --port {lidar_port} --meta '{metadata}' 'a b'", env, False)
+    assert argv == ["my_sic", "--port", "7502", "--meta", "/r/metadata.json", "a b"]
+    assert sic_command("x {lidar_port} | y", env, True) == "x 7502 | y"
+    with pytest.raises(ValueError, match=r"unknown placeholder \{lidar_prot\}"):
+        sic_command("x {lidar_prot}", env, False)
+    # braces that are not placeholders stay (code passed to an interpreter)
+    assert sic_command("p -c 'd = {\"a\": 1}; print(d)'", env, False) == \
+        ["p", "-c", 'd = {"a": 1}; print(d)']
+    with pytest.raises(ValueError, match="empty"):
+        sic_command("  ", env, False)
