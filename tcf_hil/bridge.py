@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, cast
 
 from emulators.harvester import BusSpec, SimClock
 from emulators.lidar import SensorApi
@@ -286,7 +286,8 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                 nonlocal lidar_result
                 try:
                     lidar_result = stream_lidar(scn, sensor_ip=sensor_ip, record=out, run=run,
-                                                stop=end_stream, clock=clock, progress=progress)
+                                                stop=end_stream, clock=clock, progress=progress,
+                                                pcap_in_place=True)
                 except BaseException as err:
                     lidar_error.append(err)
 
@@ -369,7 +370,7 @@ def _environment(out: Path, meta: Any, spec: BusSpec, api: SensorApi, publish_ur
     env.update({
         "TCF_RUN_DIR": str(out.resolve()),
         "TCF_METADATA": str((out / "metadata.json").resolve()),
-        "TCF_SENSOR_URL": f"http://{api.address[0]}:{api.address[1]}",
+        "TCF_SENSOR_URL": f"http://{cast(str, api.address[0])}:{api.address[1]}",
         "TCF_SENSOR_HOST": sensor_ip,
         "TCF_LIDAR_BIND": meta.udp_dest,
         "TCF_LIDAR_PORT": str(meta.udp_port_lidar),

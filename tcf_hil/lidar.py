@@ -255,9 +255,12 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
         nonlocal written
         if fh is None:
             return
+        n = written
         while written < sent.value and pending:
             fh.write(pending.popleft())
             written += 1
+        if written != n:
+            fh.flush()  # whole frames reach the file: a crash leaves a readable capture
 
     slot = produced = 0
     try:
@@ -310,7 +313,8 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                  stop: threading.Event | None = None,
                  progress: Callable[[int, int], None] | None = None,
                  realtime: bool = True, run: LidarRun | None = None,
-                 clock: Any = None, **run_kw: Any) -> RecordResult:
+                 clock: Any = None, pcap_in_place: bool = False,
+                 **run_kw: Any) -> RecordResult:
     """Send the run live over UDP from ``sensor_ip`` to ``dest``, paced from the simulation
     clock (``speed`` 1.0 = real time, 0 = as fast as possible).
 
@@ -322,6 +326,9 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     or when ``stop`` is set. ``run``: an already built :class:`LidarRun` (``run_kw`` are then
     ignored); ``clock``: a shared :class:`~emulators.harvester.SimClock` that decides when
     each packet is due (instead of the first packet's wall time; ``speed`` is the clock's).
+    ``pcap_in_place``: write ``lidar.pcap`` under its final name as frames go out (the
+    recorder of a run: a crash leaves every whole frame sent) instead of renaming it into
+    place at the end.
     """
     from multiprocessing.shared_memory import SharedMemory
 
@@ -348,8 +355,9 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
             rec: _Recording | None = None
             if out is not None:
                 ensure_dir(out)
-                rec = _Recording(str(outputs.enter_context(atomic_path(out / "lidar.pcap"))),
-                                 sensor_ip, dest)
+                path = out / "lidar.pcap" if pcap_in_place else \
+                    outputs.enter_context(atomic_path(out / "lidar.pcap"))
+                rec = _Recording(str(path), sensor_ip, dest)
             child = ctx.Process(target=_produce, args=(run, tx, free, shm, slot_bytes,
                                                        child_stop, sent, rec),
                                 name="lidar-frames", daemon=True)

@@ -395,6 +395,7 @@ class OnboardSic:
         self.stop = threading.Event()
         self.cost = FrameCost()
         self.waited_s = 0.0
+        self.t_start = time.monotonic()
         self.stem_cost = FrameCost()
 
     @staticmethod
@@ -434,7 +435,7 @@ class OnboardSic:
         can = CanPose(cfg, track)
         rx: LidarReceiver | None = None
         pub = Publisher(cfg.publish)
-        t_start = time.monotonic()
+        t_start = self.t_start = time.monotonic()
         try:
             can.read_constants()
             smap = StemMap(self.params, voxel_m=cfg.voxel_m, max_points=cfg.max_points,
@@ -529,7 +530,9 @@ class OnboardSic:
                             "params": asdict(self.params)}
         doc["sic"] = {"final": final, "frames": st.frames, "frames_lost": st.frames_lost,
                       "poses": track.received, "map_points": smap.stats.points,
-                      "frame_cost": self.cost.summary()}
+                      "frame_cost": self.cost.summary(), "stem_cost": self.stem_cost.summary(),
+                      "cpu_s": round(time.process_time(), 3),
+                      "wall_s": round(time.monotonic() - self.t_start, 3)}
         return doc
 
     def _summary(self, st: LidarStats, track: PoseTrack, smap: Any, pub: Publisher

@@ -13,6 +13,7 @@ transform smears stems into none or into many)."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
@@ -201,3 +202,62 @@ def test_sigterm_ends_the_run_with_valid_files_and_a_partial_score(tmp_path: Pat
     assert rec["manifest"]["sic"]["returncode"] == 0
     with pytest.raises(ProcessLookupError):
         os.kill(rec["manifest"]["sic"]["pid"], 0)
+
+
+def test_replay_loop_keeps_frame_id_and_time_going(tmp_path: Path) -> None:
+    """`tcf-hil replay --loop` on a 1 s recording: the lidar stream goes on past the end with
+    frame_id + 1 and later column time stamps (valid CRCs), and the pose time on CAN moves
+    on with it."""
+    from protocols.harvester import PoseAssembler
+    from protocols.ouster import decode_lidar_packet
+
+    run = tmp_path / "run"
+    sic = "{python} -c \"import time; time.sleep(60)\""
+    p = tcf("run", "forest-ii", "--mode", "512x10", "--duration", "1", "--grace", "0",
+            "--out", str(run), "--sic", sic)
+    assert p.returncode == 3, p.stdout + p.stderr  # a silent SIC; the recording is whole
+    assert_valid_recording(run, frames_at_least=10)
+    meta = SensorMetadata.loads((run / "metadata.json").read_text())
+    fmt = meta.packet_format
+    import socket
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
+    sock.bind(("127.0.0.1", meta.udp_port_lidar))  # free again: the run has ended
+    sock.settimeout(10.0)
+    man = json.loads((run / "manifest.json").read_text())
+    from emulators.canbus import SocketcandServer
+
+    srv = SocketcandServer("127.0.0.1", 0)
+    srv.start()
+    bus = can.Bus(interface="socketcand", host="127.0.0.1", port=srv.port, channel="vcan0")
+    proc = subprocess.Popen([*TCF, "replay", str(run), "--loop", "--speed", "2", "--can",
+                             f"socketcand:127.0.0.1:{srv.port}:vcan0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        frames: dict[int, int] = {}
+        last_ts: list[int] = []
+        while len(frames) < 25:
+            data = sock.recv(65536)
+            pk = decode_lidar_packet(fmt, data, init_id=meta.init_id, prod_sn=meta.prod_sn)
+            frames[pk.frame_id] = frames.get(pk.frame_id, 0) + 1
+            last_ts.append(int(pk.timestamps_ns[-1]))
+        pa = PoseAssembler(man["can_node"]["node_id"])
+        times = []
+        while len(times) < 5:
+            m = bus.recv(5.0)
+            assert m is not None
+            pose = pa.feed(m.arbitration_id, bytes(m.data))
+            if pose is not None:
+                times.append(pose.time_us)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
+        bus.shutdown()
+        srv.stop()
+        sock.close()
+    ids = sorted(frames)
+    assert ids == list(range(ids[0], ids[0] + len(ids)))  # continuous across the loop
+    assert ids[-1] >= 12  # more frames than the 10 recorded
+    assert all(b > a for a, b in itertools.pairwise(last_ts))
+    assert times == sorted(times) and len(set(times)) == len(times)

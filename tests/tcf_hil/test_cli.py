@@ -121,22 +121,24 @@ def test_internal_errors_exit_4_not_0(monkeypatch: pytest.MonkeyPatch, tmp_path:
 
 
 def test_demo_through_the_console_script(tmp_path: Path) -> None:
-    """The README's main command, as installed: the real `tcf-hil` script in a new process."""
+    """The README's main command, as installed: the real `tcf-hil` script in a new process,
+    Forest V at 1024x10 on the wire with the reference SIC as its own process."""
     exe = shutil.which("tcf-hil") or f"{sys.executable} -m tcf_hil.cli"
     proc = subprocess.run([*exe.split(), "demo"], cwd=tmp_path, capture_output=True, text=True,
                           timeout=600, env=dict(os.environ, COLUMNS="160"))
     assert proc.returncode == 0, proc.stderr
-    assert "offline Experiment 1" in proc.stdout
+    assert "Evaluation score (wc)" in proc.stdout and "report.html" in proc.stdout
     runs = list((tmp_path / "runs").iterdir())
     assert len(runs) == 1
-    summary = json.loads((runs[0] / "experiment1.json").read_text())
-    rows = {(r["forest"], r["preset"]): r for r in summary["rows"]}
-    assert set(rows) == {(f, p) for f in ("forest-v", "forest-vi") for p in ("tuned", "paper")}
-    assert rows[("forest-v", "paper")]["paper_accuracy_percent"] == 90.9
-    assert rows[("forest-v", "tuned")]["accuracy_percent"] > 90.0
-    for f in ("forest-v", "forest-vi"):
-        assert (runs[0] / f / "cloud.pcd").stat().st_size > 1_000_000
-        assert (runs[0] / f / "tuned" / "em_heatmap.png").exists()
+    man = json.loads((runs[0] / "manifest.json").read_text())
+    assert (man["scenario"], man["mode"], man["status"]) == ("forest-v", "1024x10", "complete")
+    assert man["lidar"]["frames_sent"] == 1000
+    score = json.loads((runs[0] / "score.json").read_text())
+    assert score["all_trees"]["n_ground_truth"] == 550
+    assert score["all_trees"]["evaluation_score_percent"] > 80.0
+    for name in ("lidar.pcap", "can.log", "report.html", "ground_truth.json",
+                 "visibility.json", "sic/index.ndjson"):
+        assert (runs[0] / name).stat().st_size > 0
 
 
 def test_an_output_that_cannot_be_written_is_exit_1(tmp_path: Path,

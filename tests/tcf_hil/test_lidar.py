@@ -215,13 +215,15 @@ def test_a_stopped_stream_records_exactly_the_frames_it_sent(tmp_path: Path) -> 
     from tcf_hil.lidar import stream_lidar
 
     stop = threading.Event()
-    timer = threading.Timer(0.6, stop.set)
-    timer.start()
+
+    def step(done: int, _total: int) -> None:  # stop mid-stream, the producer ahead
+        if done >= 5:
+            stop.set()
+
     r = stream_lidar(load_scenario("forest-ii"), mode="512x20", max_frames=200, stop=stop,
                      record=tmp_path, udp_port_lidar=_free_udp_port(),
-                     udp_port_imu=_free_udp_port())
-    timer.cancel()
-    assert 3 <= r.frames < 200
+                     udp_port_imu=_free_udp_port(), progress=step)
+    assert 5 <= r.frames < 200
     rec = opcap.PcapFrameSetSource(str(tmp_path / "lidar.pcap"),
                                    meta=[str(tmp_path / "metadata.json")])
     ids = [fs[0].frame_id for fs in rec]
