@@ -134,17 +134,26 @@ class RunResult:
 
 
 class _SicProcess:
-    """The SIC under test: stdout read line by line (NDJSON forests; other lines kept as its
-    log), stderr straight to a file."""
+    """The SIC under test in a session (process group) of its own: stdout read line by line
+    (NDJSON forests; other lines kept as its log), stderr straight to a file.
+
+    Raises:
+        OSError: the program cannot be started (the log files are closed again).
+    """
 
     def __init__(self, argv: list[str] | str, env: dict[str, str], out: Path, inbox: Inbox,
                  shell: bool) -> None:
         self.stdout_log: IO[bytes] = open(out / "sic" / "stdout.log", "wb")
         self.stderr_log: IO[bytes] = open(out / "sic" / "stderr.log", "wb")
         self.inbox = inbox
-        self.proc = subprocess.Popen(argv, shell=shell, env=env, stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.PIPE, stderr=self.stderr_log,
-                                     start_new_session=True)
+        try:
+            self.proc = subprocess.Popen(argv, shell=shell, env=env, stdin=subprocess.DEVNULL,
+                                         stdout=subprocess.PIPE, stderr=self.stderr_log,
+                                         start_new_session=True)
+        except OSError:
+            self.stdout_log.close()
+            self.stderr_log.close()
+            raise
         self.signalled: str | None = None  # the signal the bench had to send, if any
         self.reader = threading.Thread(target=self._read, name="sic-stdout", daemon=True)
         self.reader.start()
@@ -163,26 +172,40 @@ class _SicProcess:
     def poll(self) -> int | None:
         return self.proc.poll()
 
-    def end(self, grace_s: float) -> int:
-        """Wait ``grace_s`` for it to finish, then SIGTERM (its cue to publish and exit),
-        then SIGKILL: the whole process group, so its children go too."""
-        try:
-            return self.proc.wait(grace_s)
-        except subprocess.TimeoutExpired:
-            pass
+    def end(self, grace_s: float, stop: threading.Event | None = None) -> int:
+        """Wait ``grace_s`` (or until ``stop``) for it to finish, then SIGTERM (its cue to
+        publish and exit), then SIGKILL; then whatever is left of its process group."""
+        deadline = time.monotonic() + grace_s
+        while self.proc.poll() is None:
+            if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
+                self._terminate()
+                break
+            time.sleep(0.05)
+        self._end_group()
+        return self.proc.wait()
+
+    def _terminate(self) -> None:
         for sig, wait in ((signal.SIGTERM, 15.0), (signal.SIGKILL, 5.0)):
             self.signalled = sig.name
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(self.proc.pid, sig)
             try:
-                return self.proc.wait(wait)
+                self.proc.wait(wait)
+                return
             except subprocess.TimeoutExpired:
                 continue
-        return self.proc.wait()
+
+    def _end_group(self) -> None:
+        """Children the SIC left behind (a wrapper script's, a shell's) go too."""
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            try:
+                os.killpg(self.proc.pid, sig)
+            except (ProcessLookupError, PermissionError):
+                return
+            time.sleep(0.2)
 
     def close(self) -> None:
-        if self.proc.poll() is None:
-            self.end(0.0)
+        self.end(0.0)
         self.reader.join(timeout=5.0)
         self.stdout_log.close()
         self.stderr_log.close()
@@ -229,8 +252,7 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
         run.frames = max(1, min(run.frames, round(duration_s * run.meta.frequency_hz)))
     node_cfg = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed,
                                             RUN_T0_NS).node_config()
-    meta_path = out / "metadata.json"
-    write_bytes_atomic(meta_path, run.meta.dumps().encode())
+    write_bytes_atomic(out / "metadata.json", run.meta.dumps().encode())
     manifest: dict[str, Any] = {
         "tcf_hil_run": 1, "status": "running", "versions": _versions(),
         "scenario": scn.name, "seed": run.forest.seed, "mode": mode, "profile": profile,
@@ -250,19 +272,17 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
     lidar_result: Any = None
     lidar_error: list[BaseException] = []
     harv_result: list[Any] = []
+    end_stream = threading.Event()
+    harv_stop = threading.Event()
+    forked = threading.Event()
+    threads: list[threading.Thread] = []
     try:
         with open_bus(can, announce=announce) as spec, SensorApi(
-                run.meta, "127.0.0.1", 0) as api:
+                run.meta, "127.0.0.1", 0, fixed=True) as api:
             env = _environment(out, run.meta, spec, api, server.url, sensor_ip,
                                scn.harvester.node_id)
             manifest["endpoints"] = {k: v for k, v in env.items() if k.startswith("TCF_")}
-            write_json_atomic(out / "manifest.json", manifest)
-            watcher = FileWatcher(inbox, Path(env["TCF_PUBLISH_FILE"]))
-            watcher.start()
             argv = sic_command(sic, env, shell)
-            announce(f"SIC: {argv if isinstance(argv, str) else shlex.join(argv)}")
-            sic_proc = _SicProcess(argv, env, out, inbox, shell)
-            manifest["sic"]["pid"] = sic_proc.proc.pid
             t0 = run.track.t0_ns
             lead_ns = round(lead_s * 1e9)  # wall time before the first lidar packet is due
             clock = SimClock.start(t0, speed, lead_ns=lead_ns)
@@ -272,8 +292,7 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             unix_at_t0 = time.time_ns() + (clock.origin_monotonic_ns - time.monotonic_ns())
             manifest["clock"] = {"sim_t0_ns": t0, "unix_ns_at_sim_t0": unix_at_t0,
                                  "speed": speed, "lead_s": lead_s}
-            end_stream = threading.Event()
-            harv_stop = threading.Event()
+            write_json_atomic(out / "manifest.json", manifest)  # replayable from here on
             seconds = run.frames / run.meta.frequency_hz + 1.0
 
             def harvester() -> None:
@@ -287,17 +306,32 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                 try:
                     lidar_result = stream_lidar(scn, sensor_ip=sensor_ip, record=out, run=run,
                                                 stop=end_stream, clock=clock, progress=progress,
-                                                pcap_in_place=True)
+                                                pcap_in_place=True, forked=forked)
                 except BaseException as err:
                     lidar_error.append(err)
+                finally:
+                    forked.set()
 
-            th_h = threading.Thread(target=harvester, name="harvester", daemon=True)
+            # the frame producer forks first, before the threads and the child below exist
             th_l = threading.Thread(target=lidar, name="lidar", daemon=True)
-            th_h.start()
             th_l.start()
+            threads.append(th_l)
+            forked.wait(60.0)
+            watcher = FileWatcher(inbox, Path(env["TCF_PUBLISH_FILE"]))
+            watcher.start()
+            announce(f"SIC: {argv if isinstance(argv, str) else shlex.join(argv)}")
+            try:
+                sic_proc = _SicProcess(argv, env, out, inbox, shell)
+                manifest["sic"]["pid"] = sic_proc.proc.pid
+            except OSError as err:
+                status, message = "sic-failed", f"cannot start the SIC: {err}"
+                end_stream.set()
+            th_h = threading.Thread(target=harvester, name="harvester", daemon=True)
+            th_h.start()
+            threads.append(th_h)
             announce(f"run: lidar to 127.0.0.1:{lidar_port}, sensor API {env['TCF_SENSOR_URL']}, "
                      f"CAN {spec}; {run.frames} frames")
-            while th_l.is_alive():
+            while th_l.is_alive() and sic_proc is not None:
                 th_l.join(0.2)
                 if stop.is_set():
                     status, message = "interrupted", "stopped by the user"
@@ -312,17 +346,22 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             th_l.join()
             if lidar_error:
                 raise lidar_error[0]
-            if status == "complete":
-                announce("stream ended; waiting for the SIC's final forest ...")
-            rc = sic_proc.end(grace_s if status == "complete" else 0.0)
-            harv_stop.set()
-            th_h.join(timeout=30.0)
+            if sic_proc is not None:
+                if status == "complete":
+                    announce("stream ended; waiting for the SIC's final forest ...")
+                rc = sic_proc.end(grace_s if status == "complete" else 0.0, stop)
+                if stop.is_set() and status == "complete":
+                    status, message = "interrupted", "stopped by the user"
     except BaseException as err:
         status = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
         message = message or f"{type(err).__name__}: {err}"
         if status == "failed":
             raise
     finally:
+        end_stream.set()
+        harv_stop.set()
+        for th in threads:
+            th.join(timeout=60.0)
         if sic_proc is not None:
             sic_proc.close()
             rc = sic_proc.proc.returncode
@@ -344,13 +383,19 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
         if harv_result:
             h = harv_result[0]
             manifest["can"] = {"bus": h.spec, "node_id": h.node_id, "frames_logged": h.log_frames,
-                               "log_error": h.log_error,
-                               "tpdo_batches": h.stats.get("batches", None)}
+                               "log_error": h.log_error}
         manifest["publications"] = {"total": len(inbox.items), "valid": len(inbox.valid),
                                     "invalid": len(inbox.invalid),
                                     "non_json_stdout_lines": inbox.non_json_lines}
         write_json_atomic(out / "manifest.json", manifest)
-    ended_by = sic_proc.signalled if sic_proc is not None else None
+    status, message = conclude(status, message, rc, sic_proc, grace_s, inbox, out)
+    return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)
+
+
+def conclude(status: str, message: str, rc: int | None, proc: _SicProcess | None,
+             grace_s: float, inbox: Inbox, out: Path) -> tuple[str, str]:
+    """The run's final status and message from how the SIC ended and what it published."""
+    ended_by = proc.signalled if proc is not None else None
     if status == "complete" and ended_by:
         message = (f"the SIC did not exit within {grace_s:g} s after the stream; ended with "
                    f"{ended_by}")
@@ -361,7 +406,7 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
         message = (message + "; " if message else "") + (
             f"no valid forest published ({len(inbox.invalid)} invalid, "
             f"{inbox.non_json_lines} non-JSON stdout lines; see {out / 'sic'})")
-    return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)
+    return status, message
 
 
 def _environment(out: Path, meta: Any, spec: BusSpec, api: SensorApi, publish_url: str,

@@ -70,7 +70,8 @@ def cli(ctx: click.Context, traceback: bool) -> None:
 
     \b
     Start here:
-      tcf-hil demo                          the main job (today: offline Experiment 1)
+      tcf-hil demo                          the main job: a live run of the reference SIC
+      tcf-hil run forest-v --sic "./my_sic --port {lidar_port}"   your onboard program
       tcf-hil scenario list                 the paper's Forests I-X
       tcf-hil forest generate forest-v --out forest-v/
       tcf-hil score ground_truth.json observed.json --plots plots/
@@ -88,7 +89,7 @@ def _run_dir(out: Path | None) -> Path:
     return out or Path("runs") / _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
 
 
-def _bridge(scn: Any, sic: str, out: Path, **kw: Any) -> int:
+def _bridge(scn: Any, sic: str, out: Path, replay_dir: Path | None = None, **kw: Any) -> int:
     """Run the bridge with a progress bar; Ctrl-C / SIGTERM end it cleanly (the partial
     recording is kept and scored); prints the score table. Returns the exit status."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
@@ -115,8 +116,14 @@ def _bridge(scn: Any, sic: str, out: Path, **kw: Any) -> int:
             def step(done: int, total: int) -> None:
                 prog.update(task, completed=done, total=total)
 
-            r = run_bridge(scn, sic, out, stop=stop, announce=err_console.print,
-                           progress=step, **kw)
+            if replay_dir is not None:
+                from tcf_hil.replay import replay_run
+
+                r = replay_run(replay_dir, sic, out, stop=stop, announce=err_console.print,
+                               **kw)
+            else:
+                r = run_bridge(scn, sic, out, stop=stop, announce=err_console.print,
+                               progress=step, **kw)
     finally:
         signal.signal(signal.SIGINT, previous)
         signal.signal(signal.SIGTERM, previous_term)
@@ -150,7 +157,9 @@ def _print_run(r: Any) -> None:
                   f"({r.invalid_publications} invalid), SIC exit code {r.sic_returncode}")
     if r.message:
         err_console.print(f"[bold]{r.status}[/]: {r.message}")
-    console.print(f"run directory: {r.out}/  report: {r.out / 'report.html'}")
+    report = r.out / "report.html"
+    console.print(f"run directory: {r.out}/" + (f"  report: {report}" if report.exists()
+                                               else ""))
 
 
 @cli.command()
@@ -230,13 +239,10 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     except ValueError as err:
         raise click.BadParameter(str(err), param_hint="--sic") from err
     if replay_dir is not None:
-        from tcf_hil.replay import replay_run
-
-        r = replay_run(replay_dir, sic, _run_dir(out), speed=speed, shell=shell,
-                       can_spec=can_spec, grace_s=grace, announce=err_console.print)
-        _print_run(r)
-        if r.status != "complete" or r.publications == r.invalid_publications:
-            raise SystemExit(3)
+        code = _bridge(None, sic, _run_dir(out), replay_dir, speed=speed, shell=shell,
+                       can_spec=can_spec, grace_s=grace)
+        if code:
+            raise SystemExit(code)
         return
     if scenario_name is None:
         raise click.UsageError("give a SCENARIO (a preset name or TOML file) or --replay RUN_DIR")

@@ -314,7 +314,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                  progress: Callable[[int, int], None] | None = None,
                  realtime: bool = True, run: LidarRun | None = None,
                  clock: Any = None, pcap_in_place: bool = False,
-                 **run_kw: Any) -> RecordResult:
+                 forked: threading.Event | None = None, **run_kw: Any) -> RecordResult:
     """Send the run live over UDP from ``sensor_ip`` to ``dest``, paced from the simulation
     clock (``speed`` 1.0 = real time, 0 = as fast as possible).
 
@@ -328,7 +328,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     each packet is due (instead of the first packet's wall time; ``speed`` is the clock's).
     ``pcap_in_place``: write ``lidar.pcap`` under its final name as frames go out (the
     recorder of a run: a crash leaves every whole frame sent) instead of renaming it into
-    place at the end.
+    place at the end. ``forked`` is set once the frame producer process exists.
     """
     from multiprocessing.shared_memory import SharedMemory
 
@@ -362,6 +362,8 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                                                        child_stop, sent, rec),
                                 name="lidar-frames", daemon=True)
             child.start()
+            if forked is not None:
+                forked.set()
             tx.close()
             ready: collections.deque[tuple[str, Any]] = collections.deque()
 

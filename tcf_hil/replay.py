@@ -27,7 +27,7 @@ from emulators.harvester import BusSpec
 from emulators.lidar import SensorApi
 from protocols.harvester import HARVESTER_OD, POSE, decode_pdo, encode_pdo
 from protocols.harvester._codec import TIME_WRAP_US
-from protocols.ouster import SensorMetadata, crc64_xz_rows
+from protocols.ouster import IMU_PACKET_BYTES, SensorMetadata, crc64_xz_rows
 from protocols.pcap import read_udp
 from tcf_hil._io import read_json
 from tcf_hil.errors import InputError
@@ -66,11 +66,18 @@ class Recording:
         if (run_dir / "can.log").exists():
             for m in can.LogReader(str(run_dir / "can.log")):
                 frames.append((t0 + round((m.timestamp * 1e9 - unix0) * speed), m))
-        n_frames = sum(1 for _t, p, _b in lidar if p == meta.udp_port_lidar) // max(
-            1, meta.packet_format.packets_per_frame)
-        times = [t for t, _p, _b in lidar] + [t for t, _m in frames]
-        span = (max(times) - min(times) + 10_000_000) if times else 0
+        lt = [t for t, p, _b in lidar if p == meta.udp_port_lidar]
+        n_frames = len(lt) // max(1, meta.packet_format.packets_per_frame)
+        # a pass of a loop lasts the lidar recording plus one frame period, so that the
+        # next pass's first frame follows the last at the sensor's own rate
+        period = 1_000_000_000 // meta.frequency_hz
+        span = (max(lt) - min(lt) + period) if lt else 0
         return cls(meta, lidar, frames, n_frames, span)
+
+    @property
+    def lidar_start_ns(self) -> int:
+        lt = [t for t, p, _b in self.lidar if p == self.meta.udp_port_lidar]
+        return min(lt) if lt else 0
 
 
 def _shift_lidar(meta: SensorMetadata, payload: bytes, dframe: int, dt_ns: int) -> bytes:
@@ -91,6 +98,13 @@ def _shift_lidar(meta: SensorMetadata, payload: bytes, dframe: int, dt_ns: int) 
     return arr.tobytes()
 
 
+def _shift_imu(payload: bytes, dt_ns: int) -> bytes:
+    if dt_ns == 0 or len(payload) != IMU_PACKET_BYTES:
+        return payload
+    ts = np.frombuffer(payload[:24], "<u8") + np.uint64(dt_ns)
+    return ts.astype("<u8").tobytes() + payload[24:]
+
+
 def _shift_can(msg: can.Message, node_id: int, dt_ns: int) -> can.Message:
     if dt_ns == 0:
         return msg
@@ -107,15 +121,21 @@ def events(rec: Recording, loop: bool, node_id: int) -> Iterator[tuple[int, str,
     """(sim ns, "udp"/"can", item) in time order, forever when ``loop``."""
     merged = sorted([(t, 0, i) for i, (t, _p, _b) in enumerate(rec.lidar)]
                     + [(t, 1, i) for i, (t, _m) in enumerate(rec.can)])
+    # after the first pass, only the frames of one span: the run's lead (the pose before
+    # the first lidar frame) and its tail are not driven again
+    lo = rec.lidar_start_ns
+    again = [e for e in merged if lo <= e[0] < lo + rec.span_ns]
     k = 0
     while True:
         dt = k * rec.span_ns
         dframe = k * rec.frames
-        for t, kind, i in merged:
+        for t, kind, i in merged if k == 0 else again:
             if kind == 0:
                 _t, port, payload = rec.lidar[i]
                 if port == rec.meta.udp_port_lidar:
                     payload = _shift_lidar(rec.meta, payload, dframe, dt)
+                else:
+                    payload = _shift_imu(payload, dt)
                 yield t + dt, "udp", (port, payload)
             else:
                 msg = rec.can[i][1]
@@ -221,7 +241,8 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
                announce: Callable[[str], None] = lambda s: None,
                eval_cfg: Any = None) -> Any:
     """``tcf-hil run --replay SRC --sic COMMAND``: another SIC scored on recorded traffic.
-    The new run directory holds the same recording, this SIC's publications and score."""
+    The new run directory holds the same recording (replayable in turn), this SIC's
+    publications and score. ``stop`` ends it early, as for a live run."""
     import datetime as _dt
     import shlex
 
@@ -230,6 +251,7 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
         _environment,
         _SicProcess,
         _versions,
+        conclude,
         finish_run,
         free_udp_port,
         sic_command,
@@ -242,11 +264,14 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
     src_man = read_json(src / "manifest.json")
     out = ensure_dir(out)
     ensure_dir(out / "sic")
-    copy_recording(src, out)
+    copy_recording(src, out)  # metadata.json as recorded: it describes lidar.pcap
     lidar_port = free_udp_port(sensor_ip, rec.meta.udp_port_lidar)
     imu_port = free_udp_port(sensor_ip, rec.meta.udp_port_imu)
     meta = rec.meta.with_changes(udp_port_lidar=lidar_port, udp_port_imu=imu_port)
-    write_bytes_atomic(out / "metadata.json", meta.dumps().encode())
+    meta_path = out / "metadata.json"
+    if meta != rec.meta:  # the recorded ports are taken: the SIC gets the ones used now
+        meta_path = out / "replay_metadata.json"
+        write_bytes_atomic(meta_path, meta.dumps().encode())
     node = dict(src_man.get("can_node") or {})
     node_id = int(node.get("node_id", 10))
     port_map = {rec.meta.udp_port_lidar: lidar_port, rec.meta.udp_port_imu: imu_port}
@@ -257,55 +282,77 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
         "replay_of": str(src.resolve()), "scenario": src_man.get("scenario"),
         "seed": src_man.get("seed"), "mode": src_man.get("mode"),
         "profile": src_man.get("profile"), "speed": speed, "clock": src_man.get("clock"),
-        "sic": {"command": sic, "shell": shell},
+        "can_node": src_man.get("can_node"), "sic": {"command": sic, "shell": shell},
         "started": _dt.datetime.now(_dt.UTC).isoformat(), "stopped": None,
     }
     inbox = Inbox(out / "sic")
     server = PublishServer(inbox).start()
     watcher: FileWatcher | None = None
     proc: _SicProcess | None = None
+    sdo: SdoResponder | None = None
+    th: threading.Thread | None = None
+    end = threading.Event()
     status, message, rc = "complete", "", None
     sent: dict[str, int] = {}
     try:
         with open_bus(can_spec, announce=announce) as spec, \
-                SensorApi(meta, "127.0.0.1", 0) as api:
+                SensorApi(meta, "127.0.0.1", 0, fixed=True) as api:
             env = _environment(out, meta, spec, api, server.url, sensor_ip, node_id)
+            env["TCF_METADATA"] = str(meta_path.resolve())
             manifest["endpoints"] = {k: v for k, v in env.items() if k.startswith("TCF_")}
             write_json_atomic(out / "manifest.json", manifest)
             watcher = FileWatcher(inbox, Path(env["TCF_PUBLISH_FILE"]))
             watcher.start()
             argv = sic_command(sic, env, shell)
-            announce(f"SIC: {argv if isinstance(argv, str) else shlex.join(argv)}")
             sdo = SdoResponder(spec, {**node, "node_id": node_id})
-            proc = _SicProcess(argv, env, out, inbox, shell)
-            end = threading.Event()
+            announce(f"SIC: {argv if isinstance(argv, str) else shlex.join(argv)}")
+            try:
+                proc = _SicProcess(argv, env, out, inbox, shell)
+                manifest["sic"]["pid"] = proc.proc.pid
+            except OSError as err:
+                status, message = "sic-failed", f"cannot start the SIC: {err}"
 
             def send() -> None:
                 sent.update(replay(src, speed=speed, sensor_ip=sensor_ip, spec=spec,
                                    node_id=node_id, stop=end, rec=rec))
 
-            stop.wait(lead_s)
-            th = threading.Thread(target=send, name="replay", daemon=True)
-            th.start()
-            announce(f"replaying {src} at {speed:g}x to 127.0.0.1:{lidar_port}, CAN {spec}")
-            while th.is_alive():
+            if proc is not None and not stop.wait(lead_s):
+                th = threading.Thread(target=send, name="replay", daemon=True)
+                th.start()
+                announce(f"replaying {src} at {speed:g}x to 127.0.0.1:{lidar_port}, "
+                         f"CAN {spec}")
+            while th is not None and th.is_alive():
                 th.join(0.2)
                 if stop.is_set():
-                    status, message = "interrupted", "stopped by the user"
                     break
-                if proc.poll() is not None:
+                if proc is not None and proc.poll() is not None:
                     rc = proc.poll()
                     status = "sic-exited"
                     message = f"the SIC exited with code {rc} before the replay ended"
                     break
             end.set()
-            th.join()
-            rc = proc.end(grace_s if status == "complete" else 0.0)
-            sdo.close()
+            if th is not None:
+                th.join()
+            if stop.is_set() and status == "complete":
+                status, message = "interrupted", "stopped by the user"
+            if proc is not None:
+                rc = proc.end(grace_s if status == "complete" else 0.0, stop)
+                if stop.is_set() and status == "complete":
+                    status, message = "interrupted", "stopped by the user"
+    except BaseException as err:
+        status = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
+        message = message or f"{type(err).__name__}: {err}"
+        if status == "failed":
+            raise
     finally:
+        end.set()
+        if th is not None:
+            th.join(timeout=30.0)
         if proc is not None:
             proc.close()
             rc = proc.proc.returncode
+        if sdo is not None:
+            sdo.close()
         if watcher is not None:
             watcher.close()
         server.close()
@@ -313,10 +360,10 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
         manifest.update(status=status, message=message,
                         stopped=_dt.datetime.now(_dt.UTC).isoformat(), replay_sent=sent)
         manifest["sic"]["returncode"] = rc
+        manifest["sic"]["ended_by"] = proc.signalled if proc is not None else None
         manifest["publications"] = {"total": len(inbox.items), "valid": len(inbox.valid),
                                     "invalid": len(inbox.invalid),
                                     "non_json_stdout_lines": inbox.non_json_lines}
         write_json_atomic(out / "manifest.json", manifest)
-    if not inbox.valid:
-        message = (message + "; " if message else "") + "no valid forest published"
+    status, message = conclude(status, message, rc, proc, grace_s, inbox, out)
     return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)

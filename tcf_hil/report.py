@@ -73,7 +73,7 @@ def write_report(path: Path, result: RunResult) -> None:
                                  f"truth / {len(latest)} observed"), "matched positions")
     tl = _img(timeline_png(result.timeline), "score timeline") if result.timeline else \
         "<p>No valid publication.</p>"
-    bad = "".join(f"<li>sic/{html.escape(p['file'])}: {html.escape(str(p['error']))}</li>"
+    bad = "".join(f"<li>{html.escape(p['file'])}: {html.escape(str(p['error']))}</li>"
                   for p in json.loads((result.out / "score.json").read_text())
                   ["invalid_publications"])
     title = f"tcf-hil run: {m.get('scenario')} {m.get('mode')}"

@@ -47,12 +47,14 @@ class SensorApi:
     """
 
     def __init__(self, meta: SensorMetadata, host: str = "127.0.0.1", port: int = 80,
-                 on_reinit: Callable[[SensorMetadata], None] | None = None) -> None:
+                 on_reinit: Callable[[SensorMetadata], None] | None = None, *,
+                 fixed: bool = False) -> None:
         self._lock = threading.Lock()
         self.meta = meta
         self.staged: dict[str, Any] = dict(meta.to_json()["config_params"])
         self.user_data: Any = ""
         self.on_reinit = on_reinit
+        self.fixed = fixed  # a run's sensor: a reinit that changes anything is refused
         self.requests: list[str] = []
         api = self
 
@@ -167,6 +169,15 @@ class SensorApi:
         if _truthy(query.get("reinit")):
             kw = {attr: self.staged[key] for key, attr in _CONFIG_KEYS.items()
                   if key in self.staged}
+            if self.fixed:
+                now = self.meta.to_json()["config_params"]
+                changed = sorted(k for k in self.staged if now.get(k) != self.staged[k])
+                self.staged = dict(now)
+                if changed:
+                    raise _HttpError(HTTPStatus.CONFLICT,
+                                     f"this sensor's configuration is fixed for the run "
+                                     f"(asked to change {', '.join(changed)})")
+                return 200, {}
             kw["init_id"] = (self.meta.init_id * 1103515245 + 12345) % (1 << 24) or 1
             try:
                 new = self.meta.with_changes(**kw)

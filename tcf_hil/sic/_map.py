@@ -176,11 +176,11 @@ class StemMap:
             if self.stats.points <= 0.8 * self.max_points:
                 break
             tile = self.tiles[ids[k]]
-            n = tile.points + tile.pending
-            if n == 0:
+            if tile.points + tile.pending == 0:
                 continue
             if tile.dirty:
-                self._run_tile(ids[k])
+                self._run_tile(ids[k])  # compacts: duplicates leave the count here
+            n = tile.points + tile.pending
             tile.chunks, tile.points, tile.pending = [], 0, 0
             self.stats.points -= n
             self.stats.evicted_points += n

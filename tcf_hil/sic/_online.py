@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import datetime as _dt
 import json
@@ -123,13 +122,15 @@ def load_metadata(cfg: SicConfig, timeout_s: float = 10.0) -> SensorMetadata:
 # ------------------------------------------------------------------------------------- pose
 class PoseTrack:
     """Poses from the bus, interpolated at any time stamp (linear in position and in the
-    unwrapped angles)."""
+    unwrapped angles). Kept in a preallocated array; a frame interpolates on the latest
+    ``window`` poses only (at 100 Hz, 40 s)."""
 
-    def __init__(self, capacity: int = 60_000) -> None:
+    def __init__(self, capacity: int = 60_000, window: int = 4096) -> None:
         self._lock = threading.Lock()
-        self._rows: collections.deque[tuple[float, ...]] = collections.deque(maxlen=capacity)
+        self._buf = np.empty((capacity, 7))
+        self._n = 0
+        self.window = window
         self._last_us: int | None = None
-        self._arr: FloatArray | None = None
         self.received = 0
 
     def add(self, time_raw_us: int, x: float, y: float, z: float, heading_deg: float,
@@ -140,36 +141,38 @@ class PoseTrack:
                 return  # repeated or out of order: keep the track monotonic
             self._last_us = t_us
             yaw = math.radians(90.0 - heading_deg)
-            if self._rows:
-                prev = self._rows[-1][4]
+            if self._n:
+                prev = float(self._buf[self._n - 1, 4])
                 yaw = prev + (yaw - prev + math.pi) % (2 * math.pi) - math.pi
-            self._rows.append((t_us * 1000.0, x, y, z, yaw, math.radians(pitch_deg),
-                               math.radians(roll_deg)))
-            self._arr = None
+            if self._n == len(self._buf):  # full: keep the newer half
+                half = len(self._buf) // 2
+                self._buf[:half] = self._buf[self._n - half:self._n]
+                self._n = half
+            self._buf[self._n] = (t_us * 1000.0, x, y, z, yaw, math.radians(pitch_deg),
+                                  math.radians(roll_deg))
+            self._n += 1
             self.received += 1
 
     def _shift_ns(self, t_ns: float) -> float:
         """The pose time is a 32-bit microsecond count (unwrapped from the first pose on):
         the multiple of 2^32 us that brings a lidar time stamp nearest the latest pose."""
-        last = self._rows[-1][0]
+        last = float(self._buf[self._n - 1, 0])
         wrap = TIME_WRAP_US * 1000.0
         return round((last - t_ns) / wrap) * wrap
 
     def covers(self, t_ns: float) -> bool:
         with self._lock:
-            if not self._rows:
+            if not self._n:
                 return False
-            return self._rows[-1][0] >= t_ns + self._shift_ns(t_ns)
+            return float(self._buf[self._n - 1, 0]) >= t_ns + self._shift_ns(t_ns)
 
     def at(self, t_ns: FloatArray) -> tuple[FloatArray, FloatArray] | None:
         """(positions (n, 3), rotations (n, 3, 3)) of the machine base at ``t_ns`` (lidar
         time stamps); None before the first two poses."""
         with self._lock:
-            if len(self._rows) < 2:
+            if self._n < 2:
                 return None
-            if self._arr is None:
-                self._arr = np.array(self._rows)
-            a = self._arr
+            a = self._buf[max(0, self._n - self.window):self._n].copy()
             shift = self._shift_ns(float(np.max(t_ns)))
         t = np.asarray(t_ns, dtype=np.float64) + shift
         cols = [np.interp(t, a[:, 0], a[:, k]) for k in range(1, 7)]
@@ -245,7 +248,8 @@ class LidarReceiver(threading.Thread):
     """Receives lidar packets and hands whole frames (an (n, packet_bytes) uint8 array) to a
     bounded queue; a full queue drops the oldest frame (counted)."""
 
-    def __init__(self, meta: SensorMetadata, bind: str, port: int, depth: int = 4) -> None:
+    def __init__(self, meta: SensorMetadata, bind: str, port: int, depth: int | None = None
+                 ) -> None:
         super().__init__(name="sic-lidar", daemon=True)
         self.meta = meta
         self.fmt = meta.packet_format
@@ -258,6 +262,9 @@ class LidarReceiver(threading.Thread):
                 break
         self.sock.bind((bind, port))
         self.sock.settimeout(0.2)
+        # 5 s of frames: the stem algorithm may hold the main thread for a while (a dense
+        # tile with the exact radius graph), after which it catches up
+        depth = depth or max(4, 5 * meta.frequency_hz)
         self.frames: queue.Queue[tuple[int, NDArray[np.uint8]] | None] = queue.Queue(depth)
         self.stats = LidarStats()
         self.stop = threading.Event()

@@ -99,6 +99,20 @@ def test_pose_track_interpolates_across_the_32_bit_time_wrap() -> None:
     assert not tr.covers((t0_us + 30_000) * 1000.0)
 
 
+def test_pose_track_matches_lidar_time_a_wrap_ahead_of_the_pose_count() -> None:
+    """The bus counts microseconds modulo 2^32 from the start; the lidar counts nanoseconds
+    without wrapping: 5 s past one wrap, the pose count reads 5 s."""
+    tr = PoseTrack(capacity=64, window=16)
+    base_us = (1 << 32) + 5_000_000
+    for k in range(100):  # also wraps the ring buffer (capacity 64)
+        t_us = base_us + k * 10_000
+        tr.add(t_us % (1 << 32), k * 0.01, 0.0, 0.0, 90.0, 0.0, 0.0)  # east at 1 m/s
+    q = np.array([(base_us + 955_000) * 1000.0])
+    assert tr.covers(float(q[0])) and tr.received == 100
+    pos, _ = tr.at(q)
+    assert pos[0, 0] == pytest.approx(0.955, abs=1e-9)
+
+
 def test_world_points_land_where_the_sdk_ray_model_puts_them() -> None:
     meta = os0_64_metadata("512x10", "RNG19_RFL8_SIG16_NIR16")
     mount = np.array([1.5, -0.5, 2.0])
