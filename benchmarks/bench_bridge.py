@@ -24,14 +24,30 @@ import time
 from pathlib import Path
 
 
-def one(forest: str, mode: str, preset: str, duration: float | None, keep: Path | None
-        ) -> dict:
+def record(forest: str, mode: str, duration: float | None, out: Path) -> None:
+    """A run whose SIC only waits: the emulators have the machine to themselves."""
+    cmd = [sys.executable, "-m", "tcf_hil.cli", "run", forest, "--mode", mode, "--out",
+           str(out), "--grace", "0", "--sic", "{python} -c \"import time; time.sleep(1e6)\""]
+    if duration:
+        cmd += ["--duration", str(duration)]
+    subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, COLUMNS="200"))
+    if not (out / "lidar.pcap").exists():
+        raise SystemExit(f"recording {forest} {mode} failed")
+
+
+def one(forest: str, mode: str, preset: str, duration: float | None, keep: Path | None,
+        replay: Path | None = None) -> dict:
     with tempfile.TemporaryDirectory(dir=keep) as tmp:
         out = Path(tmp) / "run"
-        cmd = [sys.executable, "-m", "tcf_hil.cli", "run", forest, "--mode", mode,
-               "--out", str(out), "--sic", f"{{python}} -m tcf_hil.sic --preset {preset}"]
-        if duration:
-            cmd += ["--duration", str(duration)]
+        sic = f"{{python}} -m tcf_hil.sic --preset {preset}"
+        if replay is not None:
+            cmd = [sys.executable, "-m", "tcf_hil.cli", "run", "--replay", str(replay),
+                   "--out", str(out), "--sic", sic]
+        else:
+            cmd = [sys.executable, "-m", "tcf_hil.cli", "run", forest, "--mode", mode,
+                   "--out", str(out), "--sic", sic]
+            if duration:
+                cmd += ["--duration", str(duration)]
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         p = subprocess.run(cmd, capture_output=True, text=True,
@@ -45,7 +61,11 @@ def one(forest: str, mode: str, preset: str, duration: float | None, keep: Path 
         last = json.loads((out / "sic" / f"{score['scored_publication']:04d}.json").read_text())
         sic = last["sic"]
         total_cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
-        stream_s = man["lidar"]["frames_sent"] / int(mode.split("x")[1])
+        frames = (man["lidar"]["frames_sent"] if "lidar" in man
+                  else json.loads((replay / "manifest.json").read_text())["lidar"]["frames_sent"]
+                  if replay else 0)
+        man.setdefault("lidar", {"frames_sent": frames, "pacing_us_p50_p99": [0.0, 0.0]})
+        stream_s = frames / int(mode.split("x")[1])
         a, s = score["all_trees"], score["seen_trees"]
         return {
             "forest": forest, "mode": mode, "preset": preset,
@@ -76,14 +96,24 @@ def main() -> None:
     ap.add_argument("--presets", default="tuned,paper")
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--replay", action="store_true",
+                    help="Record each forest x mode once (with a SIC that only waits), then "
+                         "run each preset on its replay: the SIC's cost without the "
+                         "emulators competing for the two cores.")
     args = ap.parse_args()
     rows = []
     for forest in args.forests.split(","):
         for mode in args.modes.split(","):
-            for preset in args.presets.split(","):
-                r = one(forest, mode, preset, args.duration, None)
-                rows.append(r)
-                print(json.dumps(r), flush=True)
+            with tempfile.TemporaryDirectory() as rec_tmp:
+                rec = None
+                if args.replay:
+                    rec = Path(rec_tmp) / "rec"
+                    record(forest, mode, args.duration, rec)
+                for preset in args.presets.split(","):
+                    r = one(forest, mode, preset, args.duration, None, rec)
+                    r["source"] = "replay" if rec else "live"
+                    rows.append(r)
+                    print(json.dumps(r), flush=True)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     keys = ["forest", "mode", "preset", "sic_ms_p50", "sic_ms_p99", "frames_lost",

@@ -261,3 +261,14 @@ def test_replay_loop_keeps_frame_id_and_time_going(tmp_path: Path) -> None:
     assert ids[-1] >= 12  # more frames than the 10 recorded
     assert all(b > a for a, b in itertools.pairwise(last_ts))
     assert times == sorted(times) and len(set(times)) == len(times)
+
+
+def test_a_sic_that_cannot_start_is_a_sic_failure_not_a_crash(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    p = tcf("run", "forest-ii", "--mode", "512x10", "--out", str(out), "--sic",
+            "./no-such-sic --port {lidar_port}")
+    assert p.returncode == 3, p.stdout + p.stderr
+    assert "cannot start the SIC" in p.stdout + p.stderr
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["status"] == "sic-failed"
+    assert json.loads((out / "score.json").read_text())["status"] == "sic-failed"

@@ -177,10 +177,12 @@ def test_map_eviction_keeps_the_stems_of_dropped_tiles() -> None:
     smap = StemMap(stem_params("tuned"), voxel_m=0.01, max_points=11_000)
     left, right = cloud[cloud[:, 0] < 0], cloud[cloud[:, 0] >= 0]
     smap.add(left, np.array([-20.0, 0.0]))
+    smap.add(left, np.array([-20.0, 0.0]))  # seen again: duplicates, counted once
     smap.add(right, np.array([20.0, 0.0]))  # the machine moved: the left tiles go
     smap.update()
     assert smap.stats.evicted_points > 0
-    assert smap.stats.points <= 11_000
+    held = sum(t.points + t.pending for t in smap.tiles.values())
+    assert smap.stats.points == held <= 11_000
     xs = sorted(round(o["cp"][0]) for o in smap.forest("t")["objects"])
     assert xs == [-20, 20]
 
@@ -239,3 +241,20 @@ def test_sic_command_fills_placeholders_without_a_shell() -> None:
         ["p", "-c", 'd = {"a": 1}; print(d)']
     with pytest.raises(ValueError, match="empty"):
         sic_command("  ", env, False)
+
+
+def test_the_run_sensor_api_refuses_a_reinit_that_changes_it() -> None:
+    from emulators.lidar import SensorApi
+
+    meta = os0_64_metadata("1024x10", "RNG19_RFL8_SIG16_NIR16", init_id=99)
+    api = SensorApi(meta, "127.0.0.1", 0, fixed=True)
+    try:
+        same = api.route("POST", "/api/v1/sensor/config", {"reinit": ["true"]},
+                         lambda: {"udp_dest": "@auto"}, "127.0.0.1")
+        assert same[0] == 200 and api.meta.init_id == 99
+        with pytest.raises(Exception, match="fixed for the run"):
+            api.route("POST", "/api/v1/sensor/config", {"reinit": ["true"]},
+                      lambda: {"lidar_mode": "2048x10"}, "127.0.0.1")
+        assert api.meta.mode == "1024x10" and api.meta.init_id == 99
+    finally:
+        api.server.server_close()
