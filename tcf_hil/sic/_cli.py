@@ -39,8 +39,9 @@ _D = SicConfig.from_env()
               show_default=True, help="Seconds between publications.")
 @click.option("--idle", "idle_s", type=click.FloatRange(min=0.1), default=3.0,
               show_default=True, help="End of stream after this long without a packet.")
-@click.option("--voxel", "voxel_m", type=click.FloatRange(min=0.001), default=0.03,
-              show_default=True, help="Voxel map resolution, m.")
+@click.option("--voxel", "voxel_m", type=click.FloatRange(min=0.001), default=None,
+              help="Voxel map resolution, m (default 0.03 for tuned, 0.1 for paper: about "
+                   "the paper's point density).")
 @click.option("--max-points", type=click.IntRange(min=10_000), default=6_000_000,
               show_default=True, help="Voxel map cap (farthest tiles dropped beyond it).")
 def sic_command(**kw: object) -> None:
