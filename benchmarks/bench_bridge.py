@@ -27,7 +27,8 @@ from pathlib import Path
 def record(forest: str, mode: str, duration: float | None, out: Path) -> None:
     """A run whose SIC only waits: the emulators have the machine to themselves."""
     cmd = [sys.executable, "-m", "tcf_hil.cli", "run", forest, "--mode", mode, "--out",
-           str(out), "--grace", "0", "--sic", "{python} -c \"import time; time.sleep(1e6)\""]
+           str(out), "--grace", "0", "--ready-timeout", "0",
+           "--sic", "{python} -c \"import time; time.sleep(1e6)\""]
     if duration:
         cmd += ["--duration", str(duration)]
     subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, COLUMNS="200"))

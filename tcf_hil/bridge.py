@@ -64,6 +64,53 @@ ENV_DOC: tuple[tuple[str, str], ...] = (
 )
 
 
+def udp_port_taken(host: str, port: int) -> bool:
+    """Whether someone has bound ``host:port`` (UDP), e.g. the SIC listening for lidar."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        s.bind((host, port))
+        return False
+    except OSError:
+        return True
+    finally:
+        s.close()
+
+
+def wait_for_listener(host: str, port: int, timeout_s: float, alive: Callable[[], bool],
+                      stop: threading.Event) -> bool:
+    """Wait until something listens on ``host:port`` (UDP), ``alive()`` turns false or
+    ``stop`` is set; False after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and alive() and not stop.is_set():
+        if udp_port_taken(host, port):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+class _LateClock:
+    """The run's clock for the lidar sender, fixed only once the SIC is ready: until then
+    the sender (which asks for its first packet's due time) waits."""
+
+    def __init__(self, speed: float) -> None:
+        self.speed = speed
+        self._clock: SimClock | None = None
+        self._set = threading.Event()
+
+    def set(self, clock: SimClock) -> None:
+        if self._clock is None:
+            self._clock = clock
+        self._set.set()
+
+    def is_set(self) -> bool:
+        return self._set.is_set()
+
+    def monotonic_at(self, t_sim_ns: int) -> int:
+        self._set.wait()
+        assert self._clock is not None
+        return self._clock.monotonic_at(t_sim_ns)
+
+
 def free_udp_port(host: str, preferred: int) -> int:
     """``preferred`` if nobody listens there, else an ephemeral port."""
     for port in (preferred, 0):
@@ -228,7 +275,8 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                duration_s: float | None = None, backend: str = "embree",
                eval_cfg: EvalConfig | None = None, stop: threading.Event | None = None,
                announce: Callable[[str], None] = lambda s: None,
-               progress: Callable[[int, int], None] | None = None) -> RunResult:
+               progress: Callable[[int, int], None] | None = None,
+               ready_s: float = 15.0) -> RunResult:
     """One live run into ``out`` (see the module docstring). ``stop`` ends it early (Ctrl-C):
     everything is closed, and the forest published so far is scored."""
     from tcf_hil.lidar import LidarRun, stream_lidar
@@ -276,6 +324,7 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
     harv_stop = threading.Event()
     forked = threading.Event()
     threads: list[threading.Thread] = []
+    late_ref: list[_LateClock] = []
     try:
         with open_bus(can, announce=announce) as spec, SensorApi(
                 run.meta, "127.0.0.1", 0, fixed=True) as api:
@@ -285,27 +334,22 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             argv = sic_command(sic, env, shell)
             t0 = run.track.t0_ns
             lead_ns = round(lead_s * 1e9)  # wall time before the first lidar packet is due
-            clock = SimClock.start(t0, speed, lead_ns=lead_ns)
-            # the harvester's view of the same clock starts now, lead_ns * speed before t0
-            harv_clock = SimClock(t0 - round(lead_ns * speed),
-                                  clock.origin_monotonic_ns - lead_ns, speed)
-            unix_at_t0 = time.time_ns() + (clock.origin_monotonic_ns - time.monotonic_ns())
-            manifest["clock"] = {"sim_t0_ns": t0, "unix_ns_at_sim_t0": unix_at_t0,
-                                 "speed": speed, "lead_s": lead_s}
-            write_json_atomic(out / "manifest.json", manifest)  # replayable from here on
+            late = _LateClock(speed)  # set once the SIC listens (the sender waits for it)
+            late_ref.append(late)
             seconds = run.frames / run.meta.frequency_hz + 1.0
+            harv_clock: list[SimClock] = []
 
             def harvester() -> None:
                 harv_result.append(run_harvester(
                     scn, run.forest.terrain, spec, seed=run.forest.seed, log_path=out / "can.log",
-                    speed=speed, stop=harv_stop, clock=harv_clock, t0_ns=t0,
+                    speed=speed, stop=harv_stop, clock=harv_clock[0], t0_ns=t0,
                     duration_s=lead_s * speed + seconds))
 
             def lidar() -> None:
                 nonlocal lidar_result
                 try:
                     lidar_result = stream_lidar(scn, sensor_ip=sensor_ip, record=out, run=run,
-                                                stop=end_stream, clock=clock, progress=progress,
+                                                stop=end_stream, clock=late, progress=progress,
                                                 pcap_in_place=True, forked=forked)
                 except BaseException as err:
                     lidar_error.append(err)
@@ -326,6 +370,24 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             except OSError as err:
                 status, message = "sic-failed", f"cannot start the SIC: {err}"
                 end_stream.set()
+            if sic_proc is not None and ready_s > 0:
+                # the clock starts once the SIC listens on the lidar port (or after ready_s):
+                # a slow start-up must not cost it the first frames
+                proc = sic_proc
+                if not wait_for_listener("127.0.0.1", lidar_port, ready_s,
+                                         lambda: proc.poll() is None, stop):
+                    if proc.poll() is None and not stop.is_set():
+                        announce(f"the SIC does not listen on UDP {lidar_port} after "
+                                 f"{ready_s:g} s; starting anyway")
+            clock = SimClock.start(t0, speed, lead_ns=lead_ns)
+            late.set(clock)
+            # the harvester's view of the same clock starts now, lead_ns * speed before t0
+            harv_clock.append(SimClock(t0 - round(lead_ns * speed),
+                                       clock.origin_monotonic_ns - lead_ns, speed))
+            unix_at_t0 = time.time_ns() + (clock.origin_monotonic_ns - time.monotonic_ns())
+            manifest["clock"] = {"sim_t0_ns": t0, "unix_ns_at_sim_t0": unix_at_t0,
+                                 "speed": speed, "lead_s": lead_s}
+            write_json_atomic(out / "manifest.json", manifest)  # replayable from here on
             th_h = threading.Thread(target=harvester, name="harvester", daemon=True)
             th_h.start()
             threads.append(th_h)
@@ -360,6 +422,9 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
     finally:
         end_stream.set()
         harv_stop.set()
+        if not late_ref or not late_ref[0].is_set():  # a sender still waiting goes on
+            for lc in late_ref:
+                lc.set(SimClock.start(0, speed))
         for th in threads:
             th.join(timeout=60.0)
         if sic_proc is not None:

@@ -213,12 +213,16 @@ def demo(out: Path | None, seed: int | None, preset: str) -> None:
 @click.option("--grace", type=click.FloatRange(min=0), default=30.0, show_default=True,
               help="Seconds the SIC gets after the stream ends to publish its final forest "
                    "and exit (then SIGTERM, then SIGKILL).")
+@click.option("--ready-timeout", "ready_s", type=click.FloatRange(min=0), default=15.0,
+              show_default=True,
+              help="The clock starts when the SIC listens on the lidar UDP port, or after "
+                   "this many seconds (0: at once).")
 @click.option("--replay", "replay_dir", type=click.Path(file_okay=False, exists=True,
                                                          path_type=Path), default=None,
               help="Send a recorded run's traffic instead of the live emulators.")
 def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, profile: str,
             seed: int | None, out: Path | None, speed: float, duration: float | None,
-            can_spec: str, grace: float, replay_dir: Path | None) -> None:
+            can_spec: str, grace: float, ready_s: float, replay_dir: Path | None) -> None:
     """A hardware-in-the-loop run of an onboard SIC program against SCENARIO.
 
     \b
@@ -248,7 +252,8 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
         raise click.UsageError("give a SCENARIO (a preset name or TOML file) or --replay RUN_DIR")
     scn = load_scenario(scenario_name)
     code = _bridge(scn, sic, _run_dir(out), mode=mode, profile=profile, seed=seed,
-                   speed=speed, duration_s=duration, can=can_spec, shell=shell, grace_s=grace)
+                   speed=speed, duration_s=duration, can=can_spec, shell=shell, grace_s=grace,
+                   ready_s=ready_s)
     if code:
         raise SystemExit(code)
 

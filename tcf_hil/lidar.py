@@ -234,6 +234,7 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
     ``sent`` (shared) counts the frames the sender has finished. When the sender sets
     ``stop``, answers ("final", bookkeeping) as of exactly those frames (it runs a few frames
     ahead), and with ``rec`` the pcap holds exactly those frames too."""
+    parent = os.getppid()  # a producer whose sender was killed must not live on
     with contextlib.suppress(OSError):
         os.nice(19)  # the pacing loop, not the frame factory, gets the CPU when both want it
     with contextlib.suppress(Exception):  # one core stays free for the pacing loop
@@ -269,7 +270,8 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
         for _fr, dgs in run.datagrams():
             while not free.acquire(timeout=0.2):
                 flush()
-                if stop.is_set():
+                if stop.is_set() or os.getppid() != parent:
+                    stop.set()
                     break
             flush()
             if stop.is_set():
@@ -290,6 +292,8 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
             conn.send(("done", None))
         while not stop.wait(0.05):  # the last frames are still going out
             flush()
+            if os.getppid() != parent:
+                break
         flush()
         n_sent = int(sent.value)
         mark = next((m for m in marks if m[0] == n_sent), marks[-1])

@@ -443,16 +443,19 @@ class OnboardSic:
         meta = load_metadata(cfg)
         port = cfg.lidar_port or meta.udp_port_lidar
         track = PoseTrack()
-        can = CanPose(cfg, track)
+        # on the bus first (imports, connection), then listen for lidar: a bench may start
+        # the stream once the port is bound; the datum and mount come from the node by SDO
+        can: CanPose | None = CanPose(cfg, track)
+        assert can is not None
         rx: LidarReceiver | None = None
         pub = Publisher(cfg.publish)
         t_start = self.t_start = time.monotonic()
         try:
+            rx = LidarReceiver(meta, cfg.lidar_bind, port)
+            rx.start()
             can.read_constants()
             smap = StemMap(self.params, voxel_m=self.voxel_m, max_points=cfg.max_points,
                            datum=can.datum)
-            rx = LidarReceiver(meta, cfg.lidar_bind, port)
-            rx.start()
             _log(f"listening for {meta.mode} {meta.profile} on {cfg.lidar_bind}:{port}; "
                  f"pose from node {cfg.node_id} on {cfg.can_interface}:{cfg.can_channel}; "
                  f"preset {cfg.preset}; publishing to {cfg.publish}")
@@ -503,7 +506,8 @@ class OnboardSic:
         finally:
             if rx is not None:
                 rx.close()
-            can.close()
+            if can is not None:
+                can.close()
         summary = self._summary(rx.stats if rx else LidarStats(), track, smap, pub)
         _log("done: " + json.dumps(summary))
         return summary

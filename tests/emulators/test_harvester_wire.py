@@ -69,7 +69,7 @@ def test_remote_node_decodes_every_pose_and_logs_agree(server: SocketcandServer,
 
         for k in (1, 2, 3):
             remote.tpdo[k].add_callback(on)
-        time.sleep(1.0)  # the logger process is up
+        time.sleep(3.0)  # the logger process is up (imports can take a while on a cold start)
         proc = subprocess.run(
             [sys.executable, "-m", "tcf_hil.cli", "harvester", "run", SCENARIO, "--can",
              spec_of(server), "--duration", "4", "--speed", "5", "--log", str(log)],
@@ -79,7 +79,15 @@ def test_remote_node_decodes_every_pose_and_logs_agree(server: SocketcandServer,
     finally:
         net.disconnect()
         logger.send_signal(signal.SIGINT)  # it closes its file on Ctrl-C
-        logger.wait(10)
+        try:
+            logger.wait(30)
+        except subprocess.TimeoutExpired:  # it closes its file on SIGTERM too
+            logger.terminate()
+            try:
+                logger.wait(10)
+            except subprocess.TimeoutExpired:
+                logger.kill()
+                raise
     scn = load_scenario(SCENARIO)
     forest = generate_forest(scn)
     model = HarvesterModel.from_scenario(scn, forest.terrain, forest.seed)

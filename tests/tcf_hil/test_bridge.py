@@ -111,7 +111,8 @@ def test_replay_reproduces_the_score(reference_run: Path, tmp_path: Path) -> Non
 def test_sic_exiting_early_ends_the_run_with_a_clear_message(tmp_path: Path) -> None:
     out = tmp_path / "run"
     sic = "{python} -c \"import time, sys; time.sleep(2); sys.exit(7)\""
-    p = tcf("run", "forest-ii", "--mode", "512x10", "--out", str(out), "--sic", sic)
+    p = tcf("run", "forest-ii", "--mode", "512x10", "--out", str(out), "--sic", sic,
+            "--ready-timeout", "0")
     assert p.returncode == 3, p.stdout + p.stderr
     assert "exited with code 7" in p.stdout + p.stderr
     rec = assert_valid_recording(out)
@@ -126,7 +127,7 @@ def test_sic_printing_garbage_is_reported_and_recorded(tmp_path: Path) -> None:
     sic = ("{python} -c \"print('starting up'); print('{not json'); "
            "print('{\\\"objects\\\": 5}'); import time; time.sleep(60)\"")
     p = tcf("run", "forest-ii", "--mode", "512x10", "--out", str(out), "--sic", sic,
-            "--duration", "3", "--grace", "1")
+            "--duration", "3", "--grace", "1", "--ready-timeout", "0")
     assert p.returncode == 3, p.stdout + p.stderr
     text = p.stdout + p.stderr
     assert "no valid forest published" in text
@@ -168,7 +169,7 @@ def test_schema_breaking_publication_is_kept_and_the_run_goes_on(tmp_path: Path)
     script.write_text(SIC_HTTP)
     out = tmp_path / "run"
     p = tcf("run", "forest-ii", "--mode", "512x10", "--out", str(out), "--duration", "3",
-            "--grace", "1", "--sic", f"{{python}} {script}")
+            "--grace", "1", "--ready-timeout", "0", "--sic", f"{{python}} {script}")
     assert p.returncode == 0, p.stdout + p.stderr
     rec = assert_valid_recording(out)
     stdout = (out / "sic" / "stdout.log").read_text()
@@ -214,7 +215,7 @@ def test_replay_loop_keeps_frame_id_and_time_going(tmp_path: Path) -> None:
     run = tmp_path / "run"
     sic = "{python} -c \"import time; time.sleep(60)\""
     p = tcf("run", "forest-ii", "--mode", "512x10", "--duration", "1", "--grace", "0",
-            "--out", str(run), "--sic", sic)
+            "--ready-timeout", "0", "--out", str(run), "--sic", sic)
     assert p.returncode == 3, p.stdout + p.stderr  # a silent SIC; the recording is whole
     assert_valid_recording(run, frames_at_least=10)
     meta = SensorMetadata.loads((run / "metadata.json").read_text())
