@@ -228,13 +228,16 @@ class _Recording:
 
 
 def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
-             stop: Any, sent: Any, rec: _Recording | None = None) -> None:
+             stop: Any, sent: Any, rec: _Recording | None = None,
+             parent_end: Any = None) -> None:
     """Producer process: writes each frame's datagrams into a shared-memory slot and sends
     only (slot, [(t_ns, port, length)]) down the pipe, then ("done", None) after the last.
     ``sent`` (shared) counts the frames the sender has finished. When the sender sets
     ``stop``, answers ("final", bookkeeping) as of exactly those frames (it runs a few frames
     ahead), and with ``rec`` the pcap holds exactly those frames too."""
     parent = os.getppid()  # a producer whose sender was killed must not live on
+    if parent_end is not None:
+        parent_end.close()  # the fork's copy of the reading end: a dead reader breaks the pipe
     with contextlib.suppress(OSError):
         os.nice(19)  # the pacing loop, not the frame factory, gets the CPU when both want it
     with contextlib.suppress(Exception):  # one core stays free for the pacing loop
@@ -363,7 +366,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                     outputs.enter_context(atomic_path(out / "lidar.pcap"))
                 rec = _Recording(str(path), sensor_ip, dest)
             child = ctx.Process(target=_produce, args=(run, tx, free, shm, slot_bytes,
-                                                       child_stop, sent, rec),
+                                                       child_stop, sent, rec, rx),
                                 name="lidar-frames", daemon=True)
             child.start()
             if forked is not None:
