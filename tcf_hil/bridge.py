@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import json
 import os
 import re
 import shlex
@@ -434,11 +433,6 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             watcher.close()
         server.close()
         inbox.close()
-        manifest["stopped"] = _dt.datetime.now(_dt.UTC).isoformat()
-        manifest["status"] = status
-        manifest["message"] = message
-        manifest["sic"]["returncode"] = rc
-        manifest["sic"]["ended_by"] = sic_proc.signalled if sic_proc is not None else None
         if lidar_result is not None:
             manifest["lidar"] = {"frames_sent": lidar_result.frames,
                                  "packets_sent": lidar_result.packets,
@@ -449,12 +443,22 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             h = harv_result[0]
             manifest["can"] = {"bus": h.spec, "node_id": h.node_id, "frames_logged": h.log_frames,
                                "log_error": h.log_error}
-        manifest["publications"] = {"total": len(inbox.items), "valid": len(inbox.valid),
-                                    "invalid": len(inbox.invalid),
-                                    "non_json_stdout_lines": inbox.non_json_lines}
-        write_json_atomic(out / "manifest.json", manifest)
+        write_end_manifest(out, manifest, status, message, rc, sic_proc, inbox)
     status, message = conclude(status, message, rc, sic_proc, grace_s, inbox, out)
     return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)
+
+
+def write_end_manifest(out: Path, manifest: dict[str, Any], status: str, message: str,
+                       rc: int | None, proc: _SicProcess | None, inbox: Inbox) -> None:
+    """The manifest as the run ended: status, the SIC's exit, the publications."""
+    manifest.update(status=status, message=message,
+                    stopped=_dt.datetime.now(_dt.UTC).isoformat())
+    manifest["sic"]["returncode"] = rc
+    manifest["sic"]["ended_by"] = proc.signalled if proc is not None else None
+    manifest["publications"] = {"total": len(inbox.items), "valid": len(inbox.valid),
+                                "invalid": len(inbox.invalid),
+                                "non_json_stdout_lines": inbox.non_json_lines}
+    write_json_atomic(out / "manifest.json", manifest)
 
 
 def conclude(status: str, message: str, rc: int | None, proc: _SicProcess | None,
@@ -543,8 +547,3 @@ def finish_run(out: Path, manifest: dict[str, Any], inbox: Inbox, status: str, m
 def sic_reference_command(preset: str = "tuned") -> str:
     """The reference SIC as an external program."""
     return f"{{python}} -m tcf_hil.sic --preset {preset}"
-
-
-def summary_json(result: RunResult) -> str:
-    return json.dumps({"status": result.status, "message": result.message,
-                       "out": str(result.out)})

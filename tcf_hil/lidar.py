@@ -39,6 +39,7 @@ from protocols.ouster import (
     os0_64_metadata,
 )
 from protocols.pcap import PcapWriter, UdpDatagram
+from tcf_hil._crc import fast_crc_rows
 from tcf_hil._io import atomic_path, ensure_dir, write_bytes_atomic, write_json_atomic
 from tcf_hil.forest import Forest, generate_forest, ground_truth
 from tcf_hil.scenario import Scenario
@@ -46,17 +47,6 @@ from tcf_hil.scene import Scene
 from tcf_hil.trajectory import Trajectory, quaternions
 
 IMU_PERIOD_NS = 10_000_000  # 100 Hz
-
-
-def _crc_rows() -> Callable[[np.ndarray], np.ndarray] | None:
-    try:
-        import fastcrc
-    except ImportError:
-        return None  # protocols' numpy tables
-
-    def rows(a: np.ndarray) -> np.ndarray:
-        return np.fromiter((fastcrc.crc64.xz(r.tobytes()) for r in a), np.uint64, len(a))
-    return rows
 
 
 @dataclass(frozen=True)
@@ -113,7 +103,7 @@ class LidarRun:
 
     def datagrams(self) -> Iterator[tuple[FrameResult, list[Datagram]]]:
         fmt = self.meta.packet_format
-        crc = _crc_rows()
+        crc = fast_crc_rows()
         cpp = fmt.columns_per_packet
         next_imu = self.track.t0_ns
         lp, ip = self.meta.udp_port_lidar, self.meta.udp_port_imu

@@ -255,6 +255,7 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
         finish_run,
         free_udp_port,
         sic_command,
+        write_end_manifest,
     )
     from tcf_hil.harvester import open_bus
     from tcf_hil.recorder import FileWatcher, Inbox, PublishServer
@@ -357,13 +358,7 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
             watcher.close()
         server.close()
         inbox.close()
-        manifest.update(status=status, message=message,
-                        stopped=_dt.datetime.now(_dt.UTC).isoformat(), replay_sent=sent)
-        manifest["sic"]["returncode"] = rc
-        manifest["sic"]["ended_by"] = proc.signalled if proc is not None else None
-        manifest["publications"] = {"total": len(inbox.items), "valid": len(inbox.valid),
-                                    "invalid": len(inbox.invalid),
-                                    "non_json_stdout_lines": inbox.non_json_lines}
-        write_json_atomic(out / "manifest.json", manifest)
+        manifest["replay_sent"] = sent
+        write_end_manifest(out, manifest, status, message, rc, proc, inbox)
     status, message = conclude(status, message, rc, proc, grace_s, inbox, out)
     return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)

@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from protocols.harvester import DATUM, MOUNT, eds_path, unwrap_time_us
 from protocols.harvester._codec import TIME_WRAP_US
 from protocols.ouster import ProtocolError, SensorMetadata, beam_rays, decode_lidar_packets
+from tcf_hil._crc import fast_crc_rows
 from tcf_hil.sic._map import StemMap
 from tcf_hil.sic._stems import StemParams, stem_params
 from tcf_hil.trajectory import rotation_ypr
@@ -332,17 +333,6 @@ class LidarReceiver(threading.Thread):
         self.sock.close()
 
 
-def _crc_rows() -> Any:
-    try:
-        import fastcrc
-    except ImportError:
-        return None
-
-    def rows(a: NDArray[np.uint8]) -> NDArray[np.uint64]:
-        return np.fromiter((fastcrc.crc64.xz(r.tobytes()) for r in a), np.uint64, len(a))
-    return rows
-
-
 # -------------------------------------------------------------------------------- publisher
 class Publisher:
     """Sends each forest document: ``stdout`` (one JSON line), ``file:PATH`` (rewritten
@@ -461,7 +451,7 @@ class OnboardSic:
                  f"preset {cfg.preset}; publishing to {cfg.publish}")
             fmt = meta.packet_format
             rays = self.mounted_rays(meta, can.mount, can.mount_rot)
-            crc = _crc_rows()
+            crc = fast_crc_rows()
             frame_budget = 1.0 / meta.frequency_hz
             next_pub = time.monotonic() + cfg.publish_s
             seen_data = False
