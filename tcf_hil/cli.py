@@ -901,6 +901,17 @@ def experiment_1(out: Path, seed: int | None, presets: tuple[str, ...], no_pcd: 
     _experiment1(out, seed, presets or ("tuned", "paper"), write_pcd=not no_pcd)
 
 
+def _register_sweeps() -> None:
+    from tcf_hil.experiments._cli import columns_cmd, paper_cmd, passes_cmd
+
+    experiment.add_command(paper_cmd, "paper")
+    experiment.add_command(passes_cmd, "passes")
+    experiment.add_command(columns_cmd, "columns")
+
+
+_register_sweeps()
+
+
 # ----------------------------------------------------------------------------- main
 
 

@@ -23,17 +23,16 @@ FloatArray = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class Region:
-    """Axis-aligned rectangle with an optional corridor cut out across ``axis``."""
+    """Axis-aligned rectangle with corridors (strip roads) cut out across ``axis``."""
 
     lo: tuple[float, float]
     hi: tuple[float, float]
-    axis: int = 0  # coordinate across the corridor (0: corridor runs along y)
-    cut_lo: float = 0.0  # corridor in plot coordinates along ``axis``
-    cut_hi: float = 0.0
+    axis: int = 0  # coordinate across the corridors (0: corridors run along y)
+    cuts: tuple[tuple[float, float], ...] = ()  # (lo, hi) along ``axis``, sorted, disjoint
 
     @property
     def cut(self) -> float:
-        return max(0.0, self.cut_hi - self.cut_lo)
+        return sum(max(0.0, b - a) for a, b in self.cuts)
 
     @property
     def size(self) -> tuple[float, float]:
@@ -42,17 +41,20 @@ class Region:
         return (w[0], w[1])
 
     def expand(self, pts: FloatArray) -> FloatArray:
-        """Map points from the collapsed rectangle (origin at ``lo``) to plot coordinates."""
+        """Map points from the collapsed rectangle (origin at ``lo``) to plot coordinates:
+        each corridor, from the lowest up, shifts what lies at or beyond it by its width."""
         out = pts + np.asarray(self.lo)
-        if self.cut > 0:
-            a = self.axis
-            beyond = out[:, a] >= self.cut_lo
-            out[beyond, a] += self.cut
+        a = self.axis
+        for c_lo, c_hi in self.cuts:
+            beyond = out[:, a] >= c_lo
+            out[beyond, a] += c_hi - c_lo
         return out
 
 
 def region_for(scn: Scenario) -> Region:
-    """The placement region of a scenario: plot minus edge margin minus track corridor."""
+    """The placement region of a scenario: plot minus edge margin minus the corridors of
+    its strip roads (the track's and ``distribution.strip_roads - 1`` more, each
+    ``track.pass_offset_m`` further to the left)."""
     w, h = scn.plot.size_m
     m = scn.distribution.edge_margin_m
     lo, hi = (-w / 2 + m, -h / 2 + m), (w / 2 - m, h / 2 - m)
@@ -61,15 +63,26 @@ def region_for(scn: Scenario) -> Region:
     if c <= 0:
         return Region(lo, hi)
     axis = 0 if t0[0] == t1[0] else 1  # validated: the track is parallel to an axis
-    centre = t0[axis]
-    cut_lo = max(lo[axis], centre - c)
-    cut_hi = min(hi[axis], centre + c)
-    if cut_hi <= cut_lo:
-        return Region(lo, hi)
-    if cut_hi - cut_lo >= hi[axis] - lo[axis]:
+    # left of start -> end: -x when driving +y, +y when driving +x
+    d = (t1[1] - t0[1]) if axis == 0 else (t1[0] - t0[0])
+    left = (-1.0 if d > 0 else 1.0) if axis == 0 else (1.0 if d > 0 else -1.0)
+    cuts = []
+    for k in range(scn.distribution.strip_roads):
+        centre = t0[axis] + left * k * scn.track.pass_offset_m
+        cut_lo, cut_hi = max(lo[axis], centre - c), min(hi[axis], centre + c)
+        if cut_hi > cut_lo:
+            cuts.append((cut_lo, cut_hi))
+    cuts.sort()
+    merged: list[tuple[float, float]] = []
+    for a, b in cuts:
+        if merged and a <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(b, merged[-1][1]))
+        else:
+            merged.append((a, b))
+    if sum(b - a for a, b in merged) >= hi[axis] - lo[axis]:
         raise ConfigError("distribution.corridor_half_width_m", c,
-                          "a corridor narrower than the plot")
-    return Region(lo, hi, axis, cut_lo, cut_hi)
+                          "corridors narrower than the plot")
+    return Region(lo, hi, axis, tuple(merged))
 
 
 class _DartGrid:

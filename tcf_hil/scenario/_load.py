@@ -26,6 +26,9 @@ T = TypeVar("T")
 
 _ROMAN = ("i", "ii", "iii", "iv", "v", "vi", "vii", "viii", "ix", "x")
 PRESET_NAMES: tuple[str, ...] = tuple(f"forest-{r}" for r in _ROMAN)
+EXTRA_PRESETS: tuple[str, ...] = ("strip-road",)
+"""Presets beyond the paper's forests (``strip-road``: Forest V cut by three strip roads,
+driven in three passes)."""
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 _MAX_ITEMS = 1000
@@ -192,7 +195,7 @@ def preset_name(name: str) -> str | None:
     n = name.strip().lower().replace("_", "-").replace(" ", "-")
     if n in _ROMAN:
         n = f"forest-{n}"
-    return n if n in PRESET_NAMES else None
+    return n if n in PRESET_NAMES or n in EXTRA_PRESETS else None
 
 
 def _preset_text(name: str) -> str:

@@ -113,6 +113,9 @@ class DistributionConfig:
     edge_margin_m: float = _f(0.5, "stems stay this far inside the plot edge", ge=0.0)
     corridor_half_width_m: float = _f(
         2.0, "no stems within this distance of the sensor track (the strip road)", ge=0.0)
+    strip_roads: int = _f(
+        1, "strip roads cut free of stems: the track's and more, each track.pass_offset_m "
+        "further to the left (so a multi-pass track drives on roads)", ge=1, le=20)
 
 
 @dataclass(frozen=True, slots=True)

@@ -185,12 +185,16 @@ class PoseTrack:
 class CanPose:
     """The harvester node on the bus through its EDS: TPDO1-3 of one SYNC make one pose."""
 
-    def __init__(self, cfg: SicConfig, track: PoseTrack) -> None:
+    def __init__(self, cfg: SicConfig, track: PoseTrack, network: Any = None) -> None:
+        """``network``: a canopen Network fed by the caller (offline: frames handed to its
+        ``notify``); None connects one to the bus of ``cfg``."""
         import canopen
 
         self.track = track
-        self.net = canopen.Network()
-        self.net.connect(**cfg.can_kwargs())
+        if network is None:
+            network = canopen.Network()
+            network.connect(**cfg.can_kwargs())
+        self.net = network
         self.node = self.net.add_node(cfg.node_id, cfg.eds or str(eds_path()))
         self.node.tpdo.read(from_od=True)
         self._part: dict[str, float] = {}

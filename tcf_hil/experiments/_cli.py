@@ -1,0 +1,304 @@
+"""``tcf-hil experiment paper`` and ``tcf-hil experiment passes`` (registered by tcf_hil.cli)."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import click
+from rich.console import Console
+from rich.table import Table
+
+from tcf_hil.scenario import PRESET_NAMES, Scenario, load_scenario, preset_name
+
+console = Console(highlight=False)
+err_console = Console(stderr=True, highlight=False)
+
+_ROMAN = ["I", "II", "III", "IV", "V", "VI", "VII", "VIII", "IX", "X"]
+_LIDAR_MODES = ("512x10", "1024x10", "2048x10", "512x20", "1024x20")
+
+
+def parse_forests(text: str) -> list[str]:
+    """``I-X``, ``V,VI``, ``II-IV,X``, preset names or TOML paths, comma separated."""
+    out: list[str] = []
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        lo, sep, hi = part.partition("-")
+        if sep and lo.upper() in _ROMAN and hi.upper() in _ROMAN:
+            a, b = _ROMAN.index(lo.upper()), _ROMAN.index(hi.upper())
+            if a > b:
+                raise click.BadParameter(f"{part!r}: the range runs backwards",
+                                         param_hint="--forests")
+            out += [f"forest-{r.lower()}" for r in _ROMAN[a:b + 1]]
+        elif preset_name(part) is not None and "/" not in part and not part.endswith(".toml"):
+            out.append(preset_name(part) or part)
+        elif part.endswith(".toml") and Path(part).is_file():
+            out.append(part)
+        else:
+            raise click.BadParameter(
+                f"{part!r}: expected roman numerals (I-X, V,VI), a preset "
+                f"({', '.join(PRESET_NAMES)}) or a scenario .toml file", param_hint="--forests")
+    return list(dict.fromkeys(out))
+
+
+def parse_modes(text: str) -> list[str]:
+    from tcf_hil.experiments.cells import SAMPLED
+
+    modes = [m.strip() for m in text.split(",") if m.strip()]
+    bad = [m for m in modes if m not in (*_LIDAR_MODES, SAMPLED)]
+    if bad or not modes:
+        raise click.BadParameter(f"{','.join(bad) or text!r}: allowed modes are "
+                                 f"{', '.join(_LIDAR_MODES)} and {SAMPLED} (no lidar, Table 9)",
+                                 param_hint="--modes")
+    return list(dict.fromkeys(modes))
+
+
+def _progress_sweep(cells: Sequence[Any], out: Path, executor: str, workers: int | None
+                    ) -> Any:
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    from tcf_hil.experiments.sweep import run_sweep
+
+    failures = 0
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("failed {task.fields[failed]}"), TimeElapsedColumn(),
+                  TextColumn("ETA"), TimeRemainingColumn(), console=err_console) as prog:
+        task = prog.add_task("cells", total=len(cells), failed=0)
+
+        def on_event(kind: str, cell: Any, row: dict[str, Any] | None) -> None:
+            nonlocal failures
+            if kind == "failed":
+                failures += 1
+                prog.console.print(f"[red]failed[/] {cell.id}: {row and row.get('error')}")
+            elif kind == "done" and row is not None:
+                prog.console.print(f"done {cell.id}: wc {row['all_wc']:.1f} % all, "
+                                   f"{row['seen_wc']:.1f} % seen ({row['cell_s']:.0f} s)")
+            prog.update(task, advance=1, failed=failures,
+                        description="cells (skipped: done before)" if kind == "skipped"
+                        else "cells")
+
+        return run_sweep(cells, out, executor=executor, workers=workers, on_event=on_event)
+
+
+def _print_summary(outcome: Any, out: Path, paths: dict[str, Path]) -> None:
+    from tcf_hil.experiments.tables import summary_rows
+
+    t = Table(title="Table 10 layout (mean over seeds; all trees, seen trees)")
+    for col in ("forest", "mode", "SIC", "seeds", "wc all %", "wc seen %", "matches",
+                "quality err %", "F1"):
+        t.add_column(col, justify="left" if col in ("forest", "mode", "SIC") else "right")
+    for s in summary_rows(outcome.records):
+        t.add_row(s["forest"], s["mode"], s["preset"] or "sic", str(s["seeds"]),
+                  f"{s['all_wc_mean']:.1f}", f"{s['seen_wc_mean']:.1f}",
+                  f"{s['all_total_matches_mean']:.0f}/{s['stems_mean']:.0f}",
+                  f"{s['all_quality_error_percent_mean']:.1f}", f"{s['all_f1_mean']:.3f}")
+    console.print(t)
+    console.print(f"{outcome.ran} cell(s) run, {outcome.skipped} skipped (done before), "
+                  f"{len(outcome.failed)} failed, {outcome.wall_s:.0f} s. "
+                  f"Results: [bold]{out / 'results.csv'}[/], tables: {paths['summary.md']}")
+
+
+def _sweep_options(f: Any) -> Any:
+    for opt in reversed([
+        click.option("--sic", default="reference", show_default=True,
+                     help="'reference' (the reference SIC, unpaced and in process on the "
+                     "same packet and CAN bytes) or a command run by `tcf-hil run` for every "
+                     "cell, live at --speed (see `tcf-hil run --help` for placeholders)."),
+        click.option("--preset", "presets", type=click.Choice(["tuned", "paper"]), multiple=True,
+                     help="Reference SIC preset(s) (default: tuned). Repeat for both."),
+        click.option("--executor", default="local", show_default=True,
+                     help="local (a Dask LocalCluster on this machine), dask://HOST:PORT (a "
+                     "running scheduler; workers need tcf-hil installed), or inline (this "
+                     "process, one cell at a time)."),
+        click.option("--workers", type=click.IntRange(min=1), default=None,
+                     help="LocalCluster workers (default 2: one per core here)."),
+        click.option("--speed", type=click.FloatRange(min=0.05, max=20), default=1.0,
+                     show_default=True, help="Pace of a SIC command's live runs."),
+        click.option("--keep-pcap", is_flag=True,
+                     help="Keep each SIC command run's lidar.pcap (deleted after scoring by "
+                     "default: 0.1-1 GB per cell; can.log and the SIC's output stay)."),
+        click.option("--frames", type=click.IntRange(min=1), default=None,
+                     help="Only the first N lidar frames of each track (quick looks)."),
+        click.option("--out", type=click.Path(file_okay=False, path_type=Path),
+                     required=True, help="Output directory; a rerun skips finished cells."),
+    ]):
+        f = opt(f)
+    return f
+
+
+def _finish(outcome: Any, out: Path) -> None:
+    from tcf_hil.experiments.tables import write_tables
+
+    paths = write_tables(outcome.records, out, outcome.failed)
+    _print_summary(outcome, out, paths)
+    if outcome.failed:
+        err_console.print(f"[red]{len(outcome.failed)} cell(s) failed[/]; their errors are in "
+                          f"{paths['summary.md']} and cells/<id>/failed.json; run the same "
+                          "command again to retry only them.")
+        raise click.exceptions.Exit(1)
+
+
+@click.command("paper")
+@click.option("--forests", default="I-X", show_default=True,
+              help="Forests: roman ranges and lists (I-X, V,VI), preset names or .toml files.")
+@click.option("--modes", default="512x10,1024x10,2048x10", show_default=True,
+              help="Lidar modes, comma separated; 'sampled' adds the paper's 1000 points per "
+              "stem without lidar (Table 9).")
+@click.option("--seeds", type=click.IntRange(min=1, max=1000), default=1, show_default=True,
+              help="Seeds per forest and mode (the preset's seed, +1, +2, ...); 3 or more "
+              "give 95 % intervals.")
+@_sweep_options
+def paper_cmd(forests: str, modes: str, seeds: int, sic: str, presets: tuple[str, ...],
+              executor: str, workers: int | None, speed: float, keep_pcap: bool,
+              frames: int | None, out: Path) -> None:
+    """The paper's Experiments 2-5 on the wire over Forests I-X.
+
+    Every cell (forest x mode x seed) goes through the whole wire path: the emulator's
+    packets and the harvester's CAN frames, the SIC, its JSON, the score against all trees
+    and against the trees the sensor saw. Writes OUT/results.csv (one row per cell; columns
+    in `tcf-hil experiment columns`), OUT/summary.md (Tables 9/10 with 95 % intervals over
+    seeds, Experiment 5's weighting, the paper's reported values), OUT/summary.csv,
+    OUT/heatmaps/*.png (Tables 7/8) and OUT/weighting.png (Table 11).
+
+    \b
+    Examples:
+      tcf-hil experiment paper --forests V,VI --modes 1024x10 --out exp
+      tcf-hil experiment paper --seeds 3 --executor dask://10.0.0.5:8786 --out grid
+    """
+    from tcf_hil.experiments.cells import make_cell
+    from tcf_hil.experiments.sweep import parse_executor
+
+    try:
+        parse_executor(executor)
+    except ValueError as err:
+        raise click.BadParameter(str(err), param_hint="--executor") from err
+    names = parse_forests(forests)
+    mode_list = parse_modes(modes)
+    cells = []
+    for name in names:
+        base = load_scenario(name)
+        for k in range(seeds):
+            scn = load_scenario(name, seed=base.seed + k)
+            for mode in mode_list:
+                for preset in (presets or ("tuned",)) if sic == "reference" else ("",):
+                    cells.append(make_cell(scn, mode, sic=sic, preset=preset or "tuned",
+                                           speed=speed, max_frames=frames,
+                                           keep_pcap=keep_pcap))
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    outcome = _progress_sweep(cells, out, executor, workers)
+    outcome.wall_s = time.perf_counter() - t0
+    _finish(outcome, out)
+
+
+@click.command("passes")
+@click.option("--forest", "forest_name", default="V", show_default=True,
+              help="The forest (roman numeral, preset or .toml).")
+@click.option("--passes", "pass_list", default="1,2,3", show_default=True,
+              help="Pass counts to compare, comma separated.")
+@click.option("--offset", type=click.FloatRange(min=0), default=None,
+              help="Distance between the strip roads, each further pass one road to the left "
+              "(m; 0: the same road back in reverse). Default: the scenario's "
+              "track.pass_offset_m (strip-road: 20).")
+@click.option("--mode", type=click.Choice(_LIDAR_MODES), default="1024x10", show_default=True)
+@click.option("--seeds", type=click.IntRange(min=1, max=1000), default=1, show_default=True)
+@_sweep_options
+def passes_cmd(forest_name: str, pass_list: str, offset: float | None, mode: str, seeds: int,
+               sic: str, presets: tuple[str, ...], executor: str, workers: int | None,
+               speed: float, keep_pcap: bool, frames: int | None, out: Path) -> None:
+    """Multi-pass scanning: the same forest driven in 1, 2, 3 ... passes along a strip road.
+
+    Further passes run on further strip roads, --offset to the left (U-turns between
+    them), so stems hidden behind others on the first pass come into view. Every pass count
+    scans the very same forest: it is cut by as many roads as the largest count needs. The
+    table shows the stems seen and the scores against all trees for each pass count: how
+    much occlusion the passes remove.
+
+    \b
+    Example:
+      tcf-hil experiment passes --forest strip-road --passes 1,2,3 --out passes
+    """
+    from tcf_hil.experiments.cells import make_cell
+
+    try:
+        counts = sorted({int(p) for p in pass_list.split(",") if p.strip()})
+    except ValueError as err:
+        raise click.BadParameter(f"{pass_list!r}: expected integers like 1,2,3",
+                                 param_hint="--passes") from err
+    if not counts or counts[0] < 1 or counts[-1] > 20:
+        raise click.BadParameter(f"{pass_list!r}: pass counts from 1 to 20",
+                                 param_hint="--passes")
+    name = parse_forests(forest_name)[0]
+    base = load_scenario(name)
+    cells = []
+    for k in range(seeds):
+        scn = load_scenario(name, seed=base.seed + k)
+        for n in counts:
+            multi = _with_passes(scn, n, offset, counts[-1])
+            for preset in (presets or ("tuned",)) if sic == "reference" else ("tuned",):
+                cells.append(make_cell(multi, mode, sic=sic, preset=preset, speed=speed,
+                                       max_frames=frames, tag=f"p{n}", keep_pcap=keep_pcap))
+    out.mkdir(parents=True, exist_ok=True)
+    outcome = _progress_sweep(cells, out, executor, workers)
+    from tcf_hil.experiments.tables import write_tables
+
+    paths = write_tables(outcome.records, out, outcome.failed)
+    t = Table(title=f"Multi-pass scanning, {name}, {mode} (mean over seeds)")
+    for col in ("passes", "track s", "stems seen", "matches", "wc all %", "wc seen %",
+                "completeness", "F1", "pos RMSE m"):
+        t.add_column(col, justify="right")
+    by_pass: dict[int, list[dict[str, Any]]] = {}
+    for rec in outcome.records:
+        r = rec["row"]
+        if r["status"] == "ok":
+            by_pass.setdefault(int(r["passes"]), []).append(r)
+    import numpy as np
+
+    for n in sorted(by_pass):
+        rs = by_pass[n]
+
+        def m(k: str, rs: list[dict[str, Any]] = rs) -> float:
+            return float(np.mean([float(r[k]) for r in rs]))
+
+        t.add_row(str(n), f"{m('sim_s'):.0f}", f"{m('stems_seen'):.0f}/{m('stems'):.0f}",
+                  f"{m('all_total_matches'):.0f}", f"{m('all_wc'):.1f}", f"{m('seen_wc'):.1f}",
+                  f"{m('all_completeness'):.3f}", f"{m('all_f1'):.3f}",
+                  f"{m('all_position_rmse_m'):.3f}")
+    console.print(t)
+    console.print(f"Results: [bold]{out / 'results.csv'}[/], tables: {paths['summary.md']}")
+    if outcome.failed:
+        raise click.exceptions.Exit(1)
+
+
+def _with_passes(scn: Scenario, n: int, offset: float | None, roads: int) -> Scenario:
+    """``n`` passes over a forest cut by ``roads`` strip roads (the same for every n)."""
+    off = scn.track.pass_offset_m if offset is None else offset
+    tr = dataclasses.replace(scn.track, passes=n, pass_offset_m=off)
+    roads = max(roads, scn.distribution.strip_roads) if off > 0 else 1
+    dist = dataclasses.replace(scn.distribution, strip_roads=roads)
+    return dataclasses.replace(scn, track=tr, distribution=dist)
+
+
+@click.command("columns")
+def columns_cmd() -> None:
+    """What every column of results.csv means (a stable contract: columns are appended,
+    never reordered)."""
+    from tcf_hil.experiments.cells import COLUMNS
+
+    t = Table(title="results.csv columns")
+    t.add_column("column", no_wrap=True)
+    t.add_column("meaning")
+    for c, d in COLUMNS:
+        t.add_row(c, d)
+    console.print(t)

@@ -1,0 +1,169 @@
+"""One run of the reference SIC on the wire's bytes, unpaced, in one process.
+
+The emulator makes the same lidar packets as a live run (:class:`tcf_hil.lidar.LidarRun`) and
+the harvester model the same TPDO frames as its CANopen node (``encode_pose``); the reference
+SIC decodes them exactly as it does from UDP and CAN: packets through
+:func:`protocols.ouster.decode_lidar_packets` with the CRC check, TPDOs through canopen and the
+EDS (frames handed to the network's ``notify``). Nothing is paced and nothing can be lost, so a
+cell is deterministic: the same scenario, mode and seed give the same stems.
+
+The datum and the lidar mount, which a live SIC reads by SDO, come from the node's object
+dictionary values (the same quantised integers its SDO server answers).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from protocols.harvester._codec import encode_pose
+from tcf_hil._crc import fast_crc_rows
+from tcf_hil.evaluation import EvalConfig
+from tcf_hil.forest import ground_truth
+from tcf_hil.harvester import HarvesterModel
+from tcf_hil.lidar import LidarRun
+from tcf_hil.recorder import Scores, score_forest
+from tcf_hil.scenario import Scenario
+from tcf_hil.sic._map import StemMap
+from tcf_hil.sic._online import CanPose, LidarStats, OnboardSic, PoseTrack, SicConfig
+from tcf_hil.stems_json import stem_table
+from tcf_hil.trajectory import rotation_ypr
+
+RUN_T0_NS = 60_000_000_000  # as a live run (tcf_hil.bridge): CAN time never goes negative
+LEAD_NS = 1_000_000_000  # poses on the bus before the first column
+
+
+@dataclass
+class OfflineResult:
+    scores: Scores
+    forest_doc: dict[str, Any]
+    ground_truth: dict[str, Any]
+    frames: int
+    sim_seconds: float
+    emulator_s: float  # raycast + packet encode, all frames
+    sic_frame_ms: list[float] = field(default_factory=list)  # decode + pose + map, per frame
+    stem_s: float = 0.0  # the stem algorithm over the whole map
+    poses: int = 0
+    packets: int = 0
+    stems_seen: int = 0
+
+    def sic_ms(self, q: float) -> float:
+        return float(np.percentile(self.sic_frame_ms, q)) if self.sic_frame_ms else 0.0
+
+
+class OfflineSic:
+    """The reference SIC (one preset) fed in process: pose frames through canopen, lidar
+    packets through the batch decoder, the map, and at the end the stem algorithm."""
+
+    def __init__(self, preset: str, meta: Any, ncfg: Any, *, voxel_m: float | None = None
+                 ) -> None:
+        import canopen  # the SIC's own decoder of the TPDOs
+
+        self.meta = meta
+        self.cfg = SicConfig(preset=preset, node_id=ncfg.node_id, voxel_m=voxel_m)
+        self.sic = OnboardSic(self.cfg)
+        self.track = PoseTrack()
+        self.net = canopen.Network()
+        can = CanPose(self.cfg, self.track, network=self.net)
+        can.datum = tuple(v / 1000.0 for v in ncfg.datum_mm)
+        can.mount = np.array(ncfg.mount_mm, dtype=np.float64) / 1000.0
+        yaw, pitch, roll = np.radians(np.array(ncfg.mount_cdeg, dtype=np.float64) / 100.0)
+        can.mount_rot = rotation_ypr(np.array([yaw]), np.array([pitch]), np.array([roll]))[0]
+        self.can = can
+        self.rays = self.sic.mounted_rays(meta, can.mount, can.mount_rot)
+        self.smap = StemMap(self.sic.params, voxel_m=self.sic.voxel_m,
+                            max_points=self.cfg.max_points, datum=can.datum)
+        self.crc = fast_crc_rows()
+        self.stats = LidarStats()
+        self.frame_ms: list[float] = []
+        self.stem_s = 0.0
+
+    def can_frame(self, cob: int, data: bytes, t_s: float) -> None:
+        self.net.notify(cob, bytearray(data), t_s)
+
+    def lidar_frame(self, fid: int, arr: NDArray[np.uint8]) -> None:
+        self.stats.packets += len(arr)
+        t1 = time.perf_counter()
+        self.sic._frame((fid, arr), self.meta.packet_format, self.meta, self.crc, self.track,
+                        self.rays, self.smap, self.stats)
+        self.frame_ms.append((time.perf_counter() - t1) * 1000.0)
+
+    def finish(self) -> dict[str, Any]:
+        """Every tile through the stem algorithm; the final forest as JSON would bring it."""
+        t2 = time.perf_counter()
+        self.smap.update(math.inf)
+        self.stem_s = time.perf_counter() - t2
+        doc = self.sic._document(self.smap, self.stats, self.track, final=True)
+        self.can.close()
+        out: dict[str, Any] = json.loads(json.dumps(doc))
+        return out
+
+
+def drive(run: LidarRun, model: HarvesterModel, sics: list[OfflineSic],
+          progress: Callable[[int, int], None] | None = None) -> tuple[int, float]:
+    """Feed every frame's packets, and the poses up to one SYNC past its last column (what
+    a live SIC holds by then), to each SIC; returns (frames, emulator seconds)."""
+    ncfg = model.node_config()
+    period_ns = round(1e9 / ncfg.rate_hz)
+    next_pose = run.track.t0_ns - LEAD_NS
+    lp = run.meta.udp_port_lidar
+    frames, emu_s = 0, 0.0
+    it = run.datagrams()
+    while True:
+        t0 = time.perf_counter()
+        try:
+            fr, dgs = next(it)
+        except StopIteration:
+            break
+        emu_s += time.perf_counter() - t0
+        t_end = int(fr.timestamps_ns.max()) + period_ns
+        while next_pose <= t_end:
+            for cob, data in encode_pose(model.bus_pose(next_pose), ncfg.node_id):
+                for s in sics:
+                    s.can_frame(cob, data, next_pose / 1e9)
+            next_pose += period_ns
+        payload = [d.payload for d in dgs if d.port == lp]
+        arr = np.frombuffer(b"".join(payload), dtype=np.uint8).reshape(len(payload), -1)
+        for s in sics:
+            s.lidar_frame(frames & 0xFFFF, arr)
+        frames += 1
+        if progress is not None:
+            progress(frames, run.frames)
+    return frames, emu_s
+
+
+def seen_ground_truth(run: LidarRun) -> dict[str, Any]:
+    gt = ground_truth(run.forest)
+    for o in gt["objects"]:
+        o["returns"] = int(run.counts[o["id"]])
+    return gt
+
+
+def run_offline(scn: Scenario, *, mode: str = "1024x10",
+                profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
+                backend: str = "embree", preset: str = "tuned", max_frames: int | None = None,
+                eval_cfg: EvalConfig | None = None, voxel_m: float | None = None,
+                progress: Callable[[int, int], None] | None = None) -> OfflineResult:
+    """Emulate ``scn`` at ``mode``, feed every packet and pose frame to the reference SIC
+    (``preset``), score its final forest against all and against seen trees."""
+    run = LidarRun(scn, mode=mode, profile=profile, seed=seed, backend=backend,
+                   max_frames=max_frames, t0_ns=RUN_T0_NS)
+    model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed, RUN_T0_NS)
+    sic = OfflineSic(preset, run.meta, model.node_config(), voxel_m=voxel_m)
+    frames, emu_s = drive(run, model, [sic], progress)
+    doc = sic.finish()
+    table = stem_table(doc, "<reference SIC>", "observed")
+    gt = seen_ground_truth(run)
+    scores = score_forest(gt, table, eval_cfg)
+    return OfflineResult(scores=scores, forest_doc=doc, ground_truth=gt, frames=frames,
+                         sim_seconds=frames * run.emu.period_ns / 1e9, emulator_s=emu_s,
+                         sic_frame_ms=sic.frame_ms, stem_s=sic.stem_s,
+                         poses=sic.track.received, packets=sic.stats.packets,
+                         stems_seen=int(np.count_nonzero(run.counts[1:])))

@@ -1,0 +1,179 @@
+"""Run a grid of cells on Dask (a LocalCluster, or a scheduler's address) or inline.
+
+Each cell is an independent task. Its record lands in ``OUT/cells/<cell id>/cell.json`` the
+moment it finishes, with a hash of its spec, so a rerun skips every cell already done with
+the same spec (a failed cell is tried again). ``OUT/results.csv`` is rewritten after every
+cell, in grid order, always through a temporary name.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tcf_hil._io import ensure_dir, read_json, write_bytes_atomic, write_json_atomic
+from tcf_hil.experiments.cells import COLUMN_NAMES, Cell, CellResult, run_cell
+
+Event = Callable[[str, Cell, dict[str, Any] | None], None]
+"""on_event(kind, cell, row): kind is 'skipped', 'done' or 'failed'."""
+
+
+def spec_hash(cell: Cell) -> str:
+    return hashlib.sha256(json.dumps(asdict(cell), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def cell_dir(out: Path, cell: Cell) -> Path:
+    return out / "cells" / cell.id
+
+
+def finished(out: Path, cell: Cell) -> dict[str, Any] | None:
+    """The record of a cell already done with this very spec, else None."""
+    p = cell_dir(out, cell) / "cell.json"
+    try:
+        rec = read_json(p)
+    except Exception:  # missing or damaged: run it again
+        return None
+    if rec.get("spec") != spec_hash(cell) or rec.get("row", {}).get("status") != "ok":
+        return None
+    return rec
+
+
+@dataclass
+class SweepOutcome:
+    records: list[dict[str, Any]]  # grid order; one per cell that has a record
+    ran: int = 0
+    skipped: int = 0
+    failed: list[dict[str, Any]] = field(default_factory=list)
+    wall_s: float = 0.0
+
+    @property
+    def rows(self) -> list[dict[str, Any]]:
+        return [r["row"] for r in self.records]
+
+
+def write_results_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(COLUMN_NAMES), lineterminator="\n",
+                       extrasaction="ignore")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: _csv_value(r.get(k, "")) for k in COLUMN_NAMES})
+    write_bytes_atomic(path, buf.getvalue().encode())
+
+
+def _csv_value(v: Any) -> Any:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return v
+
+
+def _store(out: Path, cell: Cell, res: CellResult) -> dict[str, Any]:
+    d = ensure_dir(cell_dir(out, cell))
+    rec = {"spec": spec_hash(cell), "row": res.row,
+           **{k: v for k, v in res.artifacts.items() if k.startswith("em_")}}
+    for name in ("forest.json", "score.json"):
+        if name in res.artifacts:
+            write_json_atomic(d / name, res.artifacts[name])
+    if res.row["status"] == "ok":
+        write_json_atomic(d / "cell.json", rec)
+        (d / "failed.json").unlink(missing_ok=True)
+    else:
+        write_json_atomic(d / "failed.json", {"row": res.row,
+                                              "traceback": res.artifacts.get("traceback")})
+    return rec
+
+
+def parse_executor(spec: str) -> tuple[str, str | None]:
+    """``local`` | ``inline`` | ``dask://HOST:PORT`` (or ``tcp://HOST:PORT``)."""
+    s = spec.strip()
+    if s in ("local", "inline"):
+        return s, None
+    for scheme in ("dask://", "tcp://"):
+        if s.startswith(scheme) and ":" in s[len(scheme):]:
+            return "dask", "tcp://" + s[len(scheme):]
+    raise ValueError(f"--executor {spec!r}: expected local, inline or dask://HOST:PORT")
+
+
+def run_sweep(cells: Sequence[Cell], out: str | Path, *, executor: str = "local",
+              workers: int | None = None, on_event: Event | None = None) -> SweepOutcome:
+    """Run every cell not yet done; returns all records in grid order."""
+    out = ensure_dir(out)
+    ids = [c.id for c in cells]
+    if len(set(ids)) != len(ids):
+        raise ValueError("two cells of the grid share an id")
+    kind, address = parse_executor(executor)
+    say = on_event or (lambda *_a: None)
+    t0 = time.perf_counter()
+    records: dict[str, dict[str, Any]] = {}
+    todo: list[Cell] = []
+    for c in cells:
+        rec = finished(out, c)
+        if rec is not None:
+            records[c.id] = rec
+            say("skipped", c, rec["row"])
+        else:
+            todo.append(c)
+    outcome = SweepOutcome([], skipped=len(records))
+
+    def land(c: Cell, res: CellResult) -> None:
+        rec = _store(out, c, res)
+        records[c.id] = rec
+        outcome.ran += 1
+        if res.row["status"] != "ok":
+            outcome.failed.append(res.row)
+        write_results_csv(out / "results.csv",
+                          [records[i]["row"] for i in ids if i in records])
+        say("done" if res.row["status"] == "ok" else "failed", c, res.row)
+
+    def out_dir(c: Cell) -> str | None:
+        return None if c.sic == "reference" else str(cell_dir(out, c).resolve())
+
+    if todo and kind == "inline":
+        for c in todo:
+            land(c, run_cell(c, out_dir(c)))
+    elif todo:
+        from dask.distributed import Client, LocalCluster, as_completed
+
+        cluster = None
+        if kind == "local":
+            cluster = LocalCluster(n_workers=workers or 2, threads_per_worker=1,
+                                   processes=True, dashboard_address=None,
+                                   silence_logs=logging.ERROR)
+            client = Client(cluster)
+        else:
+            client = Client(address, timeout="10s")
+        try:
+            futures = {client.submit(run_cell, c, out_dir(c), pure=False,
+                                     key=f"tcf-cell-{c.id}-{time.time_ns()}"): c
+                       for c in todo}
+            for fut in as_completed(futures):
+                c = futures[fut]
+                try:
+                    res = fut.result()
+                except Exception as err:  # the worker died (KilledWorker, ...)
+                    res = _lost(c, err)
+                land(c, res)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    write_results_csv(out / "results.csv", [records[i]["row"] for i in ids if i in records])
+    outcome.records = [records[i] for i in ids if i in records]
+    outcome.wall_s = time.perf_counter() - t0
+    return outcome
+
+
+def _lost(c: Cell, err: BaseException) -> CellResult:
+    row: dict[str, Any] = dict.fromkeys(COLUMN_NAMES, "")
+    row.update(cell=c.id, forest=c.forest, mode=c.mode, seed=c.seed, sic=c.sic,
+               preset=c.preset, status="failed",
+               error=f"{type(err).__name__}: {err}".replace("\n", " ")[:500])
+    return CellResult(row, {"traceback": repr(err)})
