@@ -902,8 +902,9 @@ def experiment_1(out: Path, seed: int | None, presets: tuple[str, ...], no_pcd: 
 
 
 def _register_sweeps() -> None:
-    from tcf_hil.experiments._cli import columns_cmd, paper_cmd, passes_cmd
+    from tcf_hil.experiments._cli import bench_cmd, columns_cmd, paper_cmd, passes_cmd
 
+    cli.add_command(bench_cmd, "bench")
     experiment.add_command(paper_cmd, "paper")
     experiment.add_command(passes_cmd, "passes")
     experiment.add_command(columns_cmd, "columns")

@@ -302,3 +302,87 @@ def columns_cmd() -> None:
     for c, d in COLUMNS:
         t.add_row(c, d)
     console.print(t)
+
+
+def _floats_list(text: str, name: str) -> tuple[float, ...]:
+    try:
+        vals = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError as err:
+        raise click.BadParameter(f"{text!r}: expected numbers like 2,10", param_hint=name) from err
+    if not vals or any(not 0.05 <= v <= 100 for v in vals):
+        raise click.BadParameter(f"{text!r}: tolerances from 0.05 to 100 mm", param_hint=name)
+    return vals
+
+
+@click.command("bench")
+@click.option("--quick", is_flag=True,
+              help="Forest II, 512x10, 100 frames, tolerances 2 and 10 mm, both backends and "
+              "presets: under a minute (CI runs it).")
+@click.option("--forest", "forest_name", default=None, help="Forest (default: V; II quick).")
+@click.option("--modes", default=None, help="Lidar modes (default: 512x10,1024x10,2048x10).")
+@click.option("--tolerances", default=None,
+              help="Stem tessellation tolerances in mm (default: 2,10).")
+@click.option("--backends", default=None, help="Ray backends (default: embree,open3d).")
+@click.option("--presets", default=None, help="Reference SIC presets (default: tuned,paper).")
+@click.option("--frames", type=click.IntRange(min=1), default=None,
+              help="Frames per combination (default: 300; 100 quick).")
+@click.option("--whole-track", is_flag=True, help="Every frame of the track (overrides --frames).")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Override the seed.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Output directory: bench.md, bench.csv, bench.json, pareto.png.")
+def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerances: str | None,
+              backends: str | None, presets: str | None, frames: int | None, whole_track: bool,
+              seed: int | None, out: Path) -> None:
+    """Speed against error, side by side in one run.
+
+    For every lidar mode x stem tessellation tolerance x ray backend, the emulator runs the
+    track once and every reference SIC preset reads the same bytes: emulator ms per frame
+    and x real time, the mesh's range error against the exact surfaces, SIC ms per frame
+    (p50/p99), the score (wc, F1) and the position and DBH RMSE. Writes a table and a Pareto
+    plot (cost against error).
+
+    \b
+    Examples:
+      tcf-hil bench --quick --out bench-quick
+      tcf-hil bench --modes 1024x10,2048x10 --tolerances 1,2,5,20 --out bench
+    """
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from tcf_hil.experiments.bench import FULL, QUICK, BenchGrid, run_bench, write_bench
+
+    g = QUICK if quick else FULL
+    grid = BenchGrid(
+        forest=parse_forests(forest_name)[0] if forest_name else g.forest,
+        modes=tuple(parse_modes(modes)) if modes else g.modes,
+        tolerances_mm=_floats_list(tolerances, "--tolerances") if tolerances
+        else g.tolerances_mm,
+        backends=tuple(b.strip() for b in backends.split(",")) if backends else g.backends,
+        presets=tuple(p.strip() for p in presets.split(",")) if presets else g.presets,
+        frames=None if whole_track else (frames or g.frames))
+    bad = [b for b in grid.backends if b not in ("embree", "open3d")]
+    bad += [p for p in grid.presets if p not in ("tuned", "paper")]
+    if bad or "sampled" in grid.modes:
+        raise click.BadParameter(f"{', '.join(bad) or 'sampled'}: backends are embree, open3d; "
+                                 "presets tuned, paper; modes lidar modes")
+    t0 = time.perf_counter()
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                  console=err_console, transient=True) as prog:
+        task = prog.add_task("bench")
+        rows, notes = run_bench(grid, seed=seed,
+                                say=lambda s: prog.update(task, description=s))
+    paths = write_bench(rows, notes, grid, out, time.perf_counter() - t0)
+    t = Table(title=f"Speed against error, {grid.forest} "
+                    f"({'whole track' if grid.frames is None else f'{grid.frames} frames'})")
+    for col in ("mode", "tol mm", "backend", "preset", "emu x RT", "range p99 mm",
+                "SIC ms p50/p99", "wc seen %", "pos mm", "DBH mm"):
+        t.add_column(col, justify="left" if col in ("mode", "backend", "preset") else "right")
+    for r in rows:
+        t.add_row(r["mode"], f"{r['tolerance_mm']:g}", r["backend"], r["preset"],
+                  f"{r['emulator_x_realtime']:.1f}", f"{r['range_err_p99_mm']:.2f}",
+                  f"{r['sic_ms_p50']:.1f}/{r['sic_ms_p99']:.1f}", f"{r['wc_seen']:.1f}",
+                  f"{r['position_rmse_m'] * 1e3:.1f}", f"{r['dbh_rmse_m'] * 1e3:.1f}")
+    console.print(t)
+    for n in notes:
+        err_console.print(f"[yellow]note[/]: {n}")
+    console.print(f"{time.perf_counter() - t0:.0f} s. Table: [bold]{paths['md']}[/], "
+                  f"plot: {paths['png']}")

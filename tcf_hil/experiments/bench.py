@@ -1,0 +1,226 @@
+"""Speed against error, measured side by side in one run: lidar mode x stem tessellation
+tolerance x ray backend x reference SIC preset.
+
+Each (mode, tolerance, backend) emulates the track once; both SIC presets read the same
+packet and CAN bytes in lockstep (:func:`tcf_hil.experiments.offline.drive`), so their
+timings share the machine's state. A few frames are also cast exactly
+(:mod:`tcf_hil.analytic`) to give the range error the tessellation costs.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import resource
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tcf_hil._io import ensure_dir, write_bytes_atomic, write_json_atomic
+from tcf_hil.scenario import Scenario, load_scenario
+
+
+@dataclass(frozen=True)
+class BenchGrid:
+    forest: str
+    modes: tuple[str, ...]
+    tolerances_mm: tuple[float, ...]
+    backends: tuple[str, ...]
+    presets: tuple[str, ...]
+    frames: int | None  # None: the whole track
+    error_frames: int = 2  # frames cast exactly for the range error
+
+
+QUICK = BenchGrid("forest-ii", ("512x10",), (2.0, 10.0), ("embree", "open3d"),
+                  ("tuned", "paper"), frames=100)
+FULL = BenchGrid("forest-v", ("512x10", "1024x10", "2048x10"), (2.0, 10.0),
+                 ("embree", "open3d"), ("tuned", "paper"), frames=300)
+
+BENCH_COLUMNS = ("forest", "mode", "tolerance_mm", "backend", "preset", "triangles", "frames",
+                 "emulator_ms_frame", "emulator_x_realtime", "range_err_p50_mm",
+                 "range_err_p99_mm", "sic_ms_p50", "sic_ms_p99", "stem_s", "stems_seen",
+                 "wc_all", "wc_seen", "f1_seen", "position_rmse_m", "dbh_rmse_m")
+
+
+def backend_available(name: str) -> str | None:
+    """None if the backend can be used here, else why not."""
+    if name == "open3d":
+        try:
+            import open3d  # noqa: F401
+        except Exception as err:  # not installed, or its shared libraries are missing
+            return f"open3d cannot be imported ({type(err).__name__}: {err})"
+    return None
+
+
+def _range_error(run: Any, k: int) -> np.ndarray:
+    from tcf_hil.analytic import refine_hits
+
+    o, d, _, _ = run.emu.rays(k)
+    t, sid = run.scene.cast(o, d)
+    exact, _cos = refine_hits(run.forest, o, d, t, sid)
+    m = (sid > 0) & np.isfinite(exact) & (t < 50.0)
+    return np.abs(t[m] - exact[m])
+
+
+def run_bench(grid: BenchGrid, *, seed: int | None = None,
+              say: Callable[[str], None] = lambda _s: None) -> tuple[list[dict[str, Any]],
+                                                                    list[str]]:
+    """Every combination of the grid; returns (rows, notes on what was skipped)."""
+    from tcf_hil.experiments.offline import (
+        RUN_T0_NS,
+        OfflineSic,
+        drive,
+        seen_ground_truth,
+    )
+    from tcf_hil.harvester import HarvesterModel
+    from tcf_hil.lidar import LidarRun
+    from tcf_hil.recorder import score_forest
+    from tcf_hil.stems_json import stem_table
+
+    base = load_scenario(grid.forest, seed=seed)
+    rows: list[dict[str, Any]] = []
+    notes = []
+    backends = []
+    for b in grid.backends:
+        why = backend_available(b)
+        if why:
+            notes.append(f"backend {b} skipped: {why}")
+        else:
+            backends.append(b)
+    for mode in grid.modes:
+        for tol in grid.tolerances_mm:
+            scn: Scenario = dataclasses.replace(
+                base, stems=dataclasses.replace(base.stems, tolerance_mm=tol))
+            for backend in backends:
+                say(f"{mode}, {tol:g} mm, {backend}")
+                run = LidarRun(scn, mode=mode, backend=backend, max_frames=grid.frames,
+                               t0_ns=RUN_T0_NS)
+                model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed,
+                                                     RUN_T0_NS)
+                sics = [OfflineSic(p, run.meta, model.node_config()) for p in grid.presets]
+                frames, emu_s = drive(run, model, sics)
+                ks = np.linspace(0, max(frames - 1, 0), grid.error_frames).astype(int)
+                err = np.concatenate([_range_error(run, int(k)) for k in ks])
+                gt = seen_ground_truth(run)
+                sim_s = frames * run.emu.period_ns / 1e9
+                for preset, sic in zip(grid.presets, sics, strict=True):
+                    doc = sic.finish()
+                    sc = score_forest(gt, stem_table(doc, "<reference SIC>", "observed"))
+                    a, s = sc.all.metrics, sc.seen.metrics
+                    ms = np.asarray(sic.frame_ms)
+                    rows.append({
+                        "forest": scn.name, "mode": mode, "tolerance_mm": tol,
+                        "backend": backend, "preset": preset,
+                        "triangles": len(run.scene.faces), "frames": frames,
+                        "emulator_ms_frame": 1000.0 * emu_s / max(frames, 1),
+                        "emulator_x_realtime": sim_s / max(emu_s, 1e-9),
+                        "range_err_p50_mm": float(np.percentile(err, 50) * 1e3) if len(err)
+                        else float("nan"),
+                        "range_err_p99_mm": float(np.percentile(err, 99) * 1e3) if len(err)
+                        else float("nan"),
+                        "sic_ms_p50": float(np.percentile(ms, 50)),
+                        "sic_ms_p99": float(np.percentile(ms, 99)),
+                        "stem_s": sic.stem_s,
+                        "stems_seen": int(np.count_nonzero(run.counts[1:])),
+                        "wc_all": a["evaluation_score_percent"],
+                        "wc_seen": s["evaluation_score_percent"], "f1_seen": s["f1"],
+                        "position_rmse_m": s["position_rmse_m"], "dbh_rmse_m": s["dbh_rmse_m"],
+                    })
+    return rows, notes
+
+
+def pareto(cost: Sequence[float], err: Sequence[float]) -> list[int]:
+    """Indices of the points no other point beats on both (lower cost and lower error),
+    by increasing cost."""
+    order = sorted(range(len(cost)), key=lambda i: (cost[i], err[i]))
+    front, best = [], float("inf")
+    for i in order:
+        if err[i] < best:
+            front.append(i)
+            best = err[i]
+    return front
+
+
+def _cost(r: dict[str, Any]) -> float:
+    return float(r["emulator_ms_frame"] + r["sic_ms_p50"])
+
+
+def pareto_png(rows: Sequence[dict[str, Any]], title: str) -> bytes:
+    from tcf_hil.plots import _pyplot, figure_png
+
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(12.5, 5.0))
+    cost = [_cost(r) for r in rows]
+    for ax, key, label, scale in ((axes[0], "wc_seen", "100 - wc against seen trees (%)", 1.0),
+                                  (axes[1], "dbh_rmse_m", "DBH RMSE, seen trees (mm)", 1e3)):
+        err = [(100.0 - r[key]) if key == "wc_seen" else r[key] * scale for r in rows]
+        markers = {"tuned": "o", "paper": "s"}
+        for i, r in enumerate(rows):
+            ax.scatter(cost[i], err[i], marker=markers.get(r["preset"], "^"),
+                       c="#1f5fbf" if r["backend"] == "embree" else "#d9822b", s=40)
+            ax.annotate(f"{r['mode']} {r['tolerance_mm']:g}mm {r['preset']}", (cost[i], err[i]),
+                        fontsize=6.5, xytext=(3, 3), textcoords="offset points")
+        front = pareto(cost, err)
+        ax.plot([cost[i] for i in front], [err[i] for i in front], "k--", lw=1,
+                label="Pareto front")
+        ax.set_xlabel("ms per frame: emulator + SIC (median)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize=8,
+                  title="blue: Embree, orange: open3d; o tuned, s paper", title_fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return figure_png(fig)
+
+
+def _md(rows: Sequence[dict[str, Any]]) -> str:
+    head = ["mode", "tol mm", "backend", "preset", "emu ms/frame", "emu × RT", "range p99 mm",
+            "SIC ms p50", "SIC ms p99", "stem s", "wc all %", "wc seen %", "F1 seen",
+            "pos RMSE mm", "DBH RMSE mm", "Pareto"]
+    cost = [_cost(r) for r in rows]
+    front = set(pareto(cost, [100.0 - r["wc_seen"] for r in rows]))
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for i, r in enumerate(rows):
+        lines.append("| " + " | ".join([
+            r["mode"], f"{r['tolerance_mm']:g}", r["backend"], r["preset"],
+            f"{r['emulator_ms_frame']:.1f}", f"{r['emulator_x_realtime']:.1f}",
+            f"{r['range_err_p99_mm']:.2f}", f"{r['sic_ms_p50']:.1f}", f"{r['sic_ms_p99']:.1f}",
+            f"{r['stem_s']:.1f}", f"{r['wc_all']:.1f}", f"{r['wc_seen']:.1f}",
+            f"{r['f1_seen']:.3f}", f"{r['position_rmse_m'] * 1e3:.1f}",
+            f"{r['dbh_rmse_m'] * 1e3:.1f}", "yes" if i in front else ""]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_bench(rows: Sequence[dict[str, Any]], notes: Sequence[str], grid: BenchGrid,
+                out: Path, wall_s: float) -> dict[str, Path]:
+    ensure_dir(out)
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(BENCH_COLUMNS), lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    paths = {"csv": out / "bench.csv", "md": out / "bench.md", "png": out / "pareto.png",
+             "json": out / "bench.json"}
+    write_bytes_atomic(paths["csv"], buf.getvalue().encode())
+    frames = "whole track" if grid.frames is None else f"first {grid.frames} frames"
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    text = (f"# Speed against error: {grid.forest}, {frames}\n\n"
+            f"One run, side by side; {wall_s:.0f} s wall, peak RSS {peak_mb:.0f} MB. Cost = "
+            "emulator + SIC milliseconds per lidar frame; scores against the trees the sensor "
+            "saw (and all trees). The range error is the mesh's against the exact surfaces "
+            "(stem hits).\n\n" + _md(rows)
+            + "".join(f"\n- {n}" for n in notes) + "\n")
+    write_bytes_atomic(paths["md"], text.encode())
+    if rows:
+        write_bytes_atomic(paths["png"], pareto_png(rows, f"Speed against error, {grid.forest}"))
+    write_json_atomic(paths["json"], {"grid": dataclasses.asdict(grid), "rows": list(rows),
+                                      "notes": list(notes), "wall_s": wall_s,
+                                      "peak_rss_mb": peak_mb,
+                                      "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ",
+                                                                time.gmtime())})
+    return paths
