@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -88,6 +89,9 @@ def _progress_sweep(cells: Sequence[Any], out: Path, executor: str, workers: int
                         description="cells (skipped: done before)" if kind == "skipped"
                         else "cells")
 
+        if workers is None and any(c.sic != "reference" for c in cells):
+            # a SIC command's cell is a live run: emulators and SIC want about two cores
+            workers = max(1, (os.cpu_count() or 2) // 2)
         return run_sweep(cells, out, executor=executor, workers=workers, on_event=on_event)
 
 
@@ -122,7 +126,8 @@ def _sweep_options(f: Any) -> Any:
                      "running scheduler; workers need tcf-hil installed), or inline (this "
                      "process, one cell at a time)."),
         click.option("--workers", type=click.IntRange(min=1), default=None,
-                     help="LocalCluster workers (default 2: one per core here)."),
+                     help="LocalCluster workers (default 2; with a SIC command, one per two "
+                     "cores, since each of its cells is a live run)."),
         click.option("--speed", type=click.FloatRange(min=0.05, max=20), default=1.0,
                      show_default=True, help="Pace of a SIC command's live runs."),
         click.option("--keep-pcap", is_flag=True,

@@ -3,7 +3,8 @@
 Each cell is an independent task. Its record lands in ``OUT/cells/<cell id>/cell.json`` the
 moment it finishes, with a hash of its spec, so a rerun skips every cell already done with
 the same spec (a failed cell is tried again). ``OUT/results.csv`` is rewritten after every
-cell, in grid order, always through a temporary name.
+cell, always through a temporary name: this grid's cells in grid order, then every other
+finished cell of ``OUT`` (a sweep extended by seeds or presets keeps one table).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ def finished(out: Path, cell: Cell) -> dict[str, Any] | None:
 
 @dataclass
 class SweepOutcome:
-    records: list[dict[str, Any]]  # grid order; one per cell that has a record
+    records: list[dict[str, Any]]  # this grid in order, then other finished cells of OUT
     ran: int = 0
     skipped: int = 0
     failed: list[dict[str, Any]] = field(default_factory=list)
@@ -122,6 +123,10 @@ def run_sweep(cells: Sequence[Cell], out: str | Path, *, executor: str = "local"
         else:
             todo.append(c)
     outcome = SweepOutcome([], skipped=len(records))
+    others = _other_records(out, set(ids))
+
+    def all_rows() -> list[dict[str, Any]]:
+        return [records[i]["row"] for i in ids if i in records] + [r["row"] for r in others]
 
     def land(c: Cell, res: CellResult) -> None:
         rec = _store(out, c, res)
@@ -129,8 +134,7 @@ def run_sweep(cells: Sequence[Cell], out: str | Path, *, executor: str = "local"
         outcome.ran += 1
         if res.row["status"] != "ok":
             outcome.failed.append(res.row)
-        write_results_csv(out / "results.csv",
-                          [records[i]["row"] for i in ids if i in records])
+        write_results_csv(out / "results.csv", all_rows())
         say("done" if res.row["status"] == "ok" else "failed", c, res.row)
 
     def out_dir(c: Cell) -> str | None:
@@ -165,10 +169,26 @@ def run_sweep(cells: Sequence[Cell], out: str | Path, *, executor: str = "local"
             client.close()
             if cluster is not None:
                 cluster.close()
-    write_results_csv(out / "results.csv", [records[i]["row"] for i in ids if i in records])
-    outcome.records = [records[i] for i in ids if i in records]
+    write_results_csv(out / "results.csv", all_rows())
+    outcome.records = [records[i] for i in ids if i in records] + others
     outcome.wall_s = time.perf_counter() - t0
     return outcome
+
+
+def _other_records(out: Path, ids: set[str]) -> list[dict[str, Any]]:
+    """Finished cells under ``out`` from other grids (an extended sweep: more seeds, another
+    preset), by id: results.csv and the tables hold every finished cell of the directory."""
+    recs = []
+    for p in sorted((out / "cells").glob("*/cell.json")):
+        if p.parent.name in ids:
+            continue
+        try:
+            rec = read_json(p)
+        except Exception:  # a damaged record is not a result
+            continue
+        if isinstance(rec, dict) and rec.get("row", {}).get("status") == "ok":
+            recs.append(rec)
+    return recs
 
 
 def _lost(c: Cell, err: BaseException) -> CellResult:
