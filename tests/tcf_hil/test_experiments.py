@@ -73,7 +73,7 @@ def test_sweep_on_a_two_worker_local_cluster_then_a_rerun_skips(tmp_path: Path) 
     out3 = run_sweep(cells[2:3], tmp_path, executor="inline")
     assert (out3.ran, out3.skipped, len(out3.records)) == (0, 1, 4)
     _, rows3 = _read_csv(tmp_path / "results.csv")
-    assert [r["cell"] for r in rows3][0] == cells[2].id
+    assert rows3[0]["cell"] == cells[2].id
     assert sorted(r["cell"] for r in rows3) == sorted(c.id for c in cells)
     # a changed spec under the same id is not "finished"
     changed = [dataclasses.replace(cells[0], max_frames=20)]
