@@ -1,6 +1,20 @@
-"""The paper's experiments. Experiment 1 (no lidar) lives here now; the lidar experiments
-arrive with the wire."""
+"""The paper's experiments: Experiment 1 (no lidar), and sweeps of cells on the wire (Dask),
+the tables, multi-pass scanning and the speed-against-error bench.
 
-from tcf_hil.experiments.experiment1 import PAPER_TABLE6, Experiment1Row, run_experiment1
+Nothing heavy is imported here: the CLI registers the sweep commands from
+``tcf_hil.experiments._cli`` on every start.
+"""
+
+from __future__ import annotations
+
+from typing import Any
 
 __all__ = ["PAPER_TABLE6", "Experiment1Row", "run_experiment1"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in __all__:
+        from tcf_hil.experiments import experiment1
+
+        return getattr(experiment1, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -81,10 +81,16 @@ def test_sweep_on_a_two_worker_local_cluster_then_a_rerun_skips(tmp_path: Path) 
 
 
 def test_a_failing_sic_fails_its_cell_only_and_a_rerun_retries_it(tmp_path: Path) -> None:
+    """On a running scheduler by its address (dask://HOST:PORT), as on a real cluster."""
+    from dask.distributed import LocalCluster
+
     scn = load_scenario("forest-ii")
     good = make_cell(scn, "512x10", max_frames=20)
     bad = make_cell(scn, "512x10", sic=FAIL_SIC, max_frames=20)
-    out = run_sweep([good, bad], tmp_path, executor="local", workers=2)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        address = cluster.scheduler_address.replace("tcp://", "dask://")
+        out = run_sweep([good, bad], tmp_path, executor=address)
     assert out.ran == 2 and len(out.failed) == 1
     f = out.failed[0]
     assert f["cell"] == bad.id and f["status"] == "failed"
