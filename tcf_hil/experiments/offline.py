@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from protocols.harvester._codec import encode_pose
 from tcf_hil._crc import fast_crc_rows
+from tcf_hil.bridge import RUN_T0_NS  # as a live run: CAN time never goes negative
 from tcf_hil.evaluation import EvalConfig
 from tcf_hil.forest import ground_truth
 from tcf_hil.harvester import HarvesterModel
@@ -36,7 +37,6 @@ from tcf_hil.sic._online import CanPose, LidarStats, OnboardSic, PoseTrack, SicC
 from tcf_hil.stems_json import stem_table
 from tcf_hil.trajectory import rotation_ypr
 
-RUN_T0_NS = 60_000_000_000  # as a live run (tcf_hil.bridge): CAN time never goes negative
 LEAD_NS = 1_000_000_000  # poses on the bus before the first column
 
 
