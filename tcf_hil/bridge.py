@@ -31,8 +31,10 @@ from emulators.lidar import SensorApi
 from protocols.harvester import eds_path
 from tcf_hil._io import ensure_dir, read_json, write_bytes_atomic, write_json_atomic
 from tcf_hil.evaluation import EvalConfig
+from tcf_hil.faults import FaultLog, fault_plans, faults_active
 from tcf_hil.harvester import HarvesterModel, open_bus, run_harvester
 from tcf_hil.recorder import (
+    MAX_PUBLICATION_BYTES,
     FileWatcher,
     Inbox,
     PublishServer,
@@ -40,7 +42,7 @@ from tcf_hil.recorder import (
     empty_forest,
     score_forest,
 )
-from tcf_hil.scenario import Scenario
+from tcf_hil.scenario import Scenario, scenario_to_dict
 
 RUN_T0_NS = 60_000_000_000
 ENV_DOC: tuple[tuple[str, str], ...] = (
@@ -205,9 +207,19 @@ class _SicProcess:
         self.reader.start()
 
     def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
+        """Each stdout line that starts with ``{`` is a publication; a line longer than a
+        publication may be is recorded as an invalid one (its start) and skipped to its end,
+        so a runaway SIC cannot fill the bench's memory."""
+        out = self.proc.stdout
+        assert out is not None
+        limit = MAX_PUBLICATION_BYTES + 1
+        while line := out.readline(limit):
             self.stdout_log.write(line)
+            too_long = len(line) == limit and not line.endswith(b"\n")
+            while too_long and (rest := out.readline(limit)):  # the rest of that line
+                self.stdout_log.write(rest)
+                if rest.endswith(b"\n"):
+                    break
             self.stdout_log.flush()
             s = line.strip()
             if s.startswith(b"{"):
@@ -275,9 +287,12 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                eval_cfg: EvalConfig | None = None, stop: threading.Event | None = None,
                announce: Callable[[str], None] = lambda s: None,
                progress: Callable[[int, int], None] | None = None,
-               ready_s: float = 15.0) -> RunResult:
+               ready_s: float = 15.0, record_lidar: bool = True,
+               on_start: Callable[[dict[str, Any]], None] | None = None) -> RunResult:
     """One live run into ``out`` (see the module docstring). ``stop`` ends it early (Ctrl-C):
-    everything is closed, and the forest published so far is scored."""
+    everything is closed, and the forest published so far is scored. ``record_lidar``: keep
+    lidar.pcap and sensor_poses.csv (off for long runs: 2048x10 sends 16 MB/s).
+    ``on_start`` gets the manifest once the clock runs (the SIC's pid is in it)."""
     from tcf_hil.lidar import LidarRun, stream_lidar
 
     stop = stop or threading.Event()
@@ -294,22 +309,30 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
     # reaches negative times (the CAN pose time is an unsigned 32-bit microsecond count)
     run = LidarRun(scn, mode=mode, profile=profile, seed=seed, backend=backend,
                    udp_dest="127.0.0.1", udp_port_lidar=lidar_port, udp_port_imu=imu_port,
-                   t0_ns=RUN_T0_NS)
+                   t0_ns=RUN_T0_NS, keep_poses=record_lidar)
     if duration_s is not None:
         run.frames = max(1, min(run.frames, round(duration_s * run.meta.frequency_hz)))
+    flog: FaultLog | None = None
+    can_faults = None
+    if faults_active(scn.faults):
+        flog = FaultLog(out / "faults.jsonl", run.track.t0_ns)
+        can_faults = fault_plans(scn.faults, run.forest.seed, run.track.t0_ns).can
     node_cfg = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed,
                                             RUN_T0_NS).node_config()
     write_bytes_atomic(out / "metadata.json", run.meta.dumps().encode())
     manifest: dict[str, Any] = {
         "tcf_hil_run": 1, "status": "running", "versions": _versions(),
         "scenario": scn.name, "seed": run.forest.seed, "mode": mode, "profile": profile,
-        "speed": speed, "backend": backend, "sic": {"command": sic, "shell": shell},
+        "speed": speed, "backend": backend, "lidar_pcap": record_lidar,
+        "sic": {"command": sic, "shell": shell},
         "started": started.isoformat(), "stopped": None, "frames_planned": run.frames,
         # what the harvester node answers by SDO (replay serves the same)
         "can_node": {"node_id": node_cfg.node_id, "datum_mm": list(node_cfg.datum_mm),
                      "mount_mm": list(node_cfg.mount_mm),
                      "mount_cdeg": list(node_cfg.mount_cdeg)},
     }
+    if flog is not None:
+        manifest["faults"] = {"config": scenario_to_dict(scn)["faults"], "log": "faults.jsonl"}
     inbox = Inbox(out / "sic", t_mono0)
     server = PublishServer(inbox).start()
     watcher: FileWatcher | None = None
@@ -342,14 +365,25 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                 harv_result.append(run_harvester(
                     scn, run.forest.terrain, spec, seed=run.forest.seed, log_path=out / "can.log",
                     speed=speed, stop=harv_stop, clock=harv_clock[0], t0_ns=t0,
-                    duration_s=lead_s * speed + seconds))
+                    duration_s=lead_s * speed + seconds, faults=can_faults,
+                    on_fault=flog.log if flog is not None else None))
+
+            def on_lidar_fault(ev: dict[str, Any]) -> None:
+                assert flog is not None
+                flog.log(ev)
+                if ev["kind"] == "lidar_reinit":  # the sensor serves its new identity
+                    new = api.meta.with_changes(init_id=ev["init_id"])
+                    api.set_metadata(new)
+                    write_bytes_atomic(out / "metadata.json", new.dumps().encode())
 
             def lidar() -> None:
                 nonlocal lidar_result
                 try:
-                    lidar_result = stream_lidar(scn, sensor_ip=sensor_ip, record=out, run=run,
-                                                stop=end_stream, clock=late, progress=progress,
-                                                pcap_in_place=True, forked=forked)
+                    lidar_result = stream_lidar(
+                        scn, sensor_ip=sensor_ip, record=out, run=run, stop=end_stream,
+                        clock=late, progress=progress, pcap_in_place=True, forked=forked,
+                        on_fault=on_lidar_fault if flog is not None else None,
+                        pcap=record_lidar)
                 except BaseException as err:
                     lidar_error.append(err)
                 finally:
@@ -387,6 +421,8 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             manifest["clock"] = {"sim_t0_ns": t0, "unix_ns_at_sim_t0": unix_at_t0,
                                  "speed": speed, "lead_s": lead_s}
             write_json_atomic(out / "manifest.json", manifest)  # replayable from here on
+            if on_start is not None:
+                on_start(manifest)
             th_h = threading.Thread(target=harvester, name="harvester", daemon=True)
             th_h.start()
             threads.append(th_h)
@@ -433,6 +469,9 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             watcher.close()
         server.close()
         inbox.close()
+        if flog is not None:
+            flog.close()
+            manifest["faults"]["injected"] = flog.summary()
         if lidar_result is not None:
             manifest["lidar"] = {"frames_sent": lidar_result.frames,
                                  "packets_sent": lidar_result.packets,
@@ -517,12 +556,10 @@ def finish_run(out: Path, manifest: dict[str, Any], inbox: Inbox, status: str, m
     timeline: list[dict[str, Any]] = []
     valid = inbox.valid
     if gt_doc is not None:
-        latest = valid[-1].table if valid else empty_forest()
-        assert latest is not None
+        latest = inbox.table_of(valid[-1]) if valid else empty_forest()
         scores = score_forest(gt_doc, latest, eval_cfg)
         for p in valid:
-            assert p.table is not None
-            s = score_forest(gt_doc, p.table, eval_cfg)
+            s = score_forest(gt_doc, inbox.table_of(p), eval_cfg)
             timeline.append({"n": p.n, "arrival_s": round(p.arrival_s, 3), "objects": p.objects,
                              "wc_all": s.all.metrics["evaluation_score_percent"],
                              "wc_seen": s.seen.metrics["evaluation_score_percent"],
@@ -536,6 +573,8 @@ def finish_run(out: Path, manifest: dict[str, Any], inbox: Inbox, status: str, m
     }
     if scores is not None:
         score_doc.update(scores.summary())
+    if "faults" in manifest:  # the score next to what was done to the SIC
+        score_doc["faults"] = manifest["faults"].get("injected", {})
     write_json_atomic(out / "score.json", score_doc)
     result = RunResult(out, status, message, scores, manifest, rc, len(inbox.items),
                        len(inbox.invalid), timeline)

@@ -89,6 +89,25 @@ def _run_dir(out: Path | None) -> Path:
     return out or Path("runs") / _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
 
 
+_FAULT_HELP = ("Inject a fault: KEY=VALUE below the scenario's [faults] (repeatable), e.g. "
+               "udp.loss=0.01, udp.burst_rate=0.001, udp.jitter_us=200, udp.reorder=0.01, "
+               "lidar.dropout=0.02, lidar.reinit_at_s=[30], can.loss=0.01, "
+               "can.pose_delay_ms=50, can.bus_off_at_s=[20], can.nmt_reset_at_s=[40]. "
+               "`tcf-hil scenario show NAME` lists every key.")
+
+
+def _fault_option(f: Callable[..., Any]) -> Callable[..., Any]:
+    return click.option("--fault", "faults", multiple=True, metavar="KEY=VALUE",
+                        help=_FAULT_HELP)(f)
+
+
+def _scenario_with_faults(name: str, faults: Sequence[str], seed: int | None = None) -> Any:
+    from tcf_hil.faults import apply_fault_options
+    from tcf_hil.scenario import load_scenario
+
+    return apply_fault_options(load_scenario(name, seed=seed), faults)
+
+
 def _bridge(scn: Any, sic: str, out: Path, replay_dir: Path | None = None, **kw: Any) -> int:
     """Run the bridge with a progress bar; Ctrl-C / SIGTERM end it cleanly (the partial
     recording is kept and scored); prints the score table. Returns the exit status."""
@@ -220,9 +239,11 @@ def demo(out: Path | None, seed: int | None, preset: str) -> None:
 @click.option("--replay", "replay_dir", type=click.Path(file_okay=False, exists=True,
                                                          path_type=Path), default=None,
               help="Send a recorded run's traffic instead of the live emulators.")
+@_fault_option
 def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, profile: str,
             seed: int | None, out: Path | None, speed: float, duration: float | None,
-            can_spec: str, grace: float, ready_s: float, replay_dir: Path | None) -> None:
+            can_spec: str, grace: float, ready_s: float, replay_dir: Path | None,
+            faults: tuple[str, ...]) -> None:
     """A hardware-in-the-loop run of an onboard SIC program against SCENARIO.
 
     \b
@@ -233,9 +254,14 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     Exit status 0 when the run completed and the SIC published a valid forest, 3 when the
     SIC failed (exited early or with an error, or published nothing valid), 130 when
     stopped by Ctrl-C/SIGTERM (the partial run is still recorded and scored).
+
+    \b
+    Faults (the scenario's [faults] section, or --fault KEY=VALUE) are injected on the wire
+    and logged with their times in faults.jsonl; score.json and report.html show the score
+    next to them, e.g.:
+      tcf-hil run forest-v --duration 30 --fault udp.loss=0.01 --fault can.bus_off_at_s=[10]
     """
     from tcf_hil.bridge import check_sic_command, sic_reference_command
-    from tcf_hil.scenario import load_scenario
 
     sic = sic or sic_reference_command()
     try:
@@ -250,7 +276,7 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
         return
     if scenario_name is None:
         raise click.UsageError("give a SCENARIO (a preset name or TOML file) or --replay RUN_DIR")
-    scn = load_scenario(scenario_name)
+    scn = _scenario_with_faults(scenario_name, faults)
     code = _bridge(scn, sic, _run_dir(out), mode=mode, profile=profile, seed=seed,
                    speed=speed, duration_s=duration, can=can_spec, shell=shell, grace_s=grace,
                    ready_s=ready_s)
@@ -584,23 +610,24 @@ def _sensor_options(f: Callable[..., Any]) -> Callable[..., Any]:
               help="IPv4 MTU of the recorded link (larger packets are fragmented).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output directory.")
+@_fault_option
 def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, backend: str,
                noise: float, max_range: float, frames: int | None, mtu: int,
-               out: Path) -> None:
+               out: Path, faults: tuple[str, ...]) -> None:
     """Drive the sensor along the scenario's track, as fast as the machine allows.
 
     Writes lidar.pcap (lidar UDP to 7502, LEGACY IMU to 7503 at 100 Hz, from 127.0.0.1),
     metadata.json (read it with ouster-sdk: ouster-cli -m metadata.json source lidar.pcap),
     ground_truth.json (with the returns each stem got), visibility.json and sensor_poses.csv
-    (the sensor frame in the world at every column time stamp).
+    (the sensor frame in the world at every column time stamp). UDP and lidar faults
+    (--fault, or the scenario's [faults]) go into the capture, logged in faults.jsonl.
     """
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from emulators.lidar import ReturnModel
     from tcf_hil.lidar import record_pcap
-    from tcf_hil.scenario import load_scenario
 
-    scn = load_scenario(scenario_name)
+    scn = _scenario_with_faults(scenario_name, faults)
     model = ReturnModel(noise_sigma_m=noise, max_range_m=max_range)
     with _blame(scenario_name), \
             Progress(TextColumn("{task.description}"), BarColumn(),
@@ -636,10 +663,11 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
                    "need 80, which needs root); the API stays up until Ctrl-C.")
 @click.option("--http-address", default=None,
               help="Address of the HTTP API (default: the sensor address).")
+@_fault_option
 def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
                  sensor_address: str, dest: str, lidar_port: int, imu_port: int, speed: float,
                  frames: int | None, record: Path | None, http_port: int | None,
-                 http_address: str | None) -> None:
+                 http_address: str | None, faults: tuple[str, ...]) -> None:
     """Stream the emulated OS0-64 live over UDP until the track ends or Ctrl-C.
 
     \b
@@ -650,9 +678,8 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
       sensor.SensorFrameSetSource("127.0.0.1", sensor_info=[core.SensorInfo(json_text)])
     """
     from tcf_hil.lidar import serve_sensor, stream_lidar
-    from tcf_hil.scenario import load_scenario
 
-    scn = load_scenario(scenario_name)
+    scn = _scenario_with_faults(scenario_name, faults)
     stop = threading.Event()
     if http_port is not None:
         host = http_address or sensor_address
@@ -734,9 +761,11 @@ def harvester() -> None:
               help="Stay PRE-OPERATIONAL until an NMT master starts the node.")
 @click.option("--external-sync", is_flag=True,
               help="Send TPDOs on SYNC from another node instead of producing SYNC.")
+@_fault_option
 def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: float | None,
                   log_path: Path | None, seed: int | None, speed: float,
-                  duration: float | None, wait_nmt: bool, external_sync: bool) -> None:
+                  duration: float | None, wait_nmt: bool, external_sync: bool,
+                  faults: tuple[str, ...]) -> None:
     """Drive the scenario's track and publish the machine's pose on the CAN bus.
 
     \b
@@ -750,18 +779,19 @@ def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: 
     import can
 
     from emulators.harvester import BusSpecError, check_log_path
+    from tcf_hil.faults import FaultLog
     from tcf_hil.forest import generate_forest
     from tcf_hil.harvester import open_bus, run_harvester
-    from tcf_hil.scenario import load_scenario
 
     if log_path is not None:
         try:
             check_log_path(log_path)
         except ValueError as err:
             raise click.BadParameter(str(err), param_hint="--log") from err
-    scn = load_scenario(scenario_name)
+    scn = _scenario_with_faults(scenario_name, faults)
     with _blame(scenario_name):
         forest = generate_forest(scn, seed)
+    flog = FaultLog(None, 0)  # counts only: the CAN log shows what reached the bus
     try:
         with open_bus(can_spec, announce=console.print) as spec:
             nid = node_id or scn.harvester.node_id
@@ -779,7 +809,8 @@ def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: 
                                       speed=speed, duration_s=duration,
                                       sync_producer=not external_sync, autostart=not wait_nmt,
                                       on_tick=lambda t, tot: bar.update(
-                                          task, completed=min(1.0, t / tot), t=t))
+                                          task, completed=min(1.0, t / tot), t=t),
+                                      on_fault=flog.log)
                 except KeyboardInterrupt:
                     console.print("stopped")
                     return
@@ -795,6 +826,9 @@ def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: 
                   f"reconnects" + (f"; TPDO period p50 {s['tpdo_period_us_p50']:.0f} us, "
                                    f"jitter p99 {s['tpdo_jitter_us_p99']:.0f} us"
                                    if "tpdo_period_us_p50" in s else ""))
+    if flog.events:
+        console.print("faults injected: " + ", ".join(
+            f"{k} {v['count']}" for k, v in flog.summary().items()))
     if log_path is not None:
         console.print(f"{r.log_frames} frames logged to {log_path}")
         if r.log_error:
@@ -816,6 +850,59 @@ def harvester_files(out: Path, node_id: int) -> None:
     write_bytes_atomic(out / "harvester.eds", render_eds(HARVESTER_OD).encode())
     write_bytes_atomic(out / "harvester.dbc", render_dbc(node_id).encode())
     console.print(f"wrote {out / 'harvester.eds'} and {out / 'harvester.dbc'} (node {node_id})")
+
+
+@cli.command("soak")
+@click.argument("scenario_name", metavar="[SCENARIO]", default="forest-v", required=False)
+@click.option("--minutes", type=click.FloatRange(min=0.25, max=30), default=10.0,
+              show_default=True, help="How long the stream runs.")
+@click.option("--mode", type=click.Choice(_MODES), default="2048x10", show_default=True,
+              help="Columns x frames per second.")
+@click.option("--preset", type=click.Choice(["tuned", "paper"]), default="tuned",
+              show_default=True, help="The reference SIC's parameters.")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Override the seed.")
+@click.option("--max-growth", type=click.FloatRange(min=0), default=5.0, show_default=True,
+              help="Memory growth after the warm-up (%) above which the soak fails.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Run directory (default ./runs/soak-<UTC time stamp>/).")
+@_fault_option
+def soak_cmd(scenario_name: str, minutes: float, mode: str, preset: str, seed: int | None,
+             max_growth: float, out: Path | None, faults: tuple[str, ...]) -> None:
+    """Run the whole bench live for --minutes with the reference SIC and watch it.
+
+    \b
+    The track becomes a stretch of the strip road driven back and forth, so after the first
+    pass (the warm-up) the SIC has seen all it will see. Reports the frames lost at the
+    receiver, the pacing error (p50, p99), and the resident memory of the bench, its frame
+    producer and the SIC after the warm-up and at the end. Writes soak.json and soak.md in
+    the run directory (no lidar.pcap: 2048x10 sends 16 MB/s). Exit status 0 when the run
+    completed with no frame lost and memory growth under --max-growth, 2 otherwise.
+    """
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
+
+    from tcf_hil.soak import run_soak
+
+    scn = _scenario_with_faults(scenario_name, faults)
+    out = out or Path("runs") / ("soak-" + _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ"))
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda _s, _f: stop.set())
+    try:
+        with Progress("[progress.description]{task.description}", BarColumn(),
+                      MofNCompleteColumn(), TimeRemainingColumn(), console=err_console,
+                      transient=True) as prog:
+            task = prog.add_task("soak: frames on the wire", total=None)
+            r = run_soak(scn, out, minutes=minutes, mode=mode, preset=preset, seed=seed,
+                         max_growth_percent=max_growth, announce=err_console.print,
+                         progress=lambda d, t: prog.update(task, completed=d, total=t),
+                         stop=stop)
+    except ValueError as err:
+        raise click.BadParameter(str(err), param_hint="--minutes") from err
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    console.print((out / "soak.md").read_text())
+    console.print(f"run directory: {out}/")
+    if not r.ok:
+        raise SystemExit(2)
 
 
 @cli.command("can-server")

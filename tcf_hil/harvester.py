@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from emulators.faults import CanFaultPlan, FaultEvent
 from emulators.harvester import (
     DEFAULT_SOCKETCAND_PORT,
     BusSpec,
@@ -37,6 +38,7 @@ from protocols.harvester import (
     STATUS_VALID,
     Pose,
 )
+from tcf_hil.faults import fault_plans, faults_active
 from tcf_hil.forest import Terrain
 from tcf_hil.scenario import Scenario
 from tcf_hil.trajectory import PoseError, Trajectory
@@ -151,9 +153,13 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
                   duration_s: float | None = None, sync_producer: bool = True,
                   autostart: bool = True, stop: threading.Event | None = None,
                   clock: SimClock | None = None, t0_ns: int = 1_000_000_000,
-                  on_tick: Callable[[float, float], None] | None = None) -> HarvesterRunResult:
+                  on_tick: Callable[[float, float], None] | None = None,
+                  faults: CanFaultPlan | None = None,
+                  on_fault: Callable[[FaultEvent], None] | None = None) -> HarvesterRunResult:
     """Drive the scenario's track in (scaled) real time with the node on ``spec`` until the
-    track ends (plus one second standing), ``duration_s`` of simulation time, or ``stop``."""
+    track ends (plus one second standing), ``duration_s`` of simulation time, or ``stop``.
+    ``faults``/``on_fault``: injected CAN faults and where their events go (default: the
+    scenario's ``[faults.can]``, events dropped)."""
     model = HarvesterModel.from_scenario(scn, terrain, seed, t0_ns)
     clock = clock or SimClock.start(model.trajectory.t0_ns, speed)
     end_ns = (model.trajectory.end_ns + 1_000_000_000 if duration_s is None
@@ -162,7 +168,9 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
     cfg = model.node_config(node_id=node_id, rate_hz=rate_hz, sync_producer=sync_producer,
                             autostart=autostart)
     can_log: CanLog | None = None
-    node = HarvesterNode(spec, model.bus_pose, clock, cfg)
+    if faults is None and faults_active(scn.faults):
+        faults = fault_plans(scn.faults, seed, model.trajectory.t0_ns).can
+    node = HarvesterNode(spec, model.bus_pose, clock, cfg, faults=faults, on_fault=on_fault)
     try:
         if log_path is not None:  # first, so that it sees the boot-up
             can_log = CanLog(log_path, spec).start()

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from emulators.faults import FaultEvent, next_init_id
 from emulators.lidar import (
     Datagram,
     FrameResult,
@@ -41,6 +42,7 @@ from protocols.ouster import (
 from protocols.pcap import PcapWriter, UdpDatagram
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil._io import atomic_path, ensure_dir, write_bytes_atomic, write_json_atomic
+from tcf_hil.faults import FaultLog, fault_plans, faults_active
 from tcf_hil.forest import Forest, generate_forest, ground_truth
 from tcf_hil.scenario import Scenario
 from tcf_hil.scene import Scene
@@ -83,7 +85,12 @@ class LidarRun:
                  backend: str = "embree", model: ReturnModel | None = None,
                  max_frames: int | None = None, udp_dest: str = "127.0.0.1",
                  udp_port_lidar: int = 7502, udp_port_imu: int = 7503,
-                 meta: SensorMetadata | None = None, t0_ns: int = 1_000_000_000) -> None:
+                 meta: SensorMetadata | None = None, t0_ns: int = 1_000_000_000,
+                 faults: bool = True, keep_poses: bool = True) -> None:
+        """``faults``: inject the scenario's ``[faults]`` (UDP and lidar) into the datagrams;
+        each frame's fault events are in :attr:`last_events` after it is yielded.
+        ``keep_poses``: keep every column's sensor pose for ``sensor_poses.csv`` (about
+        100 bytes per column: off for long live runs that need no such file)."""
         self.forest: Forest = generate_forest(scn, seed)
         self.scene = Scene.from_forest(self.forest, backend=backend)
         self.track = Trajectory.from_config(scn.track, self.forest.terrain, t0_ns)
@@ -100,6 +107,13 @@ class LidarRun:
         self._poses = io.StringIO()
         self._pw = csv.writer(self._poses, lineterminator="\n")
         self._pw.writerow(["time_ns", "x", "y", "z", "qw", "qx", "qy", "qz"])
+        plans = fault_plans(scn.faults, self.forest.seed, self.track.t0_ns,
+                            self.meta.udp_port_lidar, self.meta.udp_port_imu) if faults \
+            and faults_active(scn.faults) else None
+        self.keep_poses = keep_poses
+        self.udp_faults = plans.udp if plans else None
+        self.lidar_faults = plans.lidar if plans else None
+        self.last_events: list[FaultEvent] = []
 
     def datagrams(self) -> Iterator[tuple[FrameResult, list[Datagram]]]:
         fmt = self.meta.packet_format
@@ -107,9 +121,23 @@ class LidarRun:
         cpp = fmt.columns_per_packet
         next_imu = self.track.t0_ns
         lp, ip = self.meta.udp_port_lidar, self.meta.udp_port_imu
+        fid_base: int | None = 0  # frame_id counts from here (a re-initialisation restarts it)
         for k in range(self.frames):
             fr = self.emu.frame(k)
-            arr = encode_lidar_frame(fmt, fr.fields, fr.timestamps_ns, frame_id=k & 0xFFFF,
+            action, event = "send", None
+            if self.lidar_faults is not None:
+                action, event = self.lidar_faults.frame(
+                    k, self.emu.start_ns + k * self.emu.period_ns, self.emu.period_ns)
+            events = [event] if event is not None else []
+            if action == "reinit":
+                old = self.meta.init_id
+                self.meta = self.meta.with_changes(init_id=next_init_id(old))
+                events[0].update(init_id_old=old, init_id=self.meta.init_id)
+                fid_base = None
+            elif fid_base is None and action != "silent":
+                fid_base = k
+            arr = encode_lidar_frame(fmt, fr.fields, fr.timestamps_ns,
+                                     frame_id=(k - (fid_base or 0)) & 0xFFFF,
                                      init_id=self.meta.init_id, prod_sn=self.meta.prod_sn,
                                      crc_rows=crc)
             out = []
@@ -126,11 +154,25 @@ class LidarRun:
                 out.append(Datagram(t_send, lp, arr[i].tobytes()))
             if len(imu_t):
                 next_imu = int(imu_t[-1]) + IMU_PERIOD_NS
+            if action in ("reinit", "silent"):
+                out = []  # re-initialising: nothing at all leaves the sensor
+            elif action == "drop":
+                out = [d for d in out if d.port != lp]  # the frame is missing; IMU goes on
+            if self.udp_faults is not None:
+                out, more = self.udp_faults.apply(out, k)
+                events += more
+            self.last_events = events
+            if action != "send":
+                yield fr, out
+                continue
             self.packets += arr.shape[0]
             hit = fr.stem_id[fr.stem_id >= 0]
             if fr.stem_id2 is not None:  # the DUAL profile's second returns count too
                 hit = np.concatenate([hit, fr.stem_id2[fr.stem_id2 >= 0]])
             self.counts += np.bincount(hit, minlength=len(self.counts))[: len(self.counts)]
+            if not self.keep_poses:
+                yield fr, out
+                continue
             q = quaternions(fr.rotations)
             p = fr.positions + self.forest.origin
             self._pw.writerows(
@@ -143,7 +185,8 @@ class LidarRun:
     def write_sidecars(self, out: Path) -> dict[str, Any]:
         """metadata.json, ground_truth.json (with returns), visibility.json, sensor_poses.csv."""
         ensure_dir(out)
-        write_bytes_atomic(out / "sensor_poses.csv", self._poses.getvalue().encode())
+        if self.keep_poses:
+            write_bytes_atomic(out / "sensor_poses.csv", self._poses.getvalue().encode())
         write_bytes_atomic(out / "metadata.json", self.meta.dumps().encode())
         gt = ground_truth(self.forest)
         for o in gt["objects"]:
@@ -186,12 +229,21 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
     run = LidarRun(scn, **run_kw)
     writer = PcapWriter(mtu=mtu)
     dest = run.meta.udp_dest
-    with atomic_path(out / "lidar.pcap") as tmp, open(tmp, "wb") as fh:
-        fh.write(writer.header())
-        for k, (_fr, dgs) in enumerate(run.datagrams()):
-            fh.write(_pcap_records(writer, dgs, sensor_ip, dest))
-            if progress:
-                progress(k + 1, run.frames)
+    flog = FaultLog(out / "faults.jsonl", run.track.t0_ns) \
+        if run.udp_faults or run.lidar_faults else None
+    try:
+        with atomic_path(out / "lidar.pcap") as tmp, open(tmp, "wb") as fh:
+            fh.write(writer.header())
+            for k, (_fr, dgs) in enumerate(run.datagrams()):
+                fh.write(_pcap_records(writer, dgs, sensor_ip, dest))
+                if flog is not None:
+                    for ev in run.last_events:
+                        flog.log(ev, "lidar")
+                if progress:
+                    progress(k + 1, run.frames)
+    finally:
+        if flog is not None:
+            flog.close()
     run.write_sidecars(out)
     return run.result(out)
 
@@ -204,7 +256,8 @@ def _slot_bytes(run: LidarRun) -> int:
     fmt = run.meta.packet_format
     packets = fmt.columns_per_frame // fmt.columns_per_packet
     imu = run.emu.period_ns // IMU_PERIOD_NS + 2
-    return packets * fmt.packet_bytes + imu * IMU_PACKET_BYTES
+    dup = 2 if run.udp_faults is not None and run.udp_faults.duplicate else 1
+    return dup * (packets * fmt.packet_bytes + imu * IMU_PACKET_BYTES)
 
 
 @dataclass
@@ -274,8 +327,9 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
                 n = len(d.payload)
                 shm.buf[pos:pos + n] = d.payload
                 pos += n
-            meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs], dtype=np.int64)
-            conn.send(("frame", (slot, meta)))
+            meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs],
+                            dtype=np.int64).reshape(-1, 3)
+            conn.send(("frame", (slot, meta, run.last_events)))
             if rec is not None:  # exactly what goes out, at its simulation time
                 pending.append(_pcap_records(writer, dgs, rec.sensor_ip, rec.dest))
             produced += 1
@@ -311,7 +365,9 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                  progress: Callable[[int, int], None] | None = None,
                  realtime: bool = True, run: LidarRun | None = None,
                  clock: Any = None, pcap_in_place: bool = False,
-                 forked: threading.Event | None = None, **run_kw: Any) -> RecordResult:
+                 forked: threading.Event | None = None,
+                 on_fault: Callable[[FaultEvent], None] | None = None, pcap: bool = True,
+                 **run_kw: Any) -> RecordResult:
     """Send the run live over UDP from ``sensor_ip`` to ``dest``, paced from the simulation
     clock (``speed`` 1.0 = real time, 0 = as fast as possible).
 
@@ -326,6 +382,9 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     ``pcap_in_place``: write ``lidar.pcap`` under its final name as frames go out (the
     recorder of a run: a crash leaves every whole frame sent) instead of renaming it into
     place at the end. ``forked`` is set once the frame producer process exists.
+    ``on_fault`` gets each injected fault event (the scenario's ``[faults]``) just before the
+    frame it struck is sent; a re-initialisation's event carries the new ``init_id``.
+    ``pcap``: with ``record``, also write ``lidar.pcap`` (off: the sidecar files only).
     """
     from multiprocessing.shared_memory import SharedMemory
 
@@ -352,6 +411,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
             rec: _Recording | None = None
             if out is not None:
                 ensure_dir(out)
+            if out is not None and pcap:
                 path = out / "lidar.pcap" if pcap_in_place else \
                     outputs.enter_context(atomic_path(out / "lidar.pcap"))
                 rec = _Recording(str(path), sensor_ip, dest)
@@ -399,9 +459,14 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                         break
                     if kind == "done":
                         break
-                    slot, meta = body
+                    slot, meta, events = body
+                    for ev in events:  # logged as the frame they struck goes out
+                        if ev["kind"] == "lidar_reinit":  # the sidecars: the new identity
+                            run.meta = run.meta.with_changes(init_id=ev["init_id"])
+                        if on_fault is not None:
+                            on_fault(ev)
                     ends = (slot * slot_bytes + np.cumsum(meta[:, 2])).tolist()
-                    starts = [slot * slot_bytes, *ends[:-1]]
+                    starts = [slot * slot_bytes, *ends[:-1]] if ends else []
                     view = shm.buf
                     assert view is not None
                     dgs = [Datagram(t, port, view[a:b]) for (t, port, _n), a, b in

@@ -70,10 +70,27 @@ class Inbox:
                     err = str(e)
             pub = Publication(n, name, via, arrival, len(raw), table is not None, err,
                               len(table) if table is not None else None, table)
+            if table is not None:  # only the latest valid table stays in memory (a long run
+                for old in reversed(self.items):  # publishes hundreds): see table_of()
+                    if old.table is not None:
+                        old.table = None
+                        break
             self.items.append(pub)
             self._index.write(json.dumps(pub.index_row()) + "\n")
             self._index.flush()
             return pub
+
+    def table_of(self, pub: Publication) -> StemTable:
+        """The stem table of a valid publication (read back from its file unless it is the
+        latest)."""
+        if pub.table is not None:
+            return pub.table
+        if not pub.valid:
+            raise ValueError(f"publication {pub.n} is not valid: {pub.error}")
+        name = f"sic/{pub.file}"
+        return stem_table(loads_json((self.dir / pub.file).read_text(encoding="utf-8",
+                                                                     errors="replace"), name),
+                          name, "observed")
 
     @property
     def valid(self) -> list[Publication]:
@@ -140,7 +157,8 @@ class PublishServer:
         return self
 
     def close(self) -> None:
-        self.server.shutdown()
+        if self._thread.is_alive():  # shutdown() waits for a serve_forever that never ran
+            self.server.shutdown()
         self.server.server_close()
 
 
@@ -162,7 +180,8 @@ class FileWatcher(threading.Thread):
         if key != self._seen:
             self._seen = key
             try:
-                data = self.path.read_bytes()
+                with open(self.path, "rb") as fh:  # bounded: a huge file is not read whole
+                    data = fh.read(MAX_PUBLICATION_BYTES + 1)
             except OSError:
                 return
             self.inbox.record(data, "file")

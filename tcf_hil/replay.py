@@ -49,7 +49,10 @@ class Recording:
     def load(cls, run_dir: Path) -> Recording:
         for name in ("lidar.pcap", "metadata.json", "manifest.json"):
             if not (run_dir / name).exists():
-                raise InputError(str(run_dir / name), "", "missing: not a tcf-hil run directory")
+                why = "missing: not a tcf-hil run directory"
+                if name == "lidar.pcap" and (run_dir / "manifest.json").exists():
+                    why = "missing: this run did not record its lidar traffic (a soak run)"
+                raise InputError(str(run_dir / name), "", why)
         meta = SensorMetadata.loads((run_dir / "metadata.json").read_text(encoding="utf-8"))
         man = read_json(run_dir / "manifest.json")
         try:

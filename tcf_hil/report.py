@@ -73,9 +73,10 @@ def write_report(path: Path, result: RunResult) -> None:
                                  f"truth / {len(latest)} observed"), "matched positions")
     tl = _img(timeline_png(result.timeline), "score timeline") if result.timeline else \
         "<p>No valid publication.</p>"
+    score_doc = json.loads((result.out / "score.json").read_text())
     bad = "".join(f"<li>{html.escape(p['file'])}: {html.escape(str(p['error']))}</li>"
-                  for p in json.loads((result.out / "score.json").read_text())
-                  ["invalid_publications"])
+                  for p in score_doc["invalid_publications"])
+    faults = _faults_section(score_doc.get("faults"), all_m, seen_m)
     title = f"tcf-hil run: {m.get('scenario')} {m.get('mode')}"
     doc = f"""<!doctype html>
 <html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
@@ -97,6 +98,7 @@ see, and what remains is what the algorithm missed.</p>
 <table><tr><th>metric</th><th>all trees</th><th>seen trees</th></tr>
 {_metrics_rows(all_m, seen_m)}
 </table>
+{faults}
 <h3>Evaluation matrix (rows ground truth, columns observed)</h3>
 <div style="display:flex;gap:2em">{_em_table(sc.all.em)}{_em_table(sc.seen.em)}</div>
 {figs[0]}{figs[1]}
@@ -111,6 +113,24 @@ see, and what remains is what the algorithm missed.</p>
 </body></html>
 """
     write_bytes_atomic(path, doc.encode("utf-8"))
+
+
+def _faults_section(faults: dict[str, Any] | None, all_m: dict[str, Any],
+                    seen_m: dict[str, Any]) -> str:
+    """The injected faults beside the score they led to (empty when none were asked)."""
+    if faults is None:
+        return ""
+    rows = "".join(
+        f"<tr><td>{html.escape(k)}</td><td>{v['count']}</td><td>{v['first_s']:.3f}</td>"
+        f"<td>{v['last_s']:.3f}</td></tr>" for k, v in faults.items())
+    return f"""<h2>Injected faults</h2>
+<p>This run injected the faults below (every event is in <code>faults.jsonl</code>, with its
+time in seconds after the track start). With them the SIC scored wc =
+{all_m['evaluation_score_percent']:.1f} % (all trees) and
+{seen_m['evaluation_score_percent']:.1f} % (seen trees).</p>
+<table><tr><th>fault</th><th>count</th><th>first, s</th><th>last, s</th></tr>
+{rows or '<tr><td colspan=4>none happened (rates too low or times beyond the run)</td></tr>'}
+</table>"""
 
 
 def _latest_obs(result: RunResult) -> Any:

@@ -25,6 +25,7 @@ from typing import Any
 import can
 import canopen
 
+from emulators.faults import CanFaultPlan, FaultEvent
 from emulators.harvester._bus import BusSpec
 from emulators.harvester._clock import SimClock
 from protocols.harvester import (
@@ -68,6 +69,9 @@ class NodeStats:
     bus_errors: int = 0  # sends or receives that failed (each leads to a reconnect)
     reconnects: int = 0
     pose_errors: int = 0
+    fault_lost: int = 0  # frames lost on purpose (injected CAN loss)
+    bus_off_dropped: int = 0  # frames not sent while bus-off (injected)
+    delayed_batches: int = 0  # pose TPDO batches sent late on purpose
     #: monotonic ns of each SYNC-triggered TPDO batch (bounded; for jitter measurements)
     batch_times_ns: list[int] = field(default_factory=list, repr=False)
 
@@ -104,12 +108,16 @@ class HarvesterNode:
     """Run with :meth:`start` / :meth:`stop` (or as a context manager).
 
     ``pose_at(t_ns)`` gives the pose to publish at simulation time ``t_ns`` (with any pose
-    error already applied); ``clock`` is the run's simulation clock.
+    error already applied); ``clock`` is the run's simulation clock. ``faults``: injected
+    CAN faults (loss of the node's own frames, late pose TPDOs, bus-off windows, NMT resets
+    from a second master), each reported to ``on_fault`` with its simulation time.
     """
 
     def __init__(self, bus: BusSpec, pose_at: Callable[[int], Pose], clock: SimClock,
                  cfg: NodeConfig = NodeConfig(), *, eds: Path | None = None,
-                 on_frame: Callable[[can.Message], None] | None = None) -> None:
+                 on_frame: Callable[[can.Message], None] | None = None,
+                 faults: CanFaultPlan | None = None,
+                 on_fault: Callable[[FaultEvent], None] | None = None) -> None:
         if not 1 <= cfg.node_id <= 127:
             raise ValueError(f"node id: expected 1..127, got {cfg.node_id}")
         self.spec, self.pose_at, self.clock, self.cfg = bus, pose_at, clock, cfg
@@ -145,6 +153,12 @@ class HarvesterNode:
         self._sync_maps: list[Mapping] = []
         self._event_maps: list[Mapping] = []
         self._last_raw: dict[tuple[int, int], int] | None = None
+        self._faults = faults
+        self._on_fault = on_fault or (lambda ev: None)
+        self._delayed: list[tuple[int, int, bytes]] = []  # (due monotonic ns, cob, data)
+        self._bus_off: int | None = None  # index of the bus-off window in effect
+        self._next_reset = 0  # index into faults.nmt_reset_at_ns
+        self._restarts: list[int] = []  # simulation ns of pending master 'start' commands
         od: Any = self.node.sdo
         for i, v in enumerate(cfg.datum_mm, 1):
             od[DATUM][i].raw = v
@@ -239,6 +253,19 @@ class HarvesterNode:
     def _send(self, cob_id: int, data: bytes) -> bool:
         if not self._connected:
             return False
+        plan = self._faults
+        if plan is not None:
+            if self._bus_off is not None:
+                self.stats.bus_off_dropped += 1
+                return False
+            if plan.lose():
+                self.stats.fault_lost += 1
+                self._on_fault({"kind": "can_loss", "t_ns": self.clock.now_ns(),
+                                "cob_id": f"0x{cob_id:03X}"})
+                return False
+        return self._send_raw(cob_id, data)
+
+    def _send_raw(self, cob_id: int, data: bytes) -> bool:
         try:
             with self._send_lock:
                 self.network.send_message(cob_id, data)
@@ -365,12 +392,67 @@ class HarvesterNode:
         if raw is None:
             return
         frames = [(m.cob_id(self.cfg.node_id), encode_pdo(m, raw, HARVESTER_OD)) for m in due]
+        if self._faults is not None and self._faults.pose_delay_ns:
+            due_ns = time.monotonic_ns() + round(self._faults.pose_delay_ns / self.clock.speed)
+            self._delayed.extend((due_ns, cob, data) for cob, data in frames)
+            self.stats.delayed_batches += 1
+            self._on_fault({"kind": "can_pose_delay", "t_ns": self.clock.now_ns(),
+                            "delay_ms": self._faults.pose_delay_ns / 1e6})
+            return
         for cob, data in frames:
             if self._send(cob, data):
                 self.stats.tpdo_frames += 1
         bt = self.stats.batch_times_ns
         if len(bt) < 1_000_000:
             bt.append(time.monotonic_ns())
+
+    def _inject(self) -> int | None:
+        """Scheduled CAN faults due now (bus-off windows, NMT commands of a second master,
+        late TPDOs); returns the next monotonic time something is due, if any."""
+        plan = self._faults
+        if plan is None:
+            return None
+        t = self.clock.now_ns()
+        w = plan.bus_off(t)
+        if w != self._bus_off:
+            if w is not None:
+                self._bus_off = w
+                self._on_fault({"kind": "can_bus_off", "t_ns": t,
+                                "recovery_s": plan.bus_off_ns / 1e9})
+            else:
+                self._bus_off = None
+                n = self.cfg.node_id  # EMCY 0x8140 "recovered from bus-off", then "no error"
+                self._send_raw(0x80 + n, bytes([0x40, 0x81, 0x11, 0, 0, 0, 0, 0]))
+                self._send_raw(0x80 + n, bytes(8))
+                self._on_fault({"kind": "can_bus_off_recovered", "t_ns": t,
+                                "dropped": self.stats.bus_off_dropped})
+        ats = plan.nmt_reset_at_ns
+        while self._next_reset < len(ats) and ats[self._next_reset] <= t:
+            self._next_reset += 1
+            self._send_raw(0, bytes([129, self.cfg.node_id]))  # the frame of a second master
+            self._pending_nmt.append(129)
+            self.stats.nmt_commands += 1
+            self._on_fault({"kind": "can_nmt_reset", "t_ns": t})
+            if plan.nmt_restart_ns:
+                self._restarts.append(t + plan.nmt_restart_ns)
+        while self._restarts and self._restarts[0] <= t:
+            self._restarts.pop(0)
+            self._send_raw(0, bytes([1, self.cfg.node_id]))
+            self._pending_nmt.append(1)
+            self.stats.nmt_commands += 1
+            self._on_fault({"kind": "can_nmt_start", "t_ns": t})
+        now = time.monotonic_ns()
+        while self._delayed and self._delayed[0][0] <= now:
+            _due, cob, data = self._delayed.pop(0)
+            if self._send(cob, data):
+                self.stats.tpdo_frames += 1
+        nxt = [self._delayed[0][0]] if self._delayed else []
+        for at in ([self._restarts[0]] if self._restarts else []) + (
+                [ats[self._next_reset]] if self._next_reset < len(ats) else []) + [
+                a for a in plan.bus_off_at_ns if a > t] + [
+                a + plan.bus_off_ns for a in plan.bus_off_at_ns if a + plan.bus_off_ns > t]:
+            nxt.append(self.clock.monotonic_at(at))
+        return min(nxt) if nxt else None
 
     def _run(self) -> None:
         sd: Any = self.node.sdo
@@ -382,6 +464,7 @@ class HarvesterNode:
             if not self._connected:
                 self._reconnect()
                 continue
+            fault_due = self._inject()
             self._apply_nmt()
             now = time.monotonic_ns()
             if self.cfg.sync_producer and now >= next_sync:
@@ -416,7 +499,7 @@ class HarvesterNode:
                         if raw is not None and self._send(m.cob_id(self.cfg.node_id),
                                                           encode_pdo(m, raw, HARVESTER_OD)):
                             self.stats.tpdo_frames += 1
-            deadlines = [next_time if self.cfg.time_period_s else None,
+            deadlines = [fault_due, next_time if self.cfg.time_period_s else None,
                          next_hb if hb else None,
                          next_sync if self.cfg.sync_producer else None,
                          *(next_event.get(m.number) for m in self._event_maps

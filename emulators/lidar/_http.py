@@ -23,6 +23,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
+from emulators.faults import next_init_id
 from protocols.ouster import MetadataError, SensorMetadata
 
 __all__ = ["SensorApi"]
@@ -129,6 +130,12 @@ class SensorApi:
     def __exit__(self, *_exc: object) -> None:
         self.close()
 
+    def set_metadata(self, meta: SensorMetadata) -> None:
+        """The sensor re-initialised on its own (an injected fault): serve ``meta`` now."""
+        with self._lock:
+            self.meta = meta
+            self.staged = dict(meta.to_json()["config_params"])
+
     # The routing is plain data in, data out (tested without sockets too).
     def route(self, method: str, path: str, query: dict[str, list[str]],
               body: Callable[[], Any] | None, client_ip: str) -> tuple[int, Any]:
@@ -178,7 +185,7 @@ class SensorApi:
                                      f"this sensor's configuration is fixed for the run "
                                      f"(asked to change {', '.join(changed)})")
                 return 200, {}
-            kw["init_id"] = (self.meta.init_id * 1103515245 + 12345) % (1 << 24) or 1
+            kw["init_id"] = next_init_id(self.meta.init_id)
             try:
                 new = self.meta.with_changes(**kw)
             except (MetadataError, TypeError, ValueError) as err:

@@ -99,7 +99,7 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
             for backend in backends:
                 say(f"{mode}, {tol:g} mm, {backend}")
                 run = LidarRun(scn, mode=mode, backend=backend, max_frames=grid.frames,
-                               t0_ns=RUN_T0_NS)
+                               t0_ns=RUN_T0_NS, faults=False)
                 model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed,
                                                      RUN_T0_NS)
                 sics = [OfflineSic(p, run.meta, model.node_config()) for p in grid.presets]

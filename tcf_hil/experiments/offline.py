@@ -154,7 +154,7 @@ def run_offline(scn: Scenario, *, mode: str = "1024x10",
     """Emulate ``scn`` at ``mode``, feed every packet and pose frame to the reference SIC
     (``preset``), score its final forest against all and against seen trees."""
     run = LidarRun(scn, mode=mode, profile=profile, seed=seed, backend=backend,
-                   max_frames=max_frames, t0_ns=RUN_T0_NS)
+                   max_frames=max_frames, t0_ns=RUN_T0_NS, faults=False)
     model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed, RUN_T0_NS)
     sic = OfflineSic(preset, run.meta, model.node_config(), voxel_m=voxel_m)
     frames, emu_s = drive(run, model, [sic], progress)

@@ -183,6 +183,69 @@ class SamplingConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class UdpFaultConfig:
+    loss: float = _f(0.0, "probability that a datagram is lost", ge=0.0, le=1.0)
+    burst_rate: float = _f(
+        0.0, "probability per datagram that a loss burst starts", ge=0.0, le=1.0)
+    burst_packets: float = _f(10.0, "mean length of a loss burst, datagrams", ge=1.0,
+                              le=1e6)
+    duplicate: float = _f(0.0, "probability that a datagram arrives twice", ge=0.0, le=1.0)
+    reorder: float = _f(
+        0.0, "probability that a datagram swaps places with the next", ge=0.0, le=1.0)
+    jitter_us: float = _f(
+        0.0, "each datagram leaves up to this much later (uniform); a delayed one may be "
+        "overtaken", ge=0.0, le=1e6)
+    ports: Literal["both", "lidar", "imu"] = _f("both", "which datagrams the faults strike")
+
+
+@dataclass(frozen=True, slots=True)
+class LidarFaultConfig:
+    dropout: float = _f(
+        0.0, "probability that a whole frame is missing (its frame_id is skipped)", ge=0.0,
+        le=1.0)
+    dropout_at_s: tuple[float, ...] = _f(
+        (), "track seconds at which frames go missing (the frame under way then)", ge=0.0)
+    dropout_frames: int = _f(1, "frames missing at each dropout_at_s", ge=1, le=100_000)
+    reinit_at_s: tuple[float, ...] = _f(
+        (), "track seconds at which the sensor re-initialises: silent for reinit_gap_s, "
+        "then a new init_id and frame_id from 0 (the HTTP API and metadata file change too)",
+        ge=0.0)
+    reinit_gap_s: float = _f(1.0, "how long a re-initialisation sends nothing", ge=0.0,
+                             le=60.0)
+
+
+@dataclass(frozen=True, slots=True)
+class CanFaultConfig:
+    loss: float = _f(
+        0.0, "probability that a frame the harvester node sends (SYNC, PDO, heartbeat, "
+        "TIME) is lost", ge=0.0, le=1.0)
+    pose_delay_ms: float = _f(
+        0.0, "pose TPDOs leave this long after their SYNC", ge=0.0, le=10_000.0)
+    bus_off_at_s: tuple[float, ...] = _f(
+        (), "track seconds at which the node goes bus-off (silent), recovering after "
+        "bus_off_s with EMCY 0x8140", ge=0.0)
+    bus_off_s: float = _f(1.0, "bus-off recovery time", gt=0.0, le=600.0)
+    nmt_reset_at_s: tuple[float, ...] = _f(
+        (), "track seconds at which a second master sends NMT 'reset node' to the harvester "
+        "(it boots into PRE-OPERATIONAL)", ge=0.0)
+    nmt_restart_s: float = _f(
+        0.5, "that master sends NMT 'start' this long after each reset (0: never; the SIC "
+        "must)", ge=0.0, le=600.0)
+
+
+@dataclass(frozen=True, slots=True)
+class FaultsConfig:
+    seed: int = _f(0, "seed of the fault draws (0: from the run's seed)", ge=0,
+                   le=2**63 - 1)
+    udp: UdpFaultConfig = field(default_factory=UdpFaultConfig,
+                                metadata={"doc": "lidar and IMU datagrams on the way"})
+    lidar: LidarFaultConfig = field(default_factory=LidarFaultConfig,
+                                    metadata={"doc": "the sensor's own faults"})
+    can: CanFaultConfig = field(default_factory=CanFaultConfig,
+                                metadata={"doc": "the harvester node's frames"})
+
+
+@dataclass(frozen=True, slots=True)
 class Scenario:
     name: str = _f("custom", "scenario name")
     description: str = _f("", "free text")
@@ -200,3 +263,6 @@ class Scenario:
                                        metadata={"doc": "the harvester's CANopen node"})
     sampling: SamplingConfig = field(default_factory=SamplingConfig,
                                      metadata={"doc": "surface sampling (no lidar)"})
+    faults: FaultsConfig = field(default_factory=FaultsConfig,
+                                 metadata={"doc": "faults injected on purpose in live runs "
+                                           "(none by default)"})

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import datetime as _dt
 import json
@@ -36,13 +37,20 @@ from numpy.typing import NDArray
 
 from protocols.harvester import DATUM, MOUNT, eds_path, unwrap_time_us
 from protocols.harvester._codec import TIME_WRAP_US
-from protocols.ouster import ProtocolError, SensorMetadata, beam_rays, decode_lidar_packets
+from protocols.ouster import (
+    PacketIdError,
+    ProtocolError,
+    SensorMetadata,
+    beam_rays,
+    decode_lidar_packets,
+)
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil.sic._map import StemMap
 from tcf_hil.sic._stems import StemParams, stem_params
 from tcf_hil.trajectory import rotation_ypr
 
 FloatArray = NDArray[np.float64]
+_Columns = tuple[NDArray[np.uint32], NDArray[np.int64], FloatArray]
 
 
 def _log(msg: str) -> None:
@@ -73,6 +81,8 @@ class SicConfig:
     voxel_m: float | None = None  # None: 0.03 m for tuned, 0.1 m for paper (its density)
     max_points: int = 6_000_000
     max_seconds: float = 0.0  # stop after this long (0: no limit)
+    pose_hold_s: float = 1.0  # a frame waits this long for the poses of its columns
+    nmt_start_after_s: float = 2.0  # start a node left in PRE-OPERATIONAL (0: never)
     cluster_voxel_m: float | None = None  # None: 0.1 for the tuned preset, exact for paper
 
     @classmethod
@@ -198,8 +208,13 @@ class CanPose:
         self.node = self.net.add_node(cfg.node_id, cfg.eds or str(eds_path()))
         self.node.tpdo.read(from_od=True)
         self._part: dict[str, float] = {}
+        self._fresh: set[int] = set()  # TPDOs received since the last complete pose
+        self.incomplete = 0  # poses skipped because a TPDO of their SYNC was lost
+        self.boot_ups = 0
+        self.preop_since: float | None = None  # monotonic time the node was seen waiting
         for k in (1, 2, 3):
             self.node.tpdo[k].add_callback(self._on_pdo)
+        self.net.subscribe(0x700 + cfg.node_id, self._on_heartbeat)
         self.datum = (0.0, 0.0, 0.0)
         self.mount = np.zeros(3)
         self.mount_rot = np.eye(3)
@@ -223,13 +238,51 @@ class CanPose:
         self.mount_rot = rotation_ypr(np.array([y]), np.array([p]), np.array([r]))[0]
 
     def _on_pdo(self, m: Any) -> None:
+        """TPDO1 (x, y), TPDO2 (z, heading, pitch) and TPDO3 (roll, speed, time) of one SYNC
+        make a pose; when one of them was lost, the parts left over from an older SYNC would
+        make a wrong one, so that pose is skipped."""
         for v in m.map:
             self._part[v.name] = float(v.phys)
-        if "Pose.Time" in self._part and m.cob_id - self.node.id == 0x380:
-            p = self._part
-            with contextlib.suppress(KeyError):
-                self.track.add(int(p["Pose.Time"]), p["Pose.X"], p["Pose.Y"], p["Pose.Z"],
-                               p["Pose.Heading"], p["Pose.Pitch"], p["Pose.Roll"])
+        kind = (m.cob_id - self.node.id) >> 7
+        self._fresh.add(kind)
+        if kind != 7:  # 0x380 >> 7: TPDO3 closes the pose
+            return
+        complete = {3, 5, 7} <= self._fresh
+        self._fresh.clear()
+        if not complete:
+            self.incomplete += 1
+            return
+        p = self._part
+        with contextlib.suppress(KeyError):
+            self.track.add(int(p["Pose.Time"]), p["Pose.X"], p["Pose.Y"], p["Pose.Z"],
+                           p["Pose.Heading"], p["Pose.Pitch"], p["Pose.Roll"])
+
+    def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) != 1:
+            return
+        state = data[0] & 0x7F
+        if state == 0:
+            self.boot_ups += 1
+            _log(f"the harvester node {self.node.id} booted")
+        if state in (0, 127):
+            if self.preop_since is None:
+                self.preop_since = time.monotonic()
+        else:
+            self.preop_since = None
+
+    def start_if_waiting(self, after_s: float) -> bool:
+        """Act as the NMT master of a machine without one: start the node when it has
+        waited in PRE-OPERATIONAL (after a reset) for ``after_s``. Returns whether it did."""
+        since = self.preop_since
+        if since is None or time.monotonic() - since < after_s:
+            return False
+        self.preop_since = None
+        with contextlib.suppress(Exception):
+            self.net.send_message(0, bytes([1, self.node.id]))
+            _log(f"the harvester node {self.node.id} waited in PRE-OPERATIONAL for "
+                 f"{after_s:g} s: sent NMT start")
+            return True
+        return False
 
     def close(self) -> None:
         with contextlib.suppress(Exception):
@@ -245,6 +298,8 @@ class LidarStats:
     frames_lost: int = 0  # frame ids never seen (gaps) plus frames dropped when behind
     frames_dropped: int = 0  # complete frames dropped because processing fell behind
     incomplete: int = 0
+    frames_without_pose: int = 0  # no pose covered them within pose_hold_s: not mapped
+    reinits: int = 0  # the sensor re-initialised (a new init_id): metadata read again
     last_packet: float = 0.0
     first_error: str = ""
 
@@ -399,9 +454,10 @@ class OnboardSic:
         self.voxel_m = cfg.voxel_m or (0.03 if cfg.preset == "tuned" else 0.1)
         self.stop = threading.Event()
         self.cost = FrameCost()
-        self.waited_s = 0.0
         self.t_start = time.monotonic()
         self.stem_cost = FrameCost()
+        self.meta: SensorMetadata | None = None
+        self._last_reload = -1e9
 
     @staticmethod
     def mounted_rays(meta: SensorMetadata, mount: FloatArray, mount_rot: FloatArray
@@ -434,7 +490,7 @@ class OnboardSic:
 
     def run(self) -> dict[str, Any]:
         cfg = self.cfg
-        meta = load_metadata(cfg)
+        meta = self.meta = load_metadata(cfg)
         port = cfg.lidar_port or meta.udp_port_lidar
         track = PoseTrack()
         # on the bus first (imports, connection), then listen for lidar: a bench may start
@@ -459,26 +515,43 @@ class OnboardSic:
             frame_budget = 1.0 / meta.frequency_hz
             next_pub = time.monotonic() + cfg.publish_s
             seen_data = False
+            # decoded frames waiting for the poses of their columns (the pose of a frame's
+            # last column comes with the next SYNC; a late or silent bus holds them longer)
+            waiting: collections.deque[tuple[float, _Columns]] = collections.deque()
             while not self.stop.is_set():
                 if cfg.max_seconds and time.monotonic() - t_start > cfg.max_seconds:
                     break
                 try:
-                    item = rx.frames.get(timeout=0.1)
+                    item = rx.frames.get(timeout=0.002 if waiting else 0.1)
                 except queue.Empty:
                     item = ...  # type: ignore[assignment]
                 now = time.monotonic()
                 if item is None:
                     break
+                if cfg.nmt_start_after_s:
+                    can.start_if_waiting(cfg.nmt_start_after_s)
+                t0 = time.perf_counter()
                 if item is not ...:
                     seen_data = True
-                    t0 = time.perf_counter()
-                    self.waited_s = 0.0
-                    self._frame(item, fmt, meta, crc, track, rays, smap, rx.stats)
-                    spent = time.perf_counter() - t0 - self.waited_s
+                    columns = self._decode(item, fmt, self.meta, crc, rx.stats)
+                    if columns is not None:
+                        waiting.append((now, columns))
+                mapped = False
+                while waiting:
+                    if self._map(waiting[0][1], track, rays, smap, rx.stats):
+                        waiting.popleft()
+                        mapped = True
+                    elif now - waiting[0][0] > cfg.pose_hold_s:
+                        waiting.popleft()
+                        rx.stats.frames_without_pose += 1
+                    else:
+                        break
+                if item is not ... or mapped:
+                    spent = time.perf_counter() - t0
                     self.cost.ms.append(spent * 1000.0)
                     # the rest of this frame's time goes to the stem algorithm (within 60 %)
                     budget = 0.6 * frame_budget - spent
-                    if budget > 0.005 and rx.frames.empty():
+                    if budget > 0.005 and rx.frames.empty() and not waiting:
                         t1 = time.perf_counter()
                         if smap.update(budget):
                             self.stem_cost.ms.append((time.perf_counter() - t1) * 1000.0)
@@ -490,6 +563,9 @@ class OnboardSic:
                 if now >= next_pub and seen_data:
                     pub.publish(self._document(smap, rx.stats, track, final=False))
                     next_pub = now + cfg.publish_s
+            for _t, columns in waiting:  # the stream ended: what the poses cover
+                if not self._map(columns, track, rays, smap, rx.stats):
+                    rx.stats.frames_without_pose += 1
             # end: every dirty tile, publishing as it goes (a bench that cannot wait still
             # gets the most complete forest), then the final forest
             while smap.dirty_tiles():
@@ -506,35 +582,91 @@ class OnboardSic:
         _log("done: " + json.dumps(summary))
         return summary
 
-    def _frame(self, item: tuple[int, NDArray[np.uint8]], fmt: Any, meta: SensorMetadata,
-               crc: Any, track: PoseTrack, rays: tuple[FloatArray, FloatArray],
-               smap: StemMap, st: LidarStats) -> None:
+    def _decode(self, item: tuple[int, NDArray[np.uint8]], fmt: Any, meta: SensorMetadata,
+                crc: Any, st: LidarStats) -> _Columns | None:
+        """A frame's valid columns: (range (H, k), column index (k), time stamp (k)); None
+        for a frame that does not decode (counted)."""
         _fid, arr = item
         try:
-            batch = decode_lidar_packets(fmt, arr, init_id=meta.init_id, prod_sn=meta.prod_sn,
-                                         crc_rows=crc, fields=("RANGE",))
+            try:
+                batch = decode_lidar_packets(fmt, arr, init_id=meta.init_id,
+                                             prod_sn=meta.prod_sn, crc_rows=crc,
+                                             fields=("RANGE",))
+            except PacketIdError:
+                # a re-initialised sensor has a new init_id: read its metadata again
+                new = self._reload_metadata(meta)
+                if new is None:
+                    raise
+                st.reinits += 1
+                meta = self.meta = new
+                batch = decode_lidar_packets(fmt, arr, init_id=meta.init_id,
+                                             prod_sn=meta.prod_sn, crc_rows=crc,
+                                             fields=("RANGE",))
         except ProtocolError as err:
             st.bad_packets += len(arr)
             if not st.first_error:
                 st.first_error = str(err)
                 _log(f"dropped a frame: {err}")
-            return
+            return None
         valid = (batch.status.reshape(-1) & 1).astype(bool)
         cols = batch.measurement_id.reshape(-1).astype(np.int64)
         ts = batch.timestamps_ns.reshape(-1).astype(np.float64)
-        # the pose of the frame's last column comes with the next SYNC: wait a little
-        w0 = time.perf_counter()
-        deadline = time.monotonic() + 0.2
-        while not track.covers(float(ts.max())) and time.monotonic() < deadline:
-            time.sleep(0.001)
-        self.waited_s = time.perf_counter() - w0  # not the frame's cost
+        return batch.fields["RANGE"][:, valid], cols[valid], ts[valid]
+
+    def _reload_metadata(self, meta: SensorMetadata) -> SensorMetadata | None:
+        """The sensor's metadata read again (at most twice a second), if its init_id changed
+        and nothing else that the packets' layout depends on."""
+        now = time.monotonic()
+        if now - self._last_reload < 0.5:
+            return None
+        self._last_reload = now
+        try:
+            new = load_metadata(self.cfg, timeout_s=1.0)
+        except (SystemExit, OSError, ProtocolError) as err:
+            _log(f"packets with a new init_id, and the metadata cannot be read again: {err}")
+            return None
+        if new.init_id == meta.init_id:
+            return None
+        if (new.mode, new.profile) != (meta.mode, meta.profile):
+            _log(f"the sensor now runs {new.mode} {new.profile}; this SIC keeps "
+                 f"{meta.mode} {meta.profile} (restart it)")
+            return None
+        _log(f"the sensor re-initialised: init_id {meta.init_id} -> {new.init_id}")
+        return new
+
+    def _map(self, columns: _Columns, track: PoseTrack, rays: tuple[FloatArray, FloatArray],
+             smap: StemMap, st: LidarStats) -> bool:
+        """Put a decoded frame into the map with the pose at each column's time; False when
+        the poses do not cover it yet."""
+        rng, cols, ts = columns
+        if not len(ts):
+            return True
+        if not track.covers(float(ts.max())):
+            return False
         pose = track.at(ts)
         if pose is None:
-            return
+            return False
         st.frames += 1
-        pts = self.world_points(batch.fields["RANGE"][:, valid], cols[valid], pose[0][valid],
-                                pose[1][valid], rays)
+        pts = self.world_points(rng, cols, pose[0], pose[1], rays)
         smap.add(pts, pose[0][-1, :2])
+        return True
+
+    def _frame(self, item: tuple[int, NDArray[np.uint8]], fmt: Any, meta: SensorMetadata,
+               crc: Any, track: PoseTrack, rays: tuple[FloatArray, FloatArray],
+               smap: StemMap, st: LidarStats) -> None:
+        """One frame at once, its poses already held (offline: poses are fed first)."""
+        columns = self._decode(item, fmt, meta, crc, st)
+        if columns is not None and not self._map(columns, track, rays, smap, st):
+            if len(columns[2]) and track.at(columns[2]) is not None:
+                # the poses end a little before the frame's last columns: use what is held
+                rng, cols, ts = columns
+                pose = track.at(ts)
+                assert pose is not None
+                st.frames += 1
+                smap.add(self.world_points(rng, cols, pose[0], pose[1], rays),
+                         pose[0][-1, :2])
+            else:
+                st.frames_without_pose += 1
 
     def _document(self, smap: StemMap, st: LidarStats, track: PoseTrack, *, final: bool
                   ) -> dict[str, Any]:
@@ -542,6 +674,9 @@ class OnboardSic:
         doc["algorithm"] = {"name": "tcf-hil reference onboard SIC", "preset": self.cfg.preset,
                             "params": asdict(self.params)}
         doc["sic"] = {"final": final, "frames": st.frames, "frames_lost": st.frames_lost,
+                      "frames_dropped": st.frames_dropped,
+                      "frames_without_pose": st.frames_without_pose,
+                      "sensor_reinits": st.reinits, "bad_packets": st.bad_packets,
                       "poses": track.received, "map_points": smap.stats.points,
                       "frame_cost": self.cost.summary(), "stem_cost": self.stem_cost.summary(),
                       "cpu_s": round(time.process_time(), 3),
@@ -552,6 +687,7 @@ class OnboardSic:
                  ) -> dict[str, Any]:
         return {"packets": st.packets, "bad_packets": st.bad_packets, "frames": st.frames,
                 "frames_lost": st.frames_lost, "frames_dropped": st.frames_dropped,
+                "frames_without_pose": st.frames_without_pose, "sensor_reinits": st.reinits,
                 "incomplete_frames": st.incomplete, "poses": track.received,
                 "publications": pub.count, "frame_cost": self.cost.summary(),
                 "stem_cost": self.stem_cost.summary()}
