@@ -86,12 +86,16 @@ class LidarRun:
                  max_frames: int | None = None, udp_dest: str = "127.0.0.1",
                  udp_port_lidar: int = 7502, udp_port_imu: int = 7503,
                  meta: SensorMetadata | None = None, t0_ns: int = 1_000_000_000,
-                 faults: bool = True, keep_poses: bool = True) -> None:
+                 faults: bool = True, keep_poses: bool = True, forest: Forest | None = None,
+                 first_frame_id: int = 0) -> None:
         """``faults``: inject the scenario's ``[faults]`` (UDP and lidar) into the datagrams;
         each frame's fault events are in :attr:`last_events` after it is yielded.
         ``keep_poses``: keep every column's sensor pose for ``sensor_poses.csv`` (about
-        100 bytes per column: off for long live runs that need no such file)."""
-        self.forest: Forest = generate_forest(scn, seed)
+        100 bytes per column: off for long live runs that need no such file).
+        ``forest``: a forest built by the caller (hand-placed stems, say) instead of the one
+        ``scn`` generates. ``first_frame_id``: the frame_id of the first frame, as of a sensor
+        that has been running a while (frame_id is 16 bits: 65536 frames wrap it)."""
+        self.forest: Forest = forest if forest is not None else generate_forest(scn, seed)
         self.scene = Scene.from_forest(self.forest, backend=backend)
         self.track = Trajectory.from_config(scn.track, self.forest.terrain, t0_ns)
         self.meta: SensorMetadata = meta or sensor_metadata(
@@ -111,6 +115,7 @@ class LidarRun:
                             self.meta.udp_port_lidar, self.meta.udp_port_imu) if faults \
             and faults_active(scn.faults) else None
         self.keep_poses = keep_poses
+        self.first_frame_id = first_frame_id
         self.udp_faults = plans.udp if plans else None
         self.lidar_faults = plans.lidar if plans else None
         self.last_events: list[FaultEvent] = []
@@ -121,7 +126,8 @@ class LidarRun:
         cpp = fmt.columns_per_packet
         next_imu = self.track.t0_ns
         lp, ip = self.meta.udp_port_lidar, self.meta.udp_port_imu
-        fid_base: int | None = 0  # frame_id counts from here (a re-initialisation restarts it)
+        fid_base: int | None = -self.first_frame_id  # frame_id counts from here (a
+        # re-initialisation restarts it at 0)
         for k in range(self.frames):
             fr = self.emu.frame(k)
             action, event = "send", None

@@ -27,7 +27,7 @@ from protocols.harvester._codec import encode_pose
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil.bridge import RUN_T0_NS  # as a live run: CAN time never goes negative
 from tcf_hil.evaluation import EvalConfig
-from tcf_hil.forest import ground_truth
+from tcf_hil.forest import Forest, ground_truth
 from tcf_hil.harvester import HarvesterModel
 from tcf_hil.lidar import LidarRun
 from tcf_hil.recorder import Scores, score_forest
@@ -150,12 +150,19 @@ def run_offline(scn: Scenario, *, mode: str = "1024x10",
                 profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
                 backend: str = "embree", preset: str = "tuned", max_frames: int | None = None,
                 eval_cfg: EvalConfig | None = None, voxel_m: float | None = None,
-                progress: Callable[[int, int], None] | None = None) -> OfflineResult:
+                progress: Callable[[int, int], None] | None = None,
+                forest: Forest | None = None, t0_ns: int = RUN_T0_NS,
+                first_frame_id: int = 0) -> OfflineResult:
     """Emulate ``scn`` at ``mode``, feed every packet and pose frame to the reference SIC
-    (``preset``), score its final forest against all and against seen trees."""
+    (``preset``), score its final forest against all and against seen trees.
+
+    ``forest``: a hand-built forest instead of the one ``scn`` generates; ``t0_ns``: the
+    simulation time the track starts at (the CAN pose time is its microseconds modulo 2^32);
+    ``first_frame_id``: the sensor's first frame_id."""
     run = LidarRun(scn, mode=mode, profile=profile, seed=seed, backend=backend,
-                   max_frames=max_frames, t0_ns=RUN_T0_NS, faults=False)
-    model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed, RUN_T0_NS)
+                   max_frames=max_frames, t0_ns=t0_ns, faults=False, forest=forest,
+                   first_frame_id=first_frame_id)
+    model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed, t0_ns)
     sic = OfflineSic(preset, run.meta, model.node_config(), voxel_m=voxel_m)
     frames, emu_s = drive(run, model, [sic], progress)
     doc = sic.finish()

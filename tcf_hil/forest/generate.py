@@ -254,6 +254,12 @@ def ground_truth(forest: Forest) -> dict[str, Any]:
         return out
 
     h, dbh, mc = r4(st.height), r4(2.0 * st.r_bh), r4(st.sweep)
+    # A maxcurve that rounding would carry across a class threshold is written exactly:
+    # the document's class always follows its own rule applied to its own maxcurve.
+    flip = classify(np.asarray(mc, dtype=np.float64), scn.stems.curve_threshold_m,
+                    scn.stems.other_threshold_m) != forest.classes if n else []
+    for i in np.flatnonzero(flip).tolist():
+        mc[i] = float(st.sweep[i])
     cp, base = r4(pos + origin), r4(st.base + origin)
     d = r4(np.hypot(pos[:, 0], pos[:, 1]))
     vol: list[float] = np.round(forest.volume, 5).tolist()

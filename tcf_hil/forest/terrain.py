@@ -3,12 +3,13 @@
 The height at any (x, y) is a closed formula (written into the ground truth, so any consumer
 can evaluate it without our code)::
 
-    z(x, y) = elevation + sum_i a_i * cos(kx_i * x + ky_i * y + phase_i)
+    z(x, y) = elevation + gx * x + gy * y + sum_i a_i * cos(kx_i * x + ky_i * y + phase_i)
 
 in local plot coordinates (metres; world = local + scenario origin). Each octave halves the
 wavelength and multiplies the amplitude by the persistence, like Blender's Clouds/Musgrave
 textures the paper displaced its plane with; the sum is smooth (C-infinity), so slopes and
-curvatures are exact too.
+curvatures are exact too. The plane term (gx, gy) tilts any terrain into a hillside
+(``terrain.slope_deg``): a hard case for ground filters and for pitch and roll.
 """
 
 from __future__ import annotations
@@ -34,10 +35,12 @@ class Terrain:
     Attributes:
         elevation_m: mean height.
         waves: (n, 4) float64 rows of (kx rad/m, ky rad/m, amplitude m, phase rad); empty = flat.
+        tilt: (gx, gy), the plane's constant slope dz/dx and dz/dy.
     """
 
     elevation_m: float
     waves: FloatArray
+    tilt: tuple[float, float] = (0.0, 0.0)
 
     @classmethod
     def flat(cls, elevation_m: float = 0.0) -> Terrain:
@@ -46,8 +49,11 @@ class Terrain:
     @classmethod
     def generate(cls, cfg: TerrainConfig, rng: np.random.Generator) -> Terrain:
         """Draw a terrain from its configuration (flat ignores the generator)."""
+        az = math.radians(cfg.uphill_azimuth_deg)
+        g = math.tan(math.radians(cfg.slope_deg))
+        tilt = (g * math.sin(az), g * math.cos(az)) if cfg.slope_deg else (0.0, 0.0)
         if cfg.kind == "flat" or cfg.amplitude_m == 0.0:
-            return cls.flat(cfg.elevation_m)
+            return cls(float(cfg.elevation_m), np.zeros((0, 4)), tilt)
         rows = []
         for octave in range(cfg.octaves):
             lam = cfg.wavelength_m / 2.0**octave
@@ -61,43 +67,50 @@ class Terrain:
         waves = np.array(rows, dtype=np.float64)
         # Normalise so that the RMS height is amplitude/sqrt(2), as for one cosine.
         waves[:, 2] *= cfg.amplitude_m / math.sqrt(float(np.sum(waves[:, 2] ** 2)))
-        return cls(float(cfg.elevation_m), waves)
+        return cls(float(cfg.elevation_m), waves, tilt)
 
     @property
     def is_flat(self) -> bool:
-        return len(self.waves) == 0
+        """Level everywhere (no waves, no tilt)."""
+        return len(self.waves) == 0 and self.tilt == (0.0, 0.0)
+
+    def _plane(self, x: FloatArray, y: FloatArray) -> Any:
+        gx, gy = self.tilt
+        return self.elevation_m + (gx * x + gy * y if (gx or gy) else 0.0)
 
     def height(self, x: Any, y: Any) -> FloatArray:
         """Ground height at local (x, y); arrays broadcast, float64 throughout."""
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         shape = np.broadcast_shapes(x.shape, y.shape)
-        if self.is_flat:
-            return np.full(shape, self.elevation_m)
         xf = np.broadcast_to(x, shape).ravel()
         yf = np.broadcast_to(y, shape).ravel()
         out = np.empty(xf.shape)
+        out[:] = self._plane(xf, yf)
+        if not len(self.waves):
+            return out.reshape(shape)
         kx, ky, a, ph = self.waves.T
         for i in range(0, len(xf), _CHUNK):
             arg = np.multiply.outer(xf[i:i + _CHUNK], kx) + np.multiply.outer(yf[i:i + _CHUNK], ky)
             arg += ph
-            out[i:i + _CHUNK] = self.elevation_m + np.cos(arg) @ a
+            out[i:i + _CHUNK] += np.cos(arg) @ a
         return out.reshape(shape)
 
     def gradient(self, x: Any, y: Any) -> tuple[FloatArray, FloatArray]:
         """(dz/dx, dz/dy) at local (x, y)."""
         x = np.atleast_1d(np.asarray(x, dtype=np.float64))
         y = np.atleast_1d(np.asarray(y, dtype=np.float64))
-        if self.is_flat:
+        gx, gy = self.tilt
+        if not len(self.waves):
             z = np.zeros(np.broadcast_shapes(x.shape, y.shape))
-            return z, z.copy()
+            return z + gx, z + gy
         kx, ky, a, ph = self.waves.T
         s = -np.sin(np.multiply.outer(x, kx) + np.multiply.outer(y, ky) + ph)
-        return s @ (a * kx), s @ (a * ky)
+        return s @ (a * kx) + gx, s @ (a * ky) + gy
 
     def max_curvature(self) -> float:
-        """An upper bound of |second derivative| in any direction (1/m)."""
-        if self.is_flat:
+        """An upper bound of |second derivative| in any direction (1/m); a plane has none."""
+        if not len(self.waves):
             return 0.0
         k2 = self.waves[:, 0] ** 2 + self.waves[:, 1] ** 2
         return float(np.sum(np.abs(self.waves[:, 2]) * k2))
@@ -140,14 +153,17 @@ class Terrain:
         """The terrain as ground-truth JSON: enough to evaluate the height anywhere."""
         return {
             "kind": "flat" if self.is_flat else "waves",
-            "formula": "z = origin[2] + elevation_m + sum(a * cos(kx * (x - origin[0]) "
-                       "+ ky * (y - origin[1]) + phase) for kx, ky, a, phase in waves)",
+            "formula": "z = origin[2] + elevation_m + tilt[0] * (x - origin[0]) + tilt[1] * "
+                       "(y - origin[1]) + sum(a * cos(kx * (x - origin[0]) + ky * (y - "
+                       "origin[1]) + phase) for kx, ky, a, phase in waves)",
             "origin": [float(v) for v in origin_m],
             "elevation_m": self.elevation_m,
+            "tilt": [float(v) for v in self.tilt],
             "waves": [[float(v) for v in row] for row in self.waves],
         }
 
     @classmethod
     def from_doc(cls, doc: dict[str, Any]) -> Terrain:
         waves = np.asarray(doc.get("waves", []), dtype=np.float64).reshape(-1, 4)
-        return cls(float(doc["elevation_m"]), waves)
+        gx, gy = (float(v) for v in doc.get("tilt", (0.0, 0.0)))
+        return cls(float(doc["elevation_m"]), waves, (gx, gy))

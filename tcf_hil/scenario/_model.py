@@ -45,6 +45,11 @@ class TerrainConfig:
         20.0, "terrain mesh extends this far beyond the plot", ge=0.0, le=1000.0)
     tolerance_mm: float = _f(
         20.0, "terrain mesh: maximum height error between grid vertices", gt=0.0)
+    slope_deg: float = _f(
+        0.0, "tilts the whole terrain into a hillside this steep (any kind)", ge=0.0, le=60.0)
+    uphill_azimuth_deg: float = _f(
+        0.0, "compass direction the hillside rises toward (0 north, 90 east)", ge=-360.0,
+        le=360.0)
 
 
 @dataclass(frozen=True, slots=True)

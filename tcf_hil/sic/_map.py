@@ -22,13 +22,34 @@ from tcf_hil.sic._stems import StemParams, identify_stems
 FloatArray = NDArray[np.float64]
 
 
-class GroundGrid:
-    """Minimum z per ``cell`` x ``cell`` m square, on a grid that grows as the map does."""
+def _minmod(a: FloatArray, b: FloatArray) -> FloatArray:
+    """The smaller of two slopes when they agree in sign, else 0 (NaN counts as missing)."""
+    a = np.where(np.isfinite(a), a, b)
+    b = np.where(np.isfinite(b), b, a)
+    out = np.where(a * b > 0, np.where(np.abs(a) < np.abs(b), a, b), 0.0)
+    return np.where(np.isfinite(out), out, 0.0)
 
-    def __init__(self, cell_m: float = 1.0) -> None:
+
+class GroundGrid:
+    """Minimum z per ``cell`` x ``cell`` m square, on a grid that grows as the map does.
+
+    ``slope``: on a hillside a cell's minimum lies at its downhill edge, up to
+    ``cell * tan(slope)`` below the ground under a point at its uphill edge (0.58 m for a
+    1 m cell at 30 degrees: the ground then passes for stems). With ``slope``, the height
+    under a point is the cell's plane instead: its gradient from the neighbouring cells'
+    minima (minmod of the two one-sided differences: exact on a plane, and one neighbour
+    whose minimum is a stem, not ground, cannot tilt it), through the minimum at the cell's
+    downhill corner.
+    """
+
+    def __init__(self, cell_m: float = 1.0, *, slope: bool = False,
+                 max_gradient: float = 1.2) -> None:
         self.cell = cell_m
+        self.slope = slope
+        self.max_gradient = max_gradient
         self.i0 = self.j0 = 0
         self.z = np.full((0, 0), np.inf)
+        self._grad: tuple[FloatArray, FloatArray] | None = None
 
     def _ij(self, xy: FloatArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         ij = np.floor(xy / self.cell).astype(np.int64)
@@ -54,9 +75,26 @@ class GroundGrid:
         i, j = self._ij(pts[:, :2])
         self._grow(i, j)
         np.minimum.at(self.z, (i - self.i0, j - self.j0), pts[:, 2])
+        self._grad = None
+
+    def _gradient(self) -> tuple[FloatArray, FloatArray]:
+        if self._grad is None:
+            z = np.where(np.isfinite(self.z), self.z, np.nan)
+            g = []
+            for axis in (0, 1):
+                d = np.diff(z, axis=axis) / self.cell
+                pad = [(0, 0), (0, 0)]
+                pad[axis] = (1, 0)
+                back = np.pad(d, pad, constant_values=np.nan)
+                pad[axis] = (0, 1)
+                fwd = np.pad(d, pad, constant_values=np.nan)
+                g.append(np.clip(_minmod(back, fwd), -self.max_gradient, self.max_gradient))
+            self._grad = (g[0], g[1])
+        return self._grad
 
     def height(self, xy: FloatArray) -> FloatArray:
-        """Minimum z of each point's cell (inf where the cell is unseen)."""
+        """Ground height under each point: its cell's minimum, or with ``slope`` the cell's
+        plane (inf where the cell is unseen)."""
         if len(xy) == 0:
             return np.zeros(0)
         i, j = self._ij(xy)
@@ -65,6 +103,14 @@ class GroundGrid:
         ok = (a >= 0) & (a < ni) & (b >= 0) & (b < nj)
         out = np.full(len(xy), np.inf)
         out[ok] = self.z[a[ok], b[ok]]
+        if self.slope and ok.any():
+            gx, gy = self._gradient()
+            ax, by = a[ok], b[ok]
+            sx, sy = gx[ax, by], gy[ax, by]
+            # offsets from the cell centre, in [-cell/2, cell/2)
+            u = xy[ok, 0] - (i[ok] + 0.5) * self.cell
+            v = xy[ok, 1] - (j[ok] + 0.5) * self.cell
+            out[ok] += 0.5 * self.cell * (np.abs(sx) + np.abs(sy)) + sx * u + sy * v
         return out
 
 
@@ -107,7 +153,7 @@ class StemMap:
         self.margin = margin_m
         self.max_points = max_points
         self.datum = np.asarray(datum, dtype=np.float64)
-        self.ground = GroundGrid(params.ground_cell_m)
+        self.ground = GroundGrid(params.ground_cell_m, slope=params.ground_slope)
         self.tiles: dict[tuple[int, int], _Tile] = {}
         self.stats = MapStats()
         self._last_xy = np.zeros(2)

@@ -35,6 +35,7 @@ class StemParams:
 
     ground_cell_m: float = 1.0
     ground_threshold_m: float = 0.20
+    ground_slope: bool = True  # the onboard map's ground grid follows hillsides (GroundGrid)
     cluster_radius_m: float = 0.3
     min_height_m: float = 2.5
     min_points: int = 10
@@ -68,12 +69,12 @@ PRESETS: dict[str, StemParams] = {
     # The paper's algorithm as published: mean x, y centre, height = max z - min z,
     # scikit-learn's KD-tree for the radius search.
     "paper": StemParams(neighbors="sklearn", centre="mean", height="extent",
-                        merge_fragments=False),
+                        merge_fragments=False, ground_slope=False),
     # Default: centre from the breast-height circle fit, height above the local ground,
     # fragments (a sparse stem top that broke off) merged back onto the stem below them,
     # a 0.5 m ground band (on slopes a 1 m cell spans more than 0.2 m, and the ground points
     # left over bridge neighbouring stems into one cluster), scipy's KD-tree (same graph,
-    # faster).
+    # faster), and a ground grid that follows hillsides (GroundGrid's ``slope``).
     "tuned": StemParams(ground_threshold_m=0.5),
 }
 
