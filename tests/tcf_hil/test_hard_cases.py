@@ -10,20 +10,23 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from protocols.harvester._codec import encode_pose
 from protocols.ouster import decode_lidar_packet
-from tcf_hil.experiments.offline import run_offline
+from tcf_hil.experiments.offline import OfflineSic, run_offline
 from tcf_hil.forest import Forest, generate_forest, ground_truth
 from tcf_hil.forest.generate import classify
 from tcf_hil.forest.sampling import sample_surfaces
 from tcf_hil.forest.stems import StemSet
 from tcf_hil.forest.terrain import Terrain
-from tcf_hil.lidar import LidarRun, record_pcap
+from tcf_hil.harvester import HarvesterModel
+from tcf_hil.lidar import LidarRun, record_pcap, sensor_metadata
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
 from tcf_hil.scene import Scene
 from tcf_hil.sic import identify_stems
@@ -378,21 +381,52 @@ def test_dbh_from_a_short_arc_has_bounded_error(arc_deg: float) -> None:
     assert p90 < bound, f"{arc_deg} degree arc: radius error p90 {p90 * 1000:.1f} mm"
 
 
-# ------------------------------------------------------------------ heading wrap at 180
-def test_heading_through_plus_minus_180_degrees() -> None:
-    """The machine drives south with a kink that takes its heading across +/-180 degrees
-    (the int16 0.01-degree heading on the bus wraps there): poses interpolated across the
-    wrap must not swing through north, so every stem stays sharp."""
-    scn = scenario_from_dict(_small({"track": {"start_m": [1.0, 25.0, 2.0],
-                                               "end_m": [1.0, -25.0, 2.0],
-                                               "waypoints_m": [[-1.0, 0.0]],
-                                               "turn_radius_m": 3.0}}))
+# ------------------------------------------------------------------ heading wraps
+@pytest.mark.parametrize(("where", "plot", "track"), [
+    # compass heading across north: the bus's uint16 0.01-degree heading goes 359.99 -> 0
+    ("north", [20.0, 40.0], {"start_m": [1.0, -25.0, 2.0], "end_m": [1.0, 25.0, 2.0],
+                             "waypoints_m": [[-1.0, 0.0]]}),
+    # heading across west: yaw (counter-clockwise from east) goes through +/-180 degrees
+    ("west", [40.0, 20.0], {"start_m": [25.0, 1.0, 2.0], "end_m": [-25.0, 1.0, 2.0],
+                            "waypoints_m": [[0.0, -1.0]]}),
+])
+def test_heading_wraps_keep_every_stem_sharp(where: str, plot: list[float],
+                                             track: dict) -> None:
+    """The machine drives a kinked track whose heading crosses a wrap of the bus encoding
+    (north) or of the angle the SIC interpolates (west, yaw +/-180 degrees): poses
+    interpolated across the wrap must not swing the long way round, so every stem stays
+    sharp."""
+    scn = scenario_from_dict(_small({"plot": {"size_m": plot},
+                                     "track": {**track, "turn_radius_m": 3.0}}))
     tr = Trajectory.from_config(scn.track, generate_forest(scn).terrain, 0)
-    hd = tr.vehicle_state(np.arange(tr.t0_ns, tr.end_ns, 10**8)).heading_deg
-    hd = (np.asarray(hd) + 180.0) % 360.0 - 180.0
-    assert (hd > 170).any() and (hd < -170).any()  # it does cross the wrap
+    st = tr.vehicle_state(np.arange(tr.t0_ns, tr.end_ns, 10**8))
+    wrapped = np.degrees(st.yaw) if where == "west" else np.asarray(st.heading_deg)
+    wrapped = (wrapped + 180.0) % 360.0 - 180.0 if where == "west" else wrapped
+    assert (wrapped > 355).any() if where == "north" else (wrapped > 175).any()
+    assert (wrapped < 5).any() if where == "north" else (wrapped < -175).any()
+    # The SIC's pose track, fed the node's TPDOs (decoded by canopen) around the crossing,
+    # gives the true yaw at every millisecond in between, not a swing the long way round.
+    t = np.arange(tr.t0_ns, tr.end_ns, 10**8)
+    k = int(np.argmax(np.abs(np.diff(wrapped)) > 180.0))
+    t_wrap = int(t[k])
+    model = HarvesterModel.from_scenario(scn, generate_forest(scn).terrain, 0, 0)
+    ncfg = model.node_config()
+    sic = OfflineSic("tuned", sensor_metadata(scn), ncfg)
+    for tp in range(t_wrap - 10**9, t_wrap + 10**9, 10**7):  # 100 Hz, as the node sends
+        for cob, data in encode_pose(model.bus_pose(tp), ncfg.node_id):
+            sic.can_frame(cob, data, tp / 1e9)
+    q = np.arange(t_wrap - 5 * 10**8, t_wrap + 5 * 10**8, 10**6)
+    got = sic.track.at(q.astype(np.float64))
+    assert got is not None
+    yaw = np.arctan2(got[1][:, 1, 0], got[1][:, 0, 0])
+    true_yaw = model.trajectory.vehicle_state(q).yaw
+    err = np.degrees(np.abs((yaw - true_yaw + np.pi) % (2 * np.pi) - np.pi))
+    assert err.max() < 0.05, f"yaw off by up to {err.max():.1f} degrees at the wrap"
+    sic.can.close()
+    # and the whole run through the wire: every stem sharp
     res = run_offline(scn, mode="512x10")
     m = _metrics(res)
+    assert m["n_ground_truth"] >= 20
     assert m["f1"] >= 0.95
     assert m["position_rmse_m"] < 0.01
 
@@ -426,6 +460,43 @@ def test_frame_id_wrap_reaches_ouster_sdk_without_a_dropped_frame(tmp_path: Path
     frames = [fs[0] for fs in src]
     assert all(f.complete() for f in frames)
     assert [int(f.frame_id) for f in frames] == [65533, 65534, 65535, 0, 1, 2]
+
+
+def test_frame_id_wrap_at_the_sics_receiver_over_udp() -> None:
+    """The reference SIC's receiver on a real UDP socket gets frames 65533..65535, 0, 1, 2
+    (and then a real gap: frame 4): it hands on six whole frames in order and counts exactly
+    the one frame that never came as lost, not 65 530."""
+    import socket
+
+    from tcf_hil.sic._online import LidarReceiver
+
+    run = LidarRun(scenario_from_dict(_small()), mode="512x10", max_frames=8,
+                   first_frame_id=65533)
+    rx = LidarReceiver(run.meta, "127.0.0.1", 0)
+    port = rx.sock.getsockname()[1]
+    rx.start()
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for k, (_fr, dgs) in enumerate(run.datagrams()):
+            if k == 6:  # frame_id 3 is lost on the way
+                continue
+            for dg in dgs:
+                if dg.port == run.meta.udp_port_lidar:
+                    tx.sendto(bytes(dg.payload), ("127.0.0.1", port))
+            time.sleep(0.02)
+        time.sleep(0.3)
+    finally:
+        tx.close()
+        rx.close()
+    got = []
+    while True:
+        item = rx.frames.get(timeout=1.0)
+        if item is None:
+            break
+        got.append((item[0], len(item[1])))
+    ppf = run.meta.packet_format.packets_per_frame
+    assert got == [(f, ppf) for f in (65533, 65534, 65535, 0, 1, 2, 4)]
+    assert rx.stats.frames_lost == 1 and rx.stats.incomplete == 0
 
 
 # ---------------------------------------------------------------------------- empty forest
