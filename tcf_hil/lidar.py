@@ -188,16 +188,20 @@ class LidarRun:
                                                       q.tolist(), strict=True))
             yield fr, out
 
+    def ground_truth(self) -> dict[str, Any]:
+        """The forest's ground truth with the lidar returns each stem got so far."""
+        gt = ground_truth(self.forest)
+        for o in gt["objects"]:
+            o["returns"] = int(self.counts[o["id"]])
+        return gt
+
     def write_sidecars(self, out: Path) -> dict[str, Any]:
         """metadata.json, ground_truth.json (with returns), visibility.json, sensor_poses.csv."""
         ensure_dir(out)
         if self.keep_poses:
             write_bytes_atomic(out / "sensor_poses.csv", self._poses.getvalue().encode())
         write_bytes_atomic(out / "metadata.json", self.meta.dumps().encode())
-        gt = ground_truth(self.forest)
-        for o in gt["objects"]:
-            o["returns"] = int(self.counts[o["id"]])
-        write_json_atomic(out / "ground_truth.json", gt)
+        write_json_atomic(out / "ground_truth.json", self.ground_truth())
         c = self.counts
         vis: dict[str, Any] = {
             "frames": self.frames, "mode": self.meta.mode, "profile": self.meta.profile,

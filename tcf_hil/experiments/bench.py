@@ -71,12 +71,7 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
               say: Callable[[str], None] = lambda _s: None) -> tuple[list[dict[str, Any]],
                                                                     list[str]]:
     """Every combination of the grid; returns (rows, notes on what was skipped)."""
-    from tcf_hil.experiments.offline import (
-        RUN_T0_NS,
-        OfflineSic,
-        drive,
-        seen_ground_truth,
-    )
+    from tcf_hil.experiments.offline import RUN_T0_NS, OfflineSic, drive
     from tcf_hil.harvester import HarvesterModel
     from tcf_hil.lidar import LidarRun
     from tcf_hil.recorder import score_forest
@@ -106,7 +101,7 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
                 frames, emu_s = drive(run, model, sics)
                 ks = np.linspace(0, max(frames - 1, 0), grid.error_frames).astype(int)
                 err = np.concatenate([_range_error(run, int(k)) for k in ks])
-                gt = seen_ground_truth(run)
+                gt = run.ground_truth()
                 sim_s = frames * run.emu.period_ns / 1e9
                 for preset, sic in zip(grid.presets, sics, strict=True):
                     doc = sic.finish()

@@ -27,7 +27,7 @@ from protocols.harvester._codec import encode_pose
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil.bridge import RUN_T0_NS  # as a live run: CAN time never goes negative
 from tcf_hil.evaluation import EvalConfig
-from tcf_hil.forest import Forest, ground_truth
+from tcf_hil.forest import Forest
 from tcf_hil.harvester import HarvesterModel
 from tcf_hil.lidar import LidarRun
 from tcf_hil.recorder import Scores, score_forest
@@ -139,13 +139,6 @@ def drive(run: LidarRun, model: HarvesterModel, sics: list[OfflineSic],
     return frames, emu_s
 
 
-def seen_ground_truth(run: LidarRun) -> dict[str, Any]:
-    gt = ground_truth(run.forest)
-    for o in gt["objects"]:
-        o["returns"] = int(run.counts[o["id"]])
-    return gt
-
-
 def run_offline(scn: Scenario, *, mode: str = "1024x10",
                 profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
                 backend: str = "embree", preset: str = "tuned", max_frames: int | None = None,
@@ -167,7 +160,7 @@ def run_offline(scn: Scenario, *, mode: str = "1024x10",
     frames, emu_s = drive(run, model, [sic], progress)
     doc = sic.finish()
     table = stem_table(doc, "<reference SIC>", "observed")
-    gt = seen_ground_truth(run)
+    gt = run.ground_truth()
     scores = score_forest(gt, table, eval_cfg)
     return OfflineResult(scores=scores, forest_doc=doc, ground_truth=gt, frames=frames,
                          sim_seconds=frames * run.emu.period_ns / 1e9, emulator_s=emu_s,
