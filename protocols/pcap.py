@@ -165,6 +165,10 @@ def _pcapng_frames(data: bytes) -> Iterator[tuple[int, bytes]]:
         if blen < 12 or blen % 4 or pos + blen > len(data):
             raise PcapError(f"pcapng block at byte {pos} has length {blen}")
         body = data[pos + 8:pos + blen - 4]
+        least = {1: 8, 6: 20, 3: 4}.get(btype, 0)  # IDB, EPB, SPB fixed fields
+        if len(body) < least:
+            raise PcapError(f"pcapng block type {btype} at byte {pos} has {len(body)} body "
+                            f"bytes; at least {least} expected")
         if btype == 1:  # interface description
             link = struct.unpack_from(end + "H", body, 0)[0]
             tick = 1000  # default µs
@@ -173,6 +177,9 @@ def _pcapng_frames(data: bytes) -> Iterator[tuple[int, bytes]]:
                 code, olen = struct.unpack_from(end + "HH", body, opt)
                 if code == 0:
                     break
+                if opt + 4 + olen > len(body):
+                    raise PcapError(f"pcapng interface option {code} at byte {pos + 8 + opt} "
+                                    f"claims {olen} bytes; {len(body) - opt - 4} remain")
                 if code == 9 and olen >= 1:  # if_tsresol
                     r = body[opt + 4]
                     tick = 2 ** -(r & 0x7F) * 1e9 if r & 0x80 else 10 ** (9 - r)

@@ -12,6 +12,16 @@ The CLI maps every ``TcfHilError`` to exit status 1 and a one-line ``Error: ...`
 from __future__ import annotations
 
 
+def short_repr(value: object, limit: int = 200) -> str:
+    """``repr(value)`` for a one-line message: at most ``limit`` characters, and never an error
+    (an int beyond the interpreter's str-conversion digit limit cannot be printed)."""
+    try:
+        text = repr(value)
+    except ValueError:
+        text = f"<{type(value).__name__} too large to print>"
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 class TcfHilError(Exception):
     """Root of every error tcf-hil raises on purpose."""
 
@@ -32,7 +42,7 @@ class ConfigError(TcfHilError, ValueError):
         self.allowed = allowed
         self.source = source
         where = f"{source}: " if source else ""
-        super().__init__(f"{where}{key} = {value!r} is invalid; allowed: {allowed}")
+        super().__init__(f"{where}{key} = {short_repr(value)} is invalid; allowed: {allowed}")
 
 
 class InputError(TcfHilError, ValueError):

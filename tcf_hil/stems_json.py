@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from protocols.stems import CLASS_BY_QUALITY, QUALITY_BY_CLASS, load_schema
 from tcf_hil._io import read_json
-from tcf_hil.errors import InputError
+from tcf_hil.errors import InputError, short_repr
 
 Kind = Literal["ground_truth", "observed"]
 FloatArray = NDArray[np.float64]
@@ -81,7 +81,7 @@ def _number(v: Any, source: str, field: str, limit: float) -> float:
     except OverflowError:
         f = math.inf
     if not math.isfinite(f) or abs(f) > limit:
-        raise InputError(source, field, f"{str(v)[:40]} is not a finite number within "
+        raise InputError(source, field, f"{short_repr(v, 40)} is not a finite number within "
                                         f"+-{limit:g}")
     return f
 

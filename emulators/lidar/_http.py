@@ -75,8 +75,12 @@ class SensorApi:
                 self.wfile.write(data)
 
             def _body(self) -> Any:
-                n = int(self.headers.get("Content-Length") or 0)
-                if n > MAX_BODY:
+                try:
+                    n = int(self.headers.get("Content-Length") or 0)
+                except ValueError as err:
+                    raise _HttpError(HTTPStatus.BAD_REQUEST,
+                                     "Content-Length: expected a number") from err
+                if n < 0 or n > MAX_BODY:
                     raise _HttpError(HTTPStatus.REQUEST_ENTITY_TOO_LARGE,
                                      f"body of {n} bytes; at most {MAX_BODY}")
                 raw = self.rfile.read(n) if n else b""
@@ -84,8 +88,12 @@ class SensorApi:
                     return None
                 try:
                     return json.loads(raw)
-                except (UnicodeDecodeError, json.JSONDecodeError) as err:
-                    raise _HttpError(HTTPStatus.BAD_REQUEST, f"malformed JSON: {err}") from err
+                except ValueError as err:  # not UTF-8, not JSON, or an integer too long
+                    msg = str(err).splitlines()[0][:200]
+                    raise _HttpError(HTTPStatus.BAD_REQUEST, f"malformed JSON: {msg}") from err
+                except RecursionError as err:
+                    raise _HttpError(HTTPStatus.BAD_REQUEST,
+                                     "malformed JSON: nested too deeply") from err
 
             def _handle(self, method: str) -> None:
                 url = urlsplit(self.path)

@@ -9,6 +9,7 @@ from protocols.ouster._errors import (
     PacketIdError,
     PacketSizeError,
     PacketTypeError,
+    PacketValueError,
     ProtocolError,
 )
 from protocols.ouster._imu import IMU_PACKET_BYTES, ImuPacket, decode_imu_packet, encode_imu_packet
@@ -48,6 +49,7 @@ __all__ = [
     "PacketIdError",
     "PacketSizeError",
     "PacketTypeError",
+    "PacketValueError",
     "Profile",
     "ProtocolError",
     "SensorMetadata",

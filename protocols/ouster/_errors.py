@@ -8,6 +8,7 @@
      ├── CrcError                       the CRC-64/XZ footer does not match
      ├── PacketIdError                  init_id / prod_sn differ from the metadata
      ├── MeasurementIdError             a column's measurement_id is not below the frame width
+     ├── PacketValueError               a field holds what no sensor sends (a NaN IMU reading)
      └── MetadataError                  a metadata document is missing or has a bad field
 """
 
@@ -40,6 +41,10 @@ class PacketIdError(ProtocolError):
 
 
 class MeasurementIdError(ProtocolError):
+    pass
+
+
+class PacketValueError(ProtocolError):
     pass
 
 

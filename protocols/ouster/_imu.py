@@ -7,7 +7,7 @@ import math
 import struct
 from dataclasses import dataclass
 
-from protocols.ouster._errors import PacketSizeError
+from protocols.ouster._errors import PacketSizeError, PacketValueError
 
 __all__ = ["IMU_PACKET_BYTES", "ImuPacket", "decode_imu_packet", "encode_imu_packet"]
 
@@ -44,4 +44,7 @@ def decode_imu_packet(buf: bytes | bytearray | memoryview) -> ImuPacket:
         raise PacketSizeError(f"IMU packet of {len(buf)} bytes; LEGACY IMU packets are "
                               f"{IMU_PACKET_BYTES} bytes")
     s, a, g, ax, ay, az, gx, gy, gz = _IMU.unpack(bytes(buf))
+    for name, v in (("accel_g", (ax, ay, az)), ("gyro_deg_s", (gx, gy, gz))):
+        if not all(math.isfinite(x) for x in v):
+            raise PacketValueError(f"IMU {name} = {v!r}; expected three finite float32 values")
     return ImuPacket(s, a, g, (ax, ay, az), (gx, gy, gz))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from typing import Any
@@ -26,6 +27,9 @@ SECTIONS: tuple[str, ...] = ("sensor_info", "config_params", "lidar_data_format"
 
 def parse_mode(mode: str) -> tuple[int, int]:
     """``"1024x10"`` -> (1024 columns, 10 Hz)."""
+    if not isinstance(mode, str):
+        raise MetadataError(f"lidar_mode {_short(mode)}; expected a string, one of "
+                            f"{', '.join(MODES)}")
     try:
         w, f = (int(v) for v in mode.split("x"))
     except ValueError as err:
@@ -36,11 +40,38 @@ def parse_mode(mode: str) -> tuple[int, int]:
     return w, f
 
 
+def _short(v: Any, limit: int = 60) -> str:
+    """``repr(v)`` for an error message: one line, at most ``limit`` characters."""
+    try:
+        text = repr(v)
+    except ValueError:  # an int beyond the interpreter's str-conversion digit limit
+        text = f"<{type(v).__name__} too large to print>"
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    """A finite real number (an int beyond the float range is not)."""
+    if not isinstance(v, numbers.Real) or isinstance(v, bool):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:
+        return False
+
+
 def _mat(v: Any, name: str) -> NDArray[np.float64]:
-    a = np.asarray(v, dtype=np.float64)
-    if a.shape != (16,) and a.shape != (4, 4):
-        raise MetadataError(f"{name} has {a.size} numbers; expected 16 (a 4x4 matrix)")
-    return a.reshape(4, 4)
+    flat = v
+    if isinstance(v, list | tuple) and len(v) == 4 and all(isinstance(r, list | tuple)
+                                                           for r in v):
+        flat = [x for r in v for x in r]
+    if not isinstance(flat, list | tuple) or len(flat) != 16 or \
+            not all(_is_number(x) for x in flat):
+        raise MetadataError(f"{name} = {_short(v)}; expected 16 finite numbers (a 4x4 matrix)")
+    return np.asarray(flat, dtype=np.float64).reshape(4, 4)
 
 
 @dataclass(frozen=True)
@@ -70,6 +101,43 @@ class SensorMetadata:
 
     def __post_init__(self) -> None:
         parse_mode(self.mode)
+        # Types first: a config POST or a hand-built document may hold anything.
+        texts: tuple[tuple[str, object], ...] = (
+            ("udp_profile_lidar", self.profile), ("udp_dest", self.udp_dest),
+            ("prod_line", self.prod_line), ("prod_pn", self.prod_pn),
+            ("build_rev", self.build_rev), ("image_rev", self.image_rev))
+        for name, text in texts:
+            if not isinstance(text, str):
+                raise MetadataError(f"{name} {_short(text)}; expected a string")
+        ints: tuple[tuple[str, object], ...] = (
+            ("columns_per_packet", self.columns_per_packet),
+            ("initialization_id", self.init_id), ("prod_sn", self.prod_sn),
+            ("udp_port_lidar", self.udp_port_lidar), ("udp_port_imu", self.udp_port_imu))
+        for name, num in ints:
+            if not _is_int(num):
+                raise MetadataError(f"{name} {_short(num)}; expected an integer")
+        for name, port in (("udp_port_lidar", self.udp_port_lidar),
+                           ("udp_port_imu", self.udp_port_imu)):
+            if not 0 <= port <= 0xFFFF:
+                raise MetadataError(f"{name} {port}; expected 0 .. 65535")
+        for name, seq, check, what in (
+                ("beam_altitude_angles", self.beam_altitude_deg, _is_number, "a finite number"),
+                ("beam_azimuth_angles", self.beam_azimuth_deg, _is_number, "a finite number"),
+                ("pixel_shift_by_row", self.pixel_shift_by_row, _is_int, "an integer")):
+            if not isinstance(seq, tuple):
+                raise MetadataError(f"{name} {_short(seq)}; expected a tuple")
+            for i, x in enumerate(seq):
+                if not check(x):
+                    raise MetadataError(f"{name}[{i}] = {_short(x)}; expected {what}")
+        if not _is_number(self.lidar_origin_to_beam_origin_mm):
+            raise MetadataError(f"lidar_origin_to_beam_origin_mm "
+                                f"{_short(self.lidar_origin_to_beam_origin_mm)}; expected a "
+                                "finite number")
+        for name, m in (("lidar_to_sensor_transform", self.lidar_to_sensor),
+                        ("imu_to_sensor_transform", self.imu_to_sensor)):
+            if not isinstance(m, tuple) or len(m) != 16:
+                raise MetadataError(f"{name} {_short(m)}; expected a tuple of 16 numbers")
+            _mat(m, name)
         if self.profile not in PROFILES:
             raise MetadataError(f"udp_profile_lidar {self.profile!r}; expected one of "
                                 f"{', '.join(PROFILES)}")
@@ -183,8 +251,14 @@ class SensorMetadata:
 
         ldf = "lidar_data_format"
         w = get(ldf, "columns_per_frame", int)
-        mode = doc["config_params"].get("lidar_mode") if isinstance(
-            doc["config_params"], dict) else None
+        if w not in {parse_mode(m)[0] for m in MODES}:
+            raise MetadataError(f"{ldf}.columns_per_frame = {_short(w)}; expected the columns "
+                                f"of a lidar_mode ({', '.join(MODES)})")
+        for section in SECTIONS[:-1]:  # calibration_status is not read
+            if not isinstance(doc[section], dict):
+                raise MetadataError(f"{section} = {_short(doc[section])}; expected a JSON "
+                                    "object")
+        mode = doc["config_params"].get("lidar_mode")
         if not isinstance(mode, str) or parse_mode(mode)[0] != w:
             mode = f"{w}x10" if f"{w}x10" in MODES else f"{w}x5"
         alt = get("beam_intrinsics", "beam_altitude_angles", list)
@@ -193,29 +267,39 @@ class SensorMetadata:
         for name, arr in (("beam_altitude_angles", alt), ("beam_azimuth_angles", az),
                           ("pixel_shift_by_row", shift)):
             for i, v in enumerate(arr):
-                if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
-                    raise MetadataError(f"{name}[{i}] = {v!r}; expected a finite number")
+                if not _is_number(v):
+                    raise MetadataError(f"{name}[{i}] = {_short(v)}; expected a finite number")
         si = doc["sensor_info"]
-        try:
-            sn = int(si.get("prod_sn", 0))
-        except (TypeError, ValueError) as err:
-            raise MetadataError(f"sensor_info.prod_sn = {si.get('prod_sn')!r}; expected a "
-                                "decimal string") from err
-        cp = doc["config_params"] if isinstance(doc["config_params"], dict) else {}
+        cp = doc["config_params"]
+
+        def integer(section: str, key: str, text_ok: bool = False) -> int:
+            v = doc[section].get(key, 0)
+            if text_ok and isinstance(v, str) and v.isascii() and v.isdecimal() and \
+                    len(v) < 40:
+                return int(v)
+            if not _is_int(v):
+                raise MetadataError(f"{section}.{key} = {_short(v)}; expected an integer"
+                                    + (" or a decimal string" if text_ok else ""))
+            return int(v)
+
+        origin = doc["beam_intrinsics"].get("lidar_origin_to_beam_origin_mm", 0.0)
+        if not _is_number(origin):
+            raise MetadataError(f"beam_intrinsics.lidar_origin_to_beam_origin_mm = "
+                                f"{_short(origin)}; expected a finite number")
         return cls(
             mode=mode, profile=get(ldf, "udp_profile_lidar", str),
             columns_per_packet=get(ldf, "columns_per_packet", int),
-            prod_line=str(si.get("prod_line", "")), prod_sn=sn,
-            init_id=int(si.get("initialization_id", 0)),
+            prod_line=str(si.get("prod_line", "")),
+            prod_sn=integer("sensor_info", "prod_sn", text_ok=True),
+            init_id=integer("sensor_info", "initialization_id"),
             prod_pn=str(si.get("prod_pn", "")), build_rev=str(si.get("build_rev", "")),
             image_rev=str(si.get("image_rev", "")), udp_dest=str(cp.get("udp_dest", "")),
-            udp_port_lidar=int(cp.get("udp_port_lidar", 0)),
-            udp_port_imu=int(cp.get("udp_port_imu", 0)),
+            udp_port_lidar=integer("config_params", "udp_port_lidar"),
+            udp_port_imu=integer("config_params", "udp_port_imu"),
             beam_altitude_deg=tuple(float(v) for v in alt),
             beam_azimuth_deg=tuple(float(v) for v in az),
             pixel_shift_by_row=tuple(int(v) for v in shift),
-            lidar_origin_to_beam_origin_mm=float(
-                doc["beam_intrinsics"].get("lidar_origin_to_beam_origin_mm", 0.0)),
+            lidar_origin_to_beam_origin_mm=float(origin),
             lidar_to_sensor=tuple(_mat(get("lidar_intrinsics", "lidar_to_sensor_transform",
                                            list), "lidar_to_sensor_transform").ravel()),
             imu_to_sensor=tuple(_mat(get("imu_intrinsics", "imu_to_sensor_transform", list),
@@ -229,6 +313,11 @@ class SensorMetadata:
         except json.JSONDecodeError as err:
             raise MetadataError(f"metadata is not JSON: {err.msg} (line {err.lineno}, column "
                                 f"{err.colno})") from err
+        except ValueError as err:  # an integer beyond the str-conversion digit limit
+            raise MetadataError(f"metadata is not JSON tcf-hil reads: "
+                                f"{str(err).splitlines()[0]}") from err
+        except RecursionError as err:
+            raise MetadataError("metadata is not JSON tcf-hil reads: nested too deeply") from err
         return cls.from_json(doc)
 
 

@@ -75,7 +75,12 @@ def _check_number(value: Any, key: str, tp: type, meta: typing.Mapping[str, Any]
     if ("gt" in meta and not value > meta["gt"]) or ("ge" in meta and not value >= meta["ge"]) \
             or ("le" in meta and not value <= meta["le"]):
         raise ConfigError(key, value, allowed, source)
-    return int(value) if tp is int else float(value)
+    if tp is int:
+        return int(value)
+    try:
+        return float(value)
+    except OverflowError as err:  # an integer beyond the float range
+        raise ConfigError(key, value, f"{allowed} (within the float range)", source) from err
 
 
 def _convert(tp: Any, value: Any, key: str, meta: typing.Mapping[str, Any],
@@ -221,8 +226,11 @@ def _load_dict(name_or_path: str, _seen: tuple[str, ...] = ()) -> tuple[dict[str
             raise ConfigError("scenario", name_or_path, f"a readable UTF-8 file ({err})") from err
     try:
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError("<toml>", source, f"valid TOML ({err})", source) from err
+    except ValueError as err:  # TOMLDecodeError, or an integer beyond the digit limit
+        raise ConfigError("<toml>", source, f"valid TOML ({str(err).splitlines()[0]})",
+                          source) from err
+    except RecursionError as err:
+        raise ConfigError("<toml>", source, "valid TOML (nested too deeply)", source) from err
     ext = data.pop("extends", None)
     if ext is not None:
         if not isinstance(ext, str) or preset_name(ext) is None:
@@ -275,8 +283,8 @@ def _toml_value(v: Any) -> str:
         return "true" if v else "false"
     if isinstance(v, int | float):
         return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=False)
+    if isinstance(v, str):  # TOML basic strings also forbid a raw DEL, which JSON allows
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
     if isinstance(v, tuple | list):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {v!r} as TOML")

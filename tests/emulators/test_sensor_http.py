@@ -83,6 +83,15 @@ def test_bad_requests(api: SensorApi) -> None:
     assert code == 400 and "lidar_mode" in body["error"]
     assert api.meta.mode == "1024x10"
     assert _call(api, "POST", "/api/v1/sensor/config", b" " * (70 * 1024))[0] == 413
+    # found by fuzzing: these used to escape the handler and drop the connection unanswered
+    code, body = _call(api, "POST", "/api/v1/sensor/config", b'{"udp_port_lidar": 1'
+                       + b"0" * 5000 + b"}")
+    assert code == 400 and "malformed JSON" in body["error"]
+    assert _call(api, "POST", "/api/v1/sensor/config", b"[" * 60_000)[0] == 400
+    with socket.create_connection(api.address[:2], timeout=5) as s:
+        s.sendall(b"POST /api/v1/sensor/config HTTP/1.1\r\nHost: x\r\n"
+                  b"Content-Length: lots\r\n\r\n{}")
+        assert s.recv(100).split(b"\r\n")[0].split()[1] == b"400"
     assert _call(api, "PUT", "/api/v1/user/data", b'"hello"')[0] == 200
     assert _call(api, "GET", "/api/v1/user/data") == (200, "hello")
     assert _call(api, "DELETE", "/api/v1/user/data")[0] == 200
