@@ -17,8 +17,8 @@ import numpy as np
 
 from emulators.lidar import Os0Emulator
 from protocols.ouster import encode_lidar_frame, os0_64_metadata
+from tcf_hil._crc import fast_crc_rows
 from tcf_hil.forest import generate_forest
-from tcf_hil.lidar import _crc_rows
 from tcf_hil.scenario import load_scenario
 from tcf_hil.scene import Scene
 from tcf_hil.trajectory import Trajectory
@@ -35,7 +35,7 @@ def main() -> None:
     rows = []
     print(f"{'forest':8} {'backend':7} {'mode':8} {'rays':>7} {'bare ms':>8} {'pipe ms':>8} "
           f"{'ratio':>6} {'x RT':>5} {'Mrays/s':>8} {'encode ms':>9}")
-    crc = _crc_rows()
+    crc = fast_crc_rows()
     for fname in a.forests.split(","):
         forest = generate_forest(load_scenario(fname))
         track = Trajectory.from_config(forest.scenario.track, forest.terrain)
@@ -50,7 +50,7 @@ def main() -> None:
                 ks = np.linspace(0, n - 1, a.frames).astype(int)
                 bare, pipe, enc = [], [], []
                 for k in ks:
-                    o, d, _, _ = emu.rays(int(k))
+                    o, d, _, _ = emu.rays(int(k), np.float32)  # what frame() casts
                     t0 = time.perf_counter()
                     scene.caster.cast(o, d)
                     bare.append(time.perf_counter() - t0)

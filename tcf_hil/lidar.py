@@ -102,7 +102,8 @@ class LidarRun:
             scn, mode=mode, profile=profile, seed=self.forest.seed, udp_dest=udp_dest,
             udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
         self.emu = Os0Emulator(self.meta, self.scene, self.track, model, seed=self.forest.seed,
-                               start_ns=self.track.t0_ns)
+                               start_ns=self.track.t0_ns,
+                               threads=getattr(self.scene.caster, "threads", None))
         n = max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
         self.frames = min(n, max_frames) if max_frames is not None else n
         self.backend = backend
@@ -300,6 +301,7 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
     caster = getattr(run.scene, "caster", None)
     if caster is not None and hasattr(caster, "threads"):  # the same for the ray caster
         caster.threads = max(1, caster.threads - 1)
+    run.emu.threads = max(1, run.emu.threads - 1)  # and for the emulator's column chunks
     fh = open(rec.path, "wb") if rec is not None else None  # closed in the finally below
     writer = PcapWriter()
     pending: collections.deque[bytes] = collections.deque()

@@ -12,7 +12,7 @@ import importlib
 import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -35,7 +35,7 @@ class Caster(Protocol):
 
     name: str
 
-    def cast(self, origins: FloatArray, directions: FloatArray
+    def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         """Hit distance along each unit direction (inf on a miss) and triangle id (-1)."""
         ...
@@ -72,16 +72,19 @@ class EmbreeCaster:
 
     def _run(self, o: NDArray[np.float32], d: NDArray[np.float32], t: NDArray[np.float32],
              prim: NDArray[np.int64]) -> None:
-        r = self._scene.run(o, d, output=1)
+        # t comes in as inf and is traced in place: the hit distance, inf on a miss (and the
+        # primitive RTC_INVALID_GEOMETRY_ID, -1 as int32)
+        r = self._scene.run(o, d, dists=t, output=1)
         prim[:] = r["primID"]
-        t[:] = r["tfar"]
+        if r["tfar"] is not t:
+            t[:] = r["tfar"]
 
-    def cast(self, origins: FloatArray, directions: FloatArray
+    def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
         n = len(o)
-        t = np.empty(n, np.float32)
+        t = np.full(n, np.inf, np.float32)
         prim = np.empty(n, np.int64)
         parts = min(self.threads, n // self.MIN_RAYS_PER_THREAD)
         if parts <= 1:
@@ -95,9 +98,6 @@ class EmbreeCaster:
                     for a, b in itertools.pairwise(cuts.tolist())]
             for j in jobs:
                 j.result()
-        miss = prim < 0
-        t[miss] = np.inf
-        prim[miss] = -1
         return t, prim
 
 
@@ -111,7 +111,7 @@ class Open3dCaster:
         self._scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
                                   o3d.core.Tensor(faces.astype(np.uint32)))
 
-    def cast(self, origins: FloatArray, directions: FloatArray
+    def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         rays = np.concatenate([origins, directions], axis=1).astype(np.float32)
         ans = self._scene.cast_rays(self._o3d.core.Tensor(rays))
@@ -144,6 +144,8 @@ class Scene:
     faces: NDArray[np.int64]
     stem_id: NDArray[np.int32]  # per triangle; 0 = terrain
     caster: Caster
+    _sid_of_prim: tuple[NDArray[np.int32], NDArray[np.int32]] | None = field(
+        default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def from_forest(cls, forest: Forest, backend: str = "embree",
@@ -162,9 +164,13 @@ class Scene:
                               np.asarray(st.face_attributes.get("stem_id", []), np.int32)])
         return cls(verts, faces, ids, make_caster(backend, verts, faces))
 
-    def cast(self, origins: FloatArray, directions: FloatArray
+    def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
         """(distance, stem id of the hit: 0 terrain, -1 nothing) for local-frame rays."""
         t, prim = self.caster.cast(origins, directions)
-        sid = np.where(prim >= 0, self.stem_id[np.maximum(prim, 0)], -1).astype(np.int32)
+        if self._sid_of_prim is None or self._sid_of_prim[0] is not self.stem_id:
+            # stem id by triangle, then -1 last: a miss (triangle -1) looks itself up
+            self._sid_of_prim = (self.stem_id,
+                                 np.append(self.stem_id, np.int32(-1)).astype(np.int32))
+        sid: NDArray[np.int32] = self._sid_of_prim[1][prim]
         return t.astype(np.float64), sid
