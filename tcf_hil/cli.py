@@ -397,6 +397,11 @@ def forest() -> None:
     """Generate synthetic forests (SFC) and surface-sampled point clouds."""
 
 
+def _terrain_kind(terrain: Any) -> str:
+    shape = "flat" if not len(terrain.waves) else "rolling"
+    return shape if terrain.tilt == (0.0, 0.0) else f"{shape} hillside"
+
+
 @forest.command("generate")
 @click.argument("scenario_name", metavar="PRESET_OR_TOML")
 @click.option("--seed", type=click.IntRange(min=0), default=None,
@@ -422,7 +427,7 @@ def forest_generate(scenario_name: str, seed: int | None, out: Path, no_meshes: 
     counts = {c: int(np.sum(f.classes == c)) for c in ("S", "C", "X")}
     console.print(f"{scn.name}, seed {f.seed}: {len(f.stems)} stems "
                   f"(S {counts['S']}, C {counts['C']}, X {counts['X']}), terrain "
-                  f"{'flat' if f.terrain.is_flat else 'rolling'}")
+                  f"{_terrain_kind(f.terrain)}")
     for p in paths:
         console.print(f"  wrote {p}")
 

@@ -11,15 +11,9 @@ The CLI maps every ``TcfHilError`` to exit status 1 and a one-line ``Error: ...`
 
 from __future__ import annotations
 
+from protocols._text import short_repr
 
-def short_repr(value: object, limit: int = 200) -> str:
-    """``repr(value)`` for a one-line message: at most ``limit`` characters, and never an error
-    (an int beyond the interpreter's str-conversion digit limit cannot be printed)."""
-    try:
-        text = repr(value)
-    except ValueError:
-        text = f"<{type(value).__name__} too large to print>"
-    return text if len(text) <= limit else text[:limit - 3] + "..."
+__all__ = ["ConfigError", "InputError", "TcfHilError", "short_repr"]
 
 
 class TcfHilError(Exception):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 import itertools
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -69,6 +70,7 @@ class EmbreeCaster:
         self.threads = threads or default_threads()
         self._pool: ThreadPoolExecutor | None = None
         self._pool_pid = 0
+        self._pool_lock = threading.Lock()
 
     def _run(self, o: NDArray[np.float32], d: NDArray[np.float32], t: NDArray[np.float32],
              prim: NDArray[np.int64]) -> None:
@@ -90,9 +92,10 @@ class EmbreeCaster:
         if parts <= 1:
             self._run(o, d, t, prim)
         else:
-            if self._pool is None or self._pool_pid != os.getpid():  # threads die in a fork
-                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="embree")
-                self._pool_pid = os.getpid()
+            with self._pool_lock:  # casts may come from several threads (column chunks)
+                if self._pool is None or self._pool_pid != os.getpid():  # threads die in a fork
+                    self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="embree")
+                    self._pool_pid = os.getpid()
             cuts = np.linspace(0, n, parts + 1).astype(int)
             jobs = [self._pool.submit(self._run, o[a:b], d[a:b], t[a:b], prim[a:b])
                     for a, b in itertools.pairwise(cuts.tolist())]

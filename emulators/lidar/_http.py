@@ -80,7 +80,9 @@ class SensorApi:
                 except ValueError as err:
                     raise _HttpError(HTTPStatus.BAD_REQUEST,
                                      "Content-Length: expected a number") from err
-                if n < 0 or n > MAX_BODY:
+                if n < 0:
+                    raise _HttpError(HTTPStatus.BAD_REQUEST, f"Content-Length {n}")
+                if n > MAX_BODY:
                     raise _HttpError(HTTPStatus.REQUEST_ENTITY_TOO_LARGE,
                                      f"body of {n} bytes; at most {MAX_BODY}")
                 raw = self.rfile.read(n) if n else b""
@@ -129,7 +131,8 @@ class SensorApi:
         return self
 
     def close(self) -> None:
-        self.server.shutdown()
+        if self._thread.is_alive():  # shutdown() waits for a serve loop that must be running
+            self.server.shutdown()
         self.server.server_close()
 
     def __enter__(self) -> SensorApi:

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from protocols._text import short_repr
 from protocols.ouster._errors import MetadataError
 from protocols.ouster._packets import PacketFormat
 from protocols.ouster._profiles import PROFILES
@@ -40,13 +41,8 @@ def parse_mode(mode: str) -> tuple[int, int]:
     return w, f
 
 
-def _short(v: Any, limit: int = 60) -> str:
-    """``repr(v)`` for an error message: one line, at most ``limit`` characters."""
-    try:
-        text = repr(v)
-    except ValueError:  # an int beyond the interpreter's str-conversion digit limit
-        text = f"<{type(v).__name__} too large to print>"
-    return text if len(text) <= limit else text[:limit - 3] + "..."
+def _short(v: Any) -> str:
+    return short_repr(v, 60)
 
 
 def _is_int(v: Any) -> bool:

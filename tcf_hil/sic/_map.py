@@ -39,11 +39,13 @@ class GroundGrid:
     under a point is the cell's plane instead: its gradient from the neighbouring cells'
     minima (minmod of the two one-sided differences: exact on a plane, and one neighbour
     whose minimum is a stem, not ground, cannot tilt it), through the minimum at the cell's
-    downhill corner.
+    downhill corner. At the edge of the seen area, where a cell has one neighbour along an
+    axis, that one difference is taken as it is; gradients are clamped to ``max_gradient``
+    (63 degrees, above the steepest scenario hillside).
     """
 
     def __init__(self, cell_m: float = 1.0, *, slope: bool = False,
-                 max_gradient: float = 1.2) -> None:
+                 max_gradient: float = 2.0) -> None:
         self.cell = cell_m
         self.slope = slope
         self.max_gradient = max_gradient

@@ -298,6 +298,7 @@ class LidarStats:
     frames_lost: int = 0  # frame ids never seen (gaps) plus frames dropped when behind
     frames_dropped: int = 0  # complete frames dropped because processing fell behind
     incomplete: int = 0
+    duplicates: int = 0  # packets that arrived again (or after their frame was handed on)
     frames_without_pose: int = 0  # no pose covered them within pose_hold_s: not mapped
     reinits: int = 0  # the sensor re-initialised (a new init_id): metadata read again
     last_packet: float = 0.0
@@ -305,8 +306,16 @@ class LidarStats:
 
 
 class LidarReceiver(threading.Thread):
-    """Receives lidar packets and hands whole frames (an (n, packet_bytes) uint8 array) to a
-    bounded queue; a full queue drops the oldest frame (counted)."""
+    """Receives lidar packets and hands whole frames (an (n, packet_bytes) uint8 array, in
+    packet order) to a bounded queue; a full queue drops the oldest frame (counted).
+
+    Packets are assembled by frame_id and by their place in the frame (first measurement_id
+    over columns per packet), with up to two frames open: a packet that arrives twice is
+    counted and skipped, a packet overtaken by the next frame's still lands in its own frame,
+    and a frame is handed on when it is whole or when a third frame begins (then as it is,
+    counted incomplete). Frames go out in the order they began."""
+
+    OPEN_FRAMES = 2
 
     def __init__(self, meta: SensorMetadata, bind: str, port: int, depth: int | None = None
                  ) -> None:
@@ -332,12 +341,14 @@ class LidarReceiver(threading.Thread):
     def run(self) -> None:
         pb = self.fmt.packet_bytes
         legacy = self.fmt.profile.legacy
-        fid_at = self.fmt.profile.header_bytes + 10 if legacy else 2
+        head = self.fmt.profile.header_bytes
+        fid_at = head + 10 if legacy else 2
+        mid_at = head + 8  # the first column's measurement_id
+        cpp = self.fmt.columns_per_packet
         ppf = self.fmt.packets_per_frame
         buf = bytearray(65536)
-        cur: int | None = None
-        last_fid: int | None = None
-        packets: list[bytes] = []
+        frames: dict[int, dict[int, bytes]] = {}  # open frames: frame_id -> place -> packet
+        newest: int | None = None  # the newest frame_id begun
         st = self.stats
         while not self.stop.is_set():
             try:
@@ -352,27 +363,39 @@ class LidarReceiver(threading.Thread):
                 continue
             st.packets += 1
             fid = buf[fid_at] | (buf[fid_at + 1] << 8)
-            if fid != cur and packets:
-                self._push(cur, packets, ppf)  # type: ignore[arg-type]
-                packets = []
-            if fid != cur:
-                if last_fid is not None:
-                    gap = (fid - last_fid - 1) % 65536
-                    if gap < 1000:
-                        st.frames_lost += gap
-                last_fid = cur = fid
-            packets.append(bytes(buf[:n]))
-            if len(packets) == ppf:
-                self._push(fid, packets, ppf)
-                packets = []
-        if packets and cur is not None:
-            self._push(cur, packets, ppf)
+            place = (buf[mid_at] | (buf[mid_at + 1] << 8)) // cpp
+            parts = frames.get(fid)
+            if parts is None:
+                if newest is not None:
+                    if (newest - fid) % 65536 < 8:  # a frame already handed on: late or again
+                        st.duplicates += 1
+                        continue
+                    ahead = (fid - newest) % 65536
+                    if ahead < 1000:  # (further off: the sensor restarted its count)
+                        st.frames_lost += ahead - 1  # frame ids never begun
+                newest = fid
+                parts = frames[fid] = {}
+                while len(frames) > self.OPEN_FRAMES:
+                    old = next(iter(frames))
+                    self._push(old, frames.pop(old), ppf)
+            if place in parts:
+                st.duplicates += 1
+                continue
+            parts[place] = bytes(buf[:n])
+            if len(parts) == ppf:
+                for old in list(frames):  # older frames first, as they are
+                    self._push(old, frames.pop(old), ppf)
+                    if old == fid:
+                        break
+        for old in list(frames):
+            self._push(old, frames.pop(old), ppf)
         self._put(None)
 
-    def _push(self, fid: int, packets: list[bytes], ppf: int) -> None:
-        if len(packets) < ppf:
+    def _push(self, fid: int, parts: dict[int, bytes], ppf: int) -> None:
+        if len(parts) < ppf:
             self.stats.incomplete += 1
-        arr = np.frombuffer(b"".join(packets), dtype=np.uint8).reshape(len(packets), -1)
+        arr = np.frombuffer(b"".join(parts[k] for k in sorted(parts)), dtype=np.uint8
+                            ).reshape(len(parts), -1)
         self._put((fid, arr))
 
     def _put(self, item: tuple[int, NDArray[np.uint8]] | None) -> None:
@@ -688,7 +711,8 @@ class OnboardSic:
         return {"packets": st.packets, "bad_packets": st.bad_packets, "frames": st.frames,
                 "frames_lost": st.frames_lost, "frames_dropped": st.frames_dropped,
                 "frames_without_pose": st.frames_without_pose, "sensor_reinits": st.reinits,
-                "incomplete_frames": st.incomplete, "poses": track.received,
+                "incomplete_frames": st.incomplete, "duplicate_packets": st.duplicates,
+                "poses": track.received,
                 "publications": pub.count, "frame_cost": self.cost.summary(),
                 "stem_cost": self.stem_cost.summary()}
 

@@ -35,7 +35,9 @@ class StemParams:
 
     ground_cell_m: float = 1.0
     ground_threshold_m: float = 0.20
-    ground_slope: bool = True  # the onboard map's ground grid follows hillsides (GroundGrid)
+    # the onboard map's ground grid follows hillsides (GroundGrid's ``slope``); the one-shot
+    # ``identify_stems`` on a whole cloud keeps the paper's grid filter (``remove_ground``)
+    ground_slope: bool = True
     cluster_radius_m: float = 0.3
     min_height_m: float = 2.5
     min_points: int = 10

@@ -296,7 +296,8 @@ def test_config_errors_print_huge_values_in_one_short_line() -> None:
 
 # ----------------------------------------------------------------------------- sensor config
 
-_API = SensorApi(os0_64_metadata("1024x10"), port=0)
+_API = SensorApi(os0_64_metadata("1024x10"), port=0)  # routes only: never started
+atexit.register(_API.close)
 CONFIG = _API.meta.to_json()["config_params"]
 
 
