@@ -19,7 +19,8 @@ from functools import cache
 from typing import Any
 
 import numpy as np
-from hypothesis import HealthCheck, event, example, given, settings
+from _fuzz import fuzz_settings, one_line, paths, set_path
+from hypothesis import event, example, given
 from hypothesis import strategies as st
 
 import protocols.ouster as o
@@ -34,14 +35,7 @@ from protocols.harvester import (
 )
 from protocols.pcap import PcapError, PcapWriter, UdpDatagram, read_udp
 
-FUZZ = settings(max_examples=300, deadline=None,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-
-
-def _one_line(err: BaseException) -> None:
-    event(f"error {type(err).__name__}")  # --hypothesis-show-statistics shows the mix
-    msg = str(err)
-    assert msg and "\n" not in msg, f"{type(err).__name__} message is not one line: {msg!r}"
+FUZZ = fuzz_settings(300)
 
 
 # ----------------------------------------------------------------------------- lidar packets
@@ -171,7 +165,7 @@ def test_mutated_lidar_packets_decode_as_the_reference_or_raise_the_documented_e
         pkt = o.decode_lidar_packet(fmt, buf, init_id=ids[0], prod_sn=ids[1],
                                     check_crc=check_crc)
     except o.ProtocolError as err:
-        _one_line(err)
+        one_line(err)
         assert type(err) is want, f"{type(err).__name__}: {err}; expected {want}"
         got_error: type[o.ProtocolError] | None = type(err)
     else:
@@ -184,7 +178,7 @@ def test_mutated_lidar_packets_decode_as_the_reference_or_raise_the_documented_e
         batch = o.decode_lidar_packets(fmt, np.frombuffer(buf, np.uint8).reshape(1, -1),
                                        init_id=ids[0], prod_sn=ids[1], check_crc=check_crc)
     except o.ProtocolError as err:
-        _one_line(err)
+        one_line(err)
         assert type(err) is got_error
     else:
         assert got_error is None
@@ -205,7 +199,7 @@ def test_arbitrary_bytes_are_a_lidar_packet_or_a_protocol_error(
         pkt = o.decode_lidar_packet(fmt, data, init_id=INIT_ID, prod_sn=PROD_SN,
                                     check_crc=False)
     except o.ProtocolError as err:
-        _one_line(err)
+        one_line(err)
         assert type(err) is want
     else:
         assert want is None
@@ -241,7 +235,7 @@ def test_any_bytes_are_an_imu_packet_or_a_protocol_error(data: bytes) -> None:
     try:
         pkt = o.decode_imu_packet(data)
     except o.ProtocolError as err:
-        _one_line(err)
+        one_line(err)
         if len(data) != o.IMU_PACKET_BYTES:
             assert isinstance(err, o.PacketSizeError)
         else:
@@ -259,18 +253,7 @@ VALID_META = o.os0_64_metadata("1024x10", init_id=0x0ABCDE)
 VALID_DOC = VALID_META.to_json()
 
 
-def _paths(doc: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
-    out = [prefix] if prefix else []
-    if isinstance(doc, dict):
-        for k, v in doc.items():
-            out += _paths(v, (*prefix, k))
-    elif isinstance(doc, list):
-        for i, v in enumerate(doc[:3]):  # the first few items of each list
-            out += _paths(v, (*prefix, i))
-    return out
-
-
-META_PATHS = _paths(VALID_DOC)
+META_PATHS = paths(VALID_DOC, 3)
 
 #: Values of the wrong type or beyond range, for any field.
 BAD_VALUES = st.one_of(
@@ -284,23 +267,13 @@ BAD_VALUES = st.one_of(
     st.just([None] * 16), st.dictionaries(st.text(max_size=4), st.integers(), max_size=2))
 
 
-def _set(doc: Any, path: tuple[Any, ...], value: Any, delete: bool) -> None:
-    parent = doc
-    for k in path[:-1]:
-        parent = parent[k]
-    if delete:
-        del parent[path[-1]]
-    else:
-        parent[path[-1]] = copy.deepcopy(value)  # st.just([]) gives one shared list
-
-
 @st.composite
 def mutated_metadata(draw: st.DrawFn) -> dict[str, Any]:
     doc = copy.deepcopy(VALID_DOC)
     for _ in range(draw(st.integers(1, 3))):
         path = draw(st.sampled_from(META_PATHS))
         try:
-            _set(doc, path, draw(BAD_VALUES), draw(st.integers(0, 4)) == 0)
+            set_path(doc, path, draw(BAD_VALUES), draw(st.integers(0, 4)) == 0)
         except (KeyError, IndexError, TypeError):
             pass  # an earlier mutation replaced a parent
     return doc
@@ -334,7 +307,7 @@ def test_mutated_metadata_is_read_or_raises_metadata_error(doc: dict[str, Any]) 
     try:
         m = o.SensorMetadata.from_json(doc)
     except o.MetadataError as err:
-        _one_line(err)
+        one_line(err)
         return
     _check_metadata_value(m)
 
@@ -357,7 +330,7 @@ def test_any_text_is_metadata_or_a_metadata_error(text: str) -> None:
     try:
         m = o.SensorMetadata.loads(text)
     except o.MetadataError as err:
-        _one_line(err)
+        one_line(err)
         return
     _check_metadata_value(m)
 
@@ -396,7 +369,7 @@ def test_metadata_changes_give_metadata_or_a_metadata_error(change: dict[str, An
     try:
         m = VALID_META.with_changes(**{GOOD_CHANGES[k][0]: v for k, v in change.items()})
     except o.MetadataError as err:
-        _one_line(err)
+        one_line(err)
         return
     _check_metadata_value(m)
 
@@ -491,7 +464,7 @@ def test_any_capture_gives_datagrams_or_a_pcap_error(data: bytes) -> None:
     try:
         got = list(read_udp(data))
     except PcapError as err:
-        _one_line(err)
+        one_line(err)
         return
     event(f"{min(len(got), 3)}+ datagrams")
     for d in got:
@@ -542,7 +515,7 @@ def test_frame_sequences_give_poses_that_re_encode_or_the_documented_error(
         try:
             p = asm.feed(cob, data)
         except CanProtocolError as err:
-            _one_line(err)
+            one_line(err)
             continue
         if p is not None:
             poses.append(p)
@@ -569,7 +542,7 @@ def test_any_time_payload_is_a_time_or_the_documented_error(data: bytes) -> None
     try:
         ms = decode_time(data)
     except CanProtocolError as err:
-        _one_line(err)
+        one_line(err)
         assert len(data) != 6 or int.from_bytes(data[:4], "little") & 0x0FFFFFFF >= 86_400_000
         return
     event("value")

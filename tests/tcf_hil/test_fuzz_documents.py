@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from hypothesis import HealthCheck, event, example, given, settings
+from _fuzz import fuzz_settings, one_line, paths, set_path
+from hypothesis import event, example, given
 from hypothesis import strategies as st
 
 from emulators.lidar._http import SensorApi, _HttpError
@@ -30,35 +31,7 @@ from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
 from tcf_hil.scenario._load import scenario_to_toml
 from tcf_hil.stems_json import stem_table
 
-FUZZ = settings(max_examples=200, deadline=None,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-
-
-def _one_line(err: BaseException) -> None:
-    event(f"error {type(err).__name__}")  # --hypothesis-show-statistics shows the mix
-    msg = str(err)
-    assert msg and "\n" not in msg, f"{type(err).__name__} message is not one line: {msg!r}"
-
-
-def _paths(doc: Any, prefix: tuple[Any, ...] = (), items: int = 2) -> list[tuple[Any, ...]]:
-    out = [prefix] if prefix else []
-    if isinstance(doc, dict):
-        for k, v in doc.items():
-            out += _paths(v, (*prefix, k), items)
-    elif isinstance(doc, list):
-        for i, v in enumerate(doc[:items]):
-            out += _paths(v, (*prefix, i), items)
-    return out
-
-
-def _set(doc: Any, path: tuple[Any, ...], value: Any, delete: bool) -> None:
-    parent = doc
-    for k in path[:-1]:
-        parent = parent[k]
-    if delete:
-        del parent[path[-1]]
-    else:
-        parent[path[-1]] = copy.deepcopy(value)
+FUZZ = fuzz_settings(200)
 
 
 #: Wrong types, non-finite and huge numbers, empty containers, near-miss strings.
@@ -79,7 +52,7 @@ def mutations(draw: st.DrawFn, base: Any, paths: list[tuple[Any, ...]],
     for _ in range(draw(st.integers(1, most))):
         path = draw(st.sampled_from(paths))
         try:
-            _set(doc, path, draw(BAD_VALUES), draw(st.integers(0, 4)) == 0)
+            set_path(doc, path, draw(BAD_VALUES), draw(st.integers(0, 4)) == 0)
         except (KeyError, IndexError, TypeError):
             pass  # an earlier mutation replaced a parent
     return doc
@@ -92,7 +65,7 @@ OBSERVED = {"timestamp": "20250213_035113", "total_objects_count": 3, "objects":
      "maxcurve": 0.01, "name": "a"},
     {"id": "b", "cp": [-3.0, 4.0, 0.0], "quality": 2, "d": 5.0},
     {"cp": [5e5, 6e6, 120.0], "class": "X"}]}
-OBSERVED_PATHS = _paths(OBSERVED)
+OBSERVED_PATHS = paths(OBSERVED, 2)
 
 
 @cache
@@ -131,7 +104,7 @@ def _check_stems(doc: Any, kind: str) -> None:
     try:
         table = stem_table(doc, "sic.json", kind)  # type: ignore[arg-type]
     except InputError as err:
-        _one_line(err)
+        one_line(err)
         assert err.path == "sic.json"
         return
     _check_table(doc, table)
@@ -148,12 +121,11 @@ def test_mutated_observed_documents_give_a_table_or_an_input_error(doc: Any) -> 
     _check_stems(doc, "observed")
 
 
-@settings(max_examples=100, deadline=None,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@fuzz_settings(100)
 @given(st.data())
 def test_mutated_ground_truth_gives_a_table_or_an_input_error(data: st.DataObject) -> None:
     gt = _ground_truth()
-    doc = data.draw(mutations(gt, _paths(gt)))
+    doc = data.draw(mutations(gt, paths(gt, 2)))
     _check_stems(doc, "ground_truth")
 
 
@@ -178,7 +150,7 @@ def test_any_text_is_a_stems_table_or_an_input_error(text: str, kind: str) -> No
     try:
         doc = loads_json(text, "sic.json")
     except InputError as err:
-        _one_line(err)
+        one_line(err)
         return
     _check_stems(doc, kind)
 
@@ -244,7 +216,7 @@ def _toml(doc: dict[str, Any]) -> str:
 
 
 SCENARIO = scenario_to_dict(load_scenario("forest-ii"))
-SCENARIO_PATHS = _paths(SCENARIO)
+SCENARIO_PATHS = paths(SCENARIO, 2)
 _TMP = _tmpdir("tcf-hil-fuzz-scenarios-")
 
 
@@ -258,7 +230,7 @@ def _check_scenario(text: str) -> None:
     try:
         scn = _load_text(text)
     except ConfigError as err:
-        _one_line(err)
+        one_line(err)
         return
     event("value")
     assert scenario_from_dict(scenario_to_dict(scn)) == scn
