@@ -7,6 +7,7 @@ import copy
 from typing import Any
 
 from hypothesis import HealthCheck, event, settings
+from hypothesis import strategies as st
 
 
 def fuzz_settings(examples: int) -> Any:
@@ -42,3 +43,18 @@ def set_path(doc: Any, path: tuple[Any, ...], value: Any, delete: bool) -> None:
         del parent[path[-1]]
     else:
         parent[path[-1]] = copy.deepcopy(value)
+
+
+@st.composite
+def mutations(draw: st.DrawFn, base: Any, paths: list[tuple[Any, ...]],
+              values: st.SearchStrategy[Any], most: int = 3) -> Any:
+    """A copy of ``base`` with 1..``most`` of its paths set to ``values`` (one in five
+    deleted instead)."""
+    doc = copy.deepcopy(base)
+    for _ in range(draw(st.integers(1, most))):
+        path = draw(st.sampled_from(paths))
+        try:
+            set_path(doc, path, draw(values), draw(st.integers(0, 4)) == 0)
+        except (KeyError, IndexError, TypeError):
+            pass  # an earlier mutation replaced a parent
+    return doc

@@ -11,7 +11,6 @@ re-encoding checks it. ``benchmarks/fuzz_atheris.py`` runs the packet decoders f
 
 from __future__ import annotations
 
-import copy
 import json
 import math
 import struct
@@ -19,7 +18,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
-from _fuzz import fuzz_settings, one_line, paths, set_path
+from _fuzz import fuzz_settings, mutations, one_line, paths
 from hypothesis import event, example, given
 from hypothesis import strategies as st
 
@@ -267,16 +266,8 @@ BAD_VALUES = st.one_of(
     st.just([None] * 16), st.dictionaries(st.text(max_size=4), st.integers(), max_size=2))
 
 
-@st.composite
-def mutated_metadata(draw: st.DrawFn) -> dict[str, Any]:
-    doc = copy.deepcopy(VALID_DOC)
-    for _ in range(draw(st.integers(1, 3))):
-        path = draw(st.sampled_from(META_PATHS))
-        try:
-            set_path(doc, path, draw(BAD_VALUES), draw(st.integers(0, 4)) == 0)
-        except (KeyError, IndexError, TypeError):
-            pass  # an earlier mutation replaced a parent
-    return doc
+def mutated_metadata() -> st.SearchStrategy[dict[str, Any]]:
+    return mutations(VALID_DOC, META_PATHS, BAD_VALUES)
 
 
 def _check_metadata_value(m: o.SensorMetadata) -> None:
