@@ -37,6 +37,7 @@ from protocols.ouster import (
     SensorMetadata,
     encode_imu_packet,
     encode_lidar_frame,
+    finish_lidar_packets,
     os0_64_metadata,
 )
 from protocols.pcap import PcapWriter, UdpDatagram
@@ -143,10 +144,12 @@ class LidarRun:
                 fid_base = None
             elif fid_base is None and action != "silent":
                 fid_base = k
-            arr = encode_lidar_frame(fmt, fr.fields, fr.timestamps_ns,
-                                     frame_id=(k - (fid_base or 0)) & 0xFFFF,
-                                     init_id=self.meta.init_id, prod_sn=self.meta.prod_sn,
-                                     crc_rows=crc)
+            arr = fr.packets if fr.packets is not None else encode_lidar_frame(
+                fmt, fr.fields, fr.timestamps_ns, frame_id=0, init_id=self.meta.init_id,
+                prod_sn=self.meta.prod_sn)
+            finish_lidar_packets(fmt, arr, frame_id=(k - (fid_base or 0)) & 0xFFFF,
+                                 init_id=self.meta.init_id, prod_sn=self.meta.prod_sn,
+                                 crc_rows=crc)
             out = []
             sends = fr.timestamps_ns[cpp - 1::cpp].tolist()
             imu_t = np.arange(next_imu, sends[-1] + 1, IMU_PERIOD_NS, dtype=np.int64)

@@ -81,6 +81,16 @@ class EmbreeCaster:
         if r["tfar"] is not t:
             t[:] = r["tfar"]
 
+    def cast1(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
+              ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+        """:meth:`cast` on the calling thread, with embreex's own arrays (no copies): for
+        callers that spread their rays over threads themselves."""
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        t = np.full(len(o), np.inf, np.float32)
+        r = self._scene.run(o, d, dists=t, output=1)
+        return r["tfar"], r["primID"]
+
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         o = np.ascontiguousarray(origins, dtype=np.float32)
@@ -171,9 +181,21 @@ class Scene:
              ) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
         """(distance, stem id of the hit: 0 terrain, -1 nothing) for local-frame rays."""
         t, prim = self.caster.cast(origins, directions)
+        return t.astype(np.float64), self._stem_ids(prim)
+
+    def cast32(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
+               ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+        """:meth:`cast` for float32 rays with the distance in float32 (the casters' own
+        precision), on the calling thread where the backend allows it (Embree): the lidar
+        emulator spreads a frame's column chunks over its own threads."""
+        one = getattr(self.caster, "cast1", None)
+        t, prim = (one or self.caster.cast)(origins, directions)
+        return t, self._stem_ids(prim)
+
+    def _stem_ids(self, prim: NDArray[np.integer]) -> NDArray[np.int32]:
         if self._sid_of_prim is None or self._sid_of_prim[0] is not self.stem_id:
             # stem id by triangle, then -1 last: a miss (triangle -1) looks itself up
             self._sid_of_prim = (self.stem_id,
                                  np.append(self.stem_id, np.int32(-1)).astype(np.int32))
         sid: NDArray[np.int32] = self._sid_of_prim[1][prim]
-        return t.astype(np.float64), sid
+        return sid

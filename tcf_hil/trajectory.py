@@ -374,33 +374,56 @@ class Trajectory:
             return DENSE_KNOT_NS
         return max(1, min(DENSE_KNOT_NS, int(DENSE_PHASE_RAD / rate * 1e9)))
 
-    def sensor_pose_dense(self, t_ns: IntArray, knot_ns: int | None = None
-                          ) -> tuple[FloatArray, FloatArray]:
+    def sensor_pose_dense(self, t_ns: IntArray, knot_ns: int | None = None,
+                          pieces: DensePoses | None = None) -> tuple[FloatArray, FloatArray]:
         """:meth:`sensor_pose` at many close, ascending times (a lidar frame's columns), fast.
 
-        The exact pose is taken at knots at most ``knot_ns`` apart (default
-        :meth:`dense_knot_ns`), at every one of :attr:`breaks_ns` between them, and at the
+        The exact pose is taken at knots on the grid of multiples of ``knot_ns`` (default
+        :meth:`dense_knot_ns`; so a time gets the same knots whatever else is asked with it),
+        at every one of :attr:`breaks_ns` between them, and at the
         middle of each interval; in between, the quadratic through those three exact poses.
         Positions and the nine rotation entries are interpolated alike (the rotation stays
         orthonormal up to the interpolation error). Between breaks the pose is smooth, and the
         error on an interval of length h is at most max|f'''| h^3 / (72 sqrt 3); the tests
         bound it on real tracks (corners, U-turns, reversing, ramps, rolling terrain, fast
         driving). Falls back to the exact poses when the times are few, not ascending, or
-        sparse (fewer than two per knot)."""
+        sparse (fewer than two per knot). ``pieces`` (from :meth:`dense_poses`, covering the
+        times) are used instead of building them: the same poses."""
         t = np.asarray(t_ns, dtype=np.int64)
         if t.ndim != 1 or len(t) < 8:
             return self.sensor_pose(t)
         lo, hi = int(t[0]), int(t[-1])
         if hi <= lo or bool(np.any(t[1:] < t[:-1])):
             return self.sensor_pose(t)
-        h = knot_ns or self.dense_knot_ns()
-        n = -(-(hi - lo) // h)
-        grid = lo + (np.arange(n + 1, dtype=np.int64) * (hi - lo)) // n
-        brk = self.breaks_ns
-        brk = brk[(brk > lo) & (brk < hi)]
-        knots = np.unique(np.concatenate([grid, brk])) if len(brk) else grid
-        if 4 * len(knots) > len(t):
+        h = pieces.knot_ns if pieces is not None else (knot_ns or self.dense_knot_ns())
+        # knots on the absolute grid of multiples of h, the last one past every time: a
+        # time's pose does not depend on which other times were asked with it (a frame
+        # alone, or a second of frames at once through ``pieces``)
+        g0, g1 = lo // h * h, (hi // h + 1) * h
+        if pieces is None or not pieces.knots[0] <= g0 < g1 <= pieces.knots[-1]:
+            knots = self._dense_knots(g0, g1, h)
+            if 4 * len(knots) > len(t):
+                return self.sensor_pose(t)
+            return self._dense_pieces(h, knots).at(t)
+        k0, k1 = np.searchsorted(pieces.knots, [g0, g1])
+        if 4 * (k1 - k0 + 1) > len(t):
             return self.sensor_pose(t)
+        return pieces.at(t)
+
+    def dense_poses(self, lo_ns: int, hi_ns: int, knot_ns: int | None = None) -> DensePoses:
+        """The pieces :meth:`sensor_pose_dense` evaluates, for times in [lo_ns, hi_ns): a
+        caller that asks for many frames in turn builds them once for a stretch of them."""
+        h = knot_ns or self.dense_knot_ns()
+        return self._dense_pieces(h, self._dense_knots(lo_ns, hi_ns, h))
+
+    def _dense_knots(self, lo_ns: int, hi_ns: int, h: int) -> IntArray:
+        g0, g1 = lo_ns // h, -(-hi_ns // h)
+        grid = np.arange(g0, max(g1, g0 + 1) + 1, dtype=np.int64) * h
+        brk = self.breaks_ns
+        brk = brk[(brk > grid[0]) & (brk < grid[-1])]
+        return np.unique(np.concatenate([grid, brk])) if len(brk) else grid
+
+    def _dense_pieces(self, h: int, knots: IntArray) -> DensePoses:
         mids = (knots[:-1] + knots[1:]) // 2
         pos, rot = self.sensor_pose(np.concatenate([knots, mids]))
         vals = np.concatenate([pos, rot.reshape(-1, 9)], axis=1)
@@ -418,14 +441,7 @@ class Trajectory:
         d1 = np.where(lin[:, None], (vb - va) / hb[:, None], d_am)
         d2 = np.where(lin[:, None], 0.0, (d_mb - d_am) / hb[:, None])
         coef = np.concatenate([va, d1, d2, np.where(lin, 0.0, hm)[:, None]], axis=1)
-        i = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, nk - 2)
-        c = coef[i]
-        x = (t - knots[i]).astype(np.float64)[:, None]
-        out = c[:, 24:36] * (x - c[:, 36:37])
-        out += c[:, 12:24]
-        out *= x
-        out += c[:, :12]
-        return np.ascontiguousarray(out[:, :3]), out[:, 3:].reshape(-1, 3, 3)
+        return DensePoses(h, knots, coef)
 
     def sensor_kinematics(self, t_ns: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Sensor velocity and acceleration (n, 3) in the world, angular velocity (n, 3) in the
@@ -451,6 +467,46 @@ class Trajectory:
         f = acc + np.array([0.0, 0.0, GRAVITY_M_S2])
         accel = np.einsum("nji,nj->ni", R, f) / GRAVITY_M_S2
         return accel, np.degrees(w)
+
+
+@dataclass(frozen=True)
+class DensePoses:
+    """Quadratic pieces of the sensor pose between knots (:meth:`Trajectory.dense_poses`):
+    per interval the pose at its start, Newton's two differences and its middle node."""
+
+    knot_ns: int  # the grid spacing
+    knots: IntArray  # (k,) ascending: the grid and the breaks between
+    coef: FloatArray  # (k - 1, 37): value (12), d1 (12), d2 (12), middle node offset (ns)
+
+    def at(self, t_ns: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Positions (n, 3) and rotations (n, 3, 3) at times within the knots."""
+        t = np.asarray(t_ns, dtype=np.int64)
+        knots = self.knots
+        va, d1, d2, hm = self._parts  # (12, k - 1) each, hm (1, k - 1)
+        if len(t) > 1 and bool(np.all(t[1:] >= t[:-1])):
+            # ascending times: each interval's run of them, its coefficients repeated
+            edges = np.empty(len(knots), np.int64)
+            edges[0], edges[-1] = 0, len(t)
+            edges[1:-1] = np.searchsorted(t, knots[1:-1])
+            n = edges[1:] - edges[:-1]
+            start = np.repeat(knots[:-1], n)
+            va, d1, d2, hm = (np.repeat(c, n, axis=1) for c in (va, d1, d2, hm))
+        else:
+            i = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(knots) - 2)
+            start = knots[i]
+            va, d1, d2, hm = (c[:, i] for c in (va, d1, d2, hm))
+        x = (t - start).astype(np.float64)  # (n,): broadcast along the last axis
+        out = (x - hm) * d2
+        out += d1
+        out *= x
+        out += va
+        return np.ascontiguousarray(out[:3].T), np.ascontiguousarray(out[3:].T).reshape(-1, 3, 3)
+
+    @cached_property
+    def _parts(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        c = self.coef.T
+        return (np.ascontiguousarray(c[:12]), np.ascontiguousarray(c[12:24]),
+                np.ascontiguousarray(c[24:36]), np.ascontiguousarray(c[36:37]))
 
 
 @dataclass(frozen=True)

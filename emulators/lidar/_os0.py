@@ -12,12 +12,21 @@ import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Protocol
+from functools import cached_property
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from protocols.ouster import SensorMetadata, beam_rays
+from emulators.lidar._kernel import answer_kernel
+from protocols.ouster import (
+    Field,
+    PacketFormat,
+    SensorMetadata,
+    beam_rays,
+    encode_lidar_columns,
+    encode_pixel_fields,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -64,26 +73,70 @@ class ReturnModel:
 
 @dataclass(frozen=True)
 class FrameResult:
+    """One frame: its column times, the emulated returns and the poses they were cast from.
+
+    ``packets`` holds the frame's lidar packets with every column encoded (the packet
+    headers and CRCs are the caller's: :func:`protocols.ouster.finish_lidar_packets`, once it
+    has chosen the frame_id). :attr:`fields`, the staggered (H, W) images of what the
+    sensor measured, is read back from them when first asked for: the emulator writes only
+    packets."""
+
     frame_index: int
     timestamps_ns: NDArray[np.uint64]  # (W,)
-    fields: dict[str, NDArray[np.uint32]]  # staggered (H, W)
+    field_images: dict[str, NDArray[np.uint32]] | None  # staggered (H, W); None: read packets
     stem_id: NDArray[np.int32]  # (H, W): -1 no return, 0 terrain, else the stem
     stem_id2: NDArray[np.int32] | None  # the DUAL profile's second return, else None
     positions: FloatArray  # (W, 3) sensor position per column
     rotations: FloatArray  # (W, 3, 3)
+    packets: NDArray[np.uint8] | None = None  # (packets_per_frame, packet_bytes)
+    packet_format: PacketFormat | None = None
+    field_names: tuple[str, ...] = ()  # the fields the emulator modelled
+
+    @cached_property
+    def fields(self) -> dict[str, NDArray[np.uint32]]:
+        if self.field_images is not None:
+            return self.field_images
+        if self.packets is None or self.packet_format is None:
+            raise ValueError("a frame result needs its field images or its packets")
+        return self.packet_format.pixel_fields(self.packets, self.field_names)
+
+
+@dataclass(frozen=True)
+class _FrameJob:
+    """What a frame's column chunks share: the ray factors, the noise, and where they write."""
+
+    x: NDArray[np.float32]  # (3, 3W) M_c entries
+    oc: NDArray[np.float32]  # (W, 3) beam origins
+    noise: FloatArray | None  # (W, H)
+    sid: NDArray[np.int32]  # (W, H) stem id out
+    packets: NDArray[np.uint8]
+    ts: NDArray[np.int64]
+    o_all: NDArray[np.float32] | None  # DUAL: the rays and first returns, (W, H, ...)
+    d_all: NDArray[np.float32] | None
+    t_all: FloatArray | None
+    ok_all: NDArray[np.bool_] | None
 
 
 class Os0Emulator:
     """Produces staggered frames for a sensor described by ``meta``.
 
-    A pose source with a ``sensor_pose_dense(t_ns)`` (the same poses for many close times,
-    faster; e.g. :class:`tcf_hil.trajectory.Trajectory`) is asked for a frame's column poses
-    through it. Rays are made in float32, as the casters take them. A frame is worked in
-    chunks of columns, each turned into rays, cast and answered on its own, spread over
-    ``threads`` threads (numpy and the casters release the GIL): the results do not depend
-    on the split."""
+    The SDK's ray model factors: beam ``h`` of column ``c`` points along
+    ``L Rz(theta_c) b_h`` from ``L Rz(theta_c) (n, 0, 0) + t_L`` (``L, t_L`` the
+    lidar-to-sensor transform, ``theta_c`` the encoder angle, ``b_h`` the beam's unit vector,
+    ``n`` the beam-origin offset). With the sensor pose ``(R_c, p_c)`` of the column, its rays
+    in the scene are ``M_c b_h`` with ``M_c = R_c L Rz(theta_c)``: one small matrix product
+    (beams x 3 by 3 x columns) makes them, in float32, as the casters take them.
+
+    Column poses are asked of the pose source for a second of frames at once when frames are
+    read in order (through ``sensor_pose_dense(t_ns)`` where the source has it, e.g.
+    :class:`tcf_hil.trajectory.Trajectory`: the same poses for many close times, faster).
+    A frame is worked in chunks of columns, each turned into rays, cast, answered and, when a
+    packet array is given, encoded on its own, spread over ``threads`` threads (numpy, BLAS
+    and the casters release the GIL): the results do not depend on the split."""
 
     MIN_RAYS_PER_CHUNK = 8192
+    RAYS_PER_CHUNK = 32768
+    BLOCK_COLUMNS = 64  # rays are made this many columns at a time: one fixed product shape
 
     def __init__(self, meta: SensorMetadata, scene: RayScene, poses: PoseSource,
                  model: ReturnModel | None = None, *, seed: int = 0,
@@ -92,19 +145,24 @@ class Os0Emulator:
         self.scene = scene
         self.poses = poses
         self._pose_at = getattr(poses, "sensor_pose_dense", None) or poses.sensor_pose
+        self._cast32 = getattr(scene, "cast32", None) or scene.cast
         self.model = model or ReturnModel()
         self.rng = np.random.default_rng([seed, 0x0500])
         self.start_ns = start_ns
-        o, d = beam_rays(meta)  # sensor frame, (H, W, 3)
-        # Column-major copies: a column's rays are cast together (coherent for the caster)
-        # and turned by that column's pose with one batched product.
+        w = meta.columns
+        o, d = beam_rays(meta)  # sensor frame, (H, W, 3): the plain model, for float64 rays
         self._origins_wh = np.ascontiguousarray(o.transpose(1, 0, 2))
         self._directions_wh = np.ascontiguousarray(d.transpose(1, 0, 2))
-        # float32, origins homogeneous: (o, 1) @ [R^T; p] turns and moves them in one product
-        h, w = meta.pixels, meta.columns
-        self._origins_h32 = np.ones((w, h, 4), np.float32)
-        self._origins_h32[:, :, :3] = self._origins_wh
-        self._directions_wh32 = self._directions_wh.astype(np.float32)
+        # the factored model (see the class doc)
+        theta = 2.0 * np.pi * (1.0 - np.arange(w) / w)
+        self._cos, self._sin = np.cos(theta)[:, None], np.sin(theta)[:, None]
+        az = -np.radians(np.asarray(meta.beam_azimuth_deg, np.float64))
+        alt = np.radians(np.asarray(meta.beam_altitude_deg, np.float64))
+        self._beams32 = np.stack([np.cos(az) * np.cos(alt), np.sin(az) * np.cos(alt),
+                                  np.sin(alt)], axis=1).astype(np.float32)
+        lts = np.asarray(meta.lidar_to_sensor, dtype=np.float64).reshape(4, 4)
+        self._l_rot, self._l_tr = lts[:3, :3].copy(), lts[:3, 3] / 1000.0
+        self._block = math.gcd(w, self.BLOCK_COLUMNS)
         self.period_ns = 1_000_000_000 // meta.frequency_hz
         self.n_m = meta.lidar_origin_to_beam_origin_mm / 1000.0
         self.quantum_mm = 8 if meta.profile == "RNG15_RFL8_NIR8" else 1
@@ -113,6 +171,7 @@ class Os0Emulator:
         m = self.model
         refl = np.array([0.0, m.reflectance["ground"], m.reflectance["bark"]])
         self._refl = refl
+        self._refl_signal = refl * m.signal_scale
         self._reach = [float(m.max_range_m * min(1.0, math.sqrt(r / m.reference_reflectance)))
                        for r in refl[1:]]
         self._reflectivity = np.round(refl * 100.0).astype(np.uint32)
@@ -121,133 +180,294 @@ class Os0Emulator:
         if meta.profile == "RNG15_RFL8_NIR8":
             nir = np.minimum(nir, 4080) // 16 * 16
         self._nir = nir
+        self._layout(meta.packet_format)
         self.threads = max(1, threads or (len(os.sched_getaffinity(0))
                                           if hasattr(os, "sched_getaffinity")
                                           else (os.cpu_count() or 1)))
         self._pool: ThreadPoolExecutor | None = None
         self._pool_pid = 0
+        self._pose_block: tuple[int, int, Any] | None = None
+        self.jit = True  # the compiled per-ray kernel (numba), where it can be had
+
+    def _layout(self, fmt: PacketFormat) -> None:
+        """Where the first return's fields go in a pixel, and their values by return class
+        (0 none, 1 terrain, 2 stem) already shifted into place; the range must fit."""
+        fields = {f.name: f for f in fmt.profile.fields}
+        want = ["RANGE", "REFLECTIVITY", "NEAR_IR"] + (["SIGNAL"] if "SIGNAL" in fields
+                                                        else [])
+        self._field_names = tuple(want) + tuple(
+            x for x in ("RANGE2", "REFLECTIVITY2", "SIGNAL2") if x in fields)
+        self._word_of = {x: (fields[x].offset, fields[x].dtype) for x in want}
+
+        def place(f: Field, v: NDArray[np.integer]) -> NDArray[np.uint32]:
+            w = v.astype(np.uint32)
+            w = w << np.uint32(f.shift) if f.shift >= 0 else w >> np.uint32(-f.shift)
+            if np.any(w & ~np.uint32(f.mask)) or not np.array_equal(
+                    (w >> np.uint32(f.shift)) if f.shift >= 0 else w << np.uint32(-f.shift), v):
+                raise ValueError(f"{f.name} values {v.tolist()} do not fit {fmt.profile.name}")
+            return w
+
+        self._luts = {}
+        lut_words = {}
+        for name, values in (("REFLECTIVITY", self._reflectivity), ("NEAR_IR", self._nir)):
+            dt = np.dtype(fields[name].dtype).newbyteorder("=")
+            w = lut_words[name] = [int(v) for v in place(fields[name], values)]
+            wrap = 1 << (8 * dt.itemsize)  # unsigned differences wrap around exactly
+            self._luts[name] = (dt.type(w[0]), dt.type((w[1] - w[0]) % wrap),
+                                dt.type((w[2] - w[1]) % wrap))
+        self._signal32 = self._refl_signal.astype(np.float32)
+        # the same for the compiled kernel: the words it writes, the values by class
+        names = [x for x in ("RANGE", "REFLECTIVITY", "NEAR_IR", "SIGNAL") if x in self._word_of]
+        self._kernel: dict[str, Any] = {
+            "words": [self._word_of[x] for x in names],
+            "luts": np.array([lut_words[x] for x in ("REFLECTIVITY", "NEAR_IR")], np.int64),
+            "clamp": bool(self._signal32.max() > 65535.0 * 0.25)}
+        # range in quanta of quantum_mm; the word holds mm shifted by the field's shift
+        f = fields["RANGE"]
+        q = self.quantum_mm
+        self._range_units = 1000.0 / q
+        self._range_mult = q << f.shift if f.shift >= 0 else q >> -f.shift
+        most = math.ceil(max(self._reach) * 1000.0 / q) * self._range_mult
+        if self._range_mult << max(0, -f.shift) != q << max(0, f.shift) or most > f.mask:
+            raise ValueError(f"max_range_m {self.model.max_range_m}: beyond what "
+                             f"{fmt.profile.name}'s RANGE field carries")
 
     def column_times(self, k: int) -> NDArray[np.int64]:
         w = self.meta.columns
         return (self.start_ns + k * self.period_ns
                 + (np.arange(w, dtype=np.int64) * self.period_ns) // w)
 
-    @staticmethod
-    def _affine(pos: FloatArray, rot: FloatArray) -> NDArray[np.float32]:
-        """(W, 4, 3) float32 [R^T; p]: a row vector (x, y, z, 1) times it is R x + p."""
-        m = np.empty((len(pos), 4, 3), np.float32)
-        m[:, :3] = rot.transpose(0, 2, 1)
-        m[:, 3] = pos
-        return m
+    def column_poses(self, k: int) -> tuple[FloatArray, FloatArray]:
+        """Frame k's sensor pose per column: positions (W, 3), rotations (W, 3, 3).
 
-    def _turn(self, aff: NDArray[np.float32], a: int, b: int, o: NDArray[np.float32],
-              d: NDArray[np.float32]) -> None:
-        """Columns a..b's rays into o[a:b] and d[a:b], (columns, H, 3) float32."""
-        np.matmul(self._origins_h32[a:b], aff[a:b], out=o[a:b])
-        np.matmul(self._directions_wh32[a:b], aff[a:b, :3], out=d[a:b])
+        A pose source with ``dense_poses(lo_ns, hi_ns)`` (a
+        :class:`tcf_hil.trajectory.Trajectory`) builds its pieces for a second of frames at
+        a time while frames are read in order, and each frame's poses come from them: the
+        same knots as one frame at a time, so the same poses up to the last bits of the
+        exact poses at the knots (numpy's vector maths may round differently in a longer
+        batch)."""
+        ts = self.column_times(k)
+        dense = getattr(self.poses, "dense_poses", None)
+        if dense is None:
+            return self._pose_at(ts)
+        blk = self._pose_block
+        if blk is None or not blk[0] <= k < blk[1]:
+            nf = self.meta.frequency_hz if blk is not None and k == blk[1] else 1
+            lo, hi = int(ts[0]), int(self.column_times(k + nf - 1)[-1])
+            h = self.poses.dense_knot_ns()  # type: ignore[attr-defined]
+            blk = self._pose_block = (k, k + nf, dense(lo // h * h, (hi // h + 1) * h, h))
+        pieces = blk[2]
+        return self.poses.sensor_pose_dense(ts, pieces=pieces)  # type: ignore[attr-defined]
+
+    def _column_rays(self, pos: FloatArray, rot: FloatArray
+                     ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """The frame's ray factors: (3, 3W) float32 with [j, 3c + i] = M_c[i, j], and the
+        beam origins (W, 3) float32 in the scene."""
+        w = len(pos)
+        r2 = np.ascontiguousarray(rot).reshape(-1, 3)
+        a = (r2 @ self._l_rot).reshape(w, 3, 3)  # R_c L
+        q = (r2 @ self._l_tr).reshape(w, 3) + pos  # where the lidar frame's origin is
+        mt = np.empty((3, w, 3))  # M_c transposed: [j, c, i]
+        a0, a1 = a[:, :, 0], a[:, :, 1]
+        np.add(a0 * self._cos, a1 * self._sin, out=mt[0])
+        np.subtract(a1 * self._cos, a0 * self._sin, out=mt[1])
+        mt[2] = a[:, :, 2]
+        origins = q + self.n_m * mt[0]
+        return mt.reshape(3, 3 * w).astype(np.float32), origins.astype(np.float32)
+
+    def _make_rays(self, x: NDArray[np.float32], oc: NDArray[np.float32], a: int, b: int
+                   ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Columns a..b's rays, beam-major: origins and directions (H, b - a, 3) float32."""
+        h, blk = self.meta.pixels, self._block
+        d = np.empty((h, 3 * (b - a)), np.float32)
+        for c in range(a, b, blk):
+            np.matmul(self._beams32, x[:, 3 * c:3 * (c + blk)],
+                      out=d[:, 3 * (c - a):3 * (c - a + blk)])
+        o = np.empty((h, 3 * (b - a)), np.float32)
+        o[...] = oc[a:b].reshape(1, -1)  # a whole row at a time, not 3 floats at a time
+        return o.reshape(h, b - a, 3), d.reshape(h, b - a, 3)
 
     def rays(self, k: int, dtype: type[np.floating] = np.float64
              ) -> tuple[NDArray[np.floating], NDArray[np.floating], FloatArray, FloatArray]:
         """Frame k's rays in the scene, column-major: origins and unit directions
         (W*H, 3) in ``dtype`` (float32: the very rays :meth:`frame` casts), and the
         per-column sensor positions (W, 3) and rotations (W, 3, 3), float64."""
-        pos, rot = self._pose_at(self.column_times(k))
+        pos, rot = self.column_poses(k)
         # Rays of column c are in the sensor frame of column c's pose.
         if dtype == np.float32:
-            o32 = np.empty(self._directions_wh32.shape, np.float32)
-            d32 = np.empty_like(o32)
-            self._turn(self._affine(pos, rot), 0, len(pos), o32, d32)
-            return o32.reshape(-1, 3), d32.reshape(-1, 3), pos, rot
+            o32, d32 = self._make_rays(*self._column_rays(pos, rot), 0, len(pos))
+            return (np.ascontiguousarray(o32.transpose(1, 0, 2)).reshape(-1, 3),
+                    np.ascontiguousarray(d32.transpose(1, 0, 2)).reshape(-1, 3), pos, rot)
         rt = rot.transpose(0, 2, 1)
         o = np.matmul(self._origins_wh, rt) + pos[:, None, :]
         d = np.matmul(self._directions_wh, rt)
         return o.reshape(-1, 3), d.reshape(-1, 3), pos, rot
 
     def _chunks(self) -> list[tuple[int, int]]:
+        """Whole blocks of columns, about ``RAYS_PER_CHUNK`` rays each (their arrays stay in
+        a core's cache), at least two per thread."""
         H, W = self.meta.pixels, self.meta.columns
-        n = min(4 * self.threads, W * H // self.MIN_RAYS_PER_CHUNK) if self.threads > 1 else 1
-        n = max(1, n)
-        cuts = [(W * i) // n for i in range(n + 1)]
+        n = max(W * H // self.RAYS_PER_CHUNK, 2 * self.threads if self.threads > 1 else 1)
+        n = max(1, min(n, W // self._block, W * H // self.MIN_RAYS_PER_CHUNK))
+        cuts = sorted({round(W * i / n / self._block) * self._block for i in range(n + 1)})
         return list(itertools.pairwise(cuts))
 
-    def frame(self, k: int) -> FrameResult:
+    def frame(self, k: int, packets: NDArray[np.uint8] | None = None) -> FrameResult:
+        """Frame k, written into packets: ``packets`` (the frame's (packets_per_frame,
+        packet_bytes) uint8 array) or a new array, :attr:`FrameResult.packets` either way.
+        Each column chunk encodes its columns as it finishes
+        (:func:`protocols.ouster.encode_lidar_columns`, then the pixel words straight from
+        the return model); the packet headers and CRCs are left to the caller
+        (:func:`protocols.ouster.finish_lidar_packets`), who chooses the frame_id. The DUAL
+        profile's second return is cast over the whole frame after the chunks."""
         m = self.model
         H, W = self.meta.pixels, self.meta.columns
+        fmt = self.meta.packet_format
+        shape = (fmt.packets_per_frame, fmt.packet_bytes)
+        if packets is None:
+            packets = np.empty(shape, np.uint8)
+        elif packets.shape != shape or packets.dtype != np.uint8:
+            raise ValueError(f"packet array of shape {packets.shape} and dtype "
+                             f"{packets.dtype}; expected {shape} uint8")
+        arr = packets
         ts = self.column_times(k)
-        pos, rot = self._pose_at(ts)
-        aff = self._affine(pos, rot)
+        pos, rot = self.column_poses(k)
+        x, oc = self._column_rays(pos, rot)
         noise = (self.rng.normal(0.0, m.noise_sigma_m, (H, W)).T if m.noise_sigma_m > 0
                  else None)
-        signal = "SIGNAL" in self.profile_fields  # only what the profile carries
-        dual = "RANGE2" in self.profile_fields
-        o = np.empty((W, H, 3), np.float32)
-        d = np.empty((W, H, 3), np.float32)
-        # column-major (W, H) results; the (H, W) images are their transposed views
-        out = {"RANGE": np.empty((W, H), np.uint32),
-               "REFLECTIVITY": np.empty((W, H), np.uint32),
-               "NEAR_IR": np.empty((W, H), np.uint32)}
-        if signal:
-            out["SIGNAL"] = np.empty((W, H), np.uint32)
-        sid_out = np.empty((W, H), np.int32)
+        dual = "RANGE2" in self.profile_fields  # only what the profile carries
+        sid_out = np.empty((W, H), np.int32)  # column-major; stem_id is its transposed view
+        o_all = np.empty((W, H, 3), np.float32) if dual else None
+        d_all = np.empty((W, H, 3), np.float32) if dual else None
         t_all = np.empty((W, H)) if dual else None
         ok_all = np.empty((W, H), bool) if dual else None
-
-        def work(a: int, b: int) -> None:
-            self._turn(aff, a, b, o, d)
-            t, sid = self.scene.cast(o[a:b].reshape(-1, 3), d[a:b].reshape(-1, 3))
-            t = np.asarray(t).reshape(b - a, H)
-            sid = np.asarray(sid).reshape(b - a, H)
-            if noise is not None:
-                t = t + noise[a:b]
-            # the encoded range counts from the lidar axis (inf: no hit)
-            rng_m = np.add(t, self.n_m, dtype=np.float64)
-            bark = sid > 0
-            ok = rng_m >= m.min_range_m
-            if self._reach[0] == self._reach[1]:
-                ok &= rng_m <= self._reach[0]
-            else:
-                ok &= rng_m <= np.where(bark, self._reach[1], self._reach[0])
-            ok &= sid >= 0
-            cls = ok.astype(np.uint8)  # 0 none, 1 terrain, 2 stem
-            cls += ok & bark
-            q = self.quantum_mm
-            r = np.zeros((b - a, H))
-            np.multiply(rng_m, 1000.0 / q if q != 1 else 1000.0, out=r, where=ok)
-            np.rint(r, out=r)
-            if q != 1:
-                r *= q
-            np.copyto(out["RANGE"][a:b], r, casting="unsafe")
-            np.take(self._reflectivity, cls, out=out["REFLECTIVITY"][a:b])
-            np.take(self._nir, cls, out=out["NEAR_IR"][a:b])
-            if signal:
-                # no return: reflectance 0 (and the range inf or out of reach), 0 photons
-                r2 = np.maximum(rng_m, 0.5, out=r)
-                r2 *= r2
-                sig = np.take(self._refl, cls)
-                sig *= m.signal_scale
-                sig /= r2
-                np.minimum(sig, 65535.0, out=sig)
-                np.copyto(out["SIGNAL"][a:b], sig, casting="unsafe")
-            np.copyto(sid_out[a:b], np.where(ok, sid, -1), casting="unsafe")
-            if t_all is not None and ok_all is not None:
-                t_all[a:b] = t
-                ok_all[a:b] = ok
-
+        job = _FrameJob(x, oc, noise, sid_out, arr, ts, o_all, d_all, t_all, ok_all)
         chunks = self._chunks()
-        if len(chunks) == 1:
-            work(*chunks[0])
+        if self.threads == 1 or len(chunks) == 1:
+            for a, b in chunks:
+                self._chunk(job, a, b)
         else:
             if self._pool is None or self._pool_pid != os.getpid():  # threads die in a fork
                 self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="os0")
                 self._pool_pid = os.getpid()
-            for job in [self._pool.submit(work, a, b) for a, b in chunks]:
-                job.result()
-        fields = {name: v.T for name, v in out.items()}
+            for f in [self._pool.submit(self._chunk, job, a, b) for a, b in chunks]:
+                f.result()
         sid2 = None
-        if dual and t_all is not None and ok_all is not None:  # only what the profile carries
-            sid2 = self._second_return(o.reshape(-1, 3), d.reshape(-1, 3), t_all.T, ok_all.T,
-                                       fields)
-        return FrameResult(k, ts.astype(np.uint64), fields, sid_out.T, sid2, pos, rot)
+        if o_all is not None and d_all is not None and t_all is not None \
+                and ok_all is not None:  # only what the profile carries
+            second: dict[str, NDArray[np.uint32]] = {}
+            sid2 = self._second_return(o_all.reshape(-1, 3), d_all.reshape(-1, 3), t_all.T,
+                                       ok_all.T, second)
+            encode_pixel_fields(fmt, arr, 0, second)
+        return FrameResult(k, ts.astype(np.uint64), None, sid_out.T, sid2, pos, rot, arr,
+                           fmt, self._field_names)
+
+    def _chunk(self, job: _FrameJob, a: int, b: int) -> None:
+        """Columns a..b of a frame: rays, cast, returns, their packets' columns."""
+        H, n = self.meta.pixels, b - a
+        o, d = self._make_rays(job.x, job.oc, a, b)
+        t32, sid_bm = self._cast32(o.reshape(-1, 3), d.reshape(-1, 3))
+        t = np.asarray(t32, np.float32).reshape(H, n)  # beam-major, as cast
+        sid = np.asarray(sid_bm, np.int32).reshape(H, n)
+        encode_lidar_columns(self.meta.packet_format, job.packets, a, {}, job.ts[a:b])
+        kernel = answer_kernel() if self.jit else None
+        if kernel is not None:
+            self._answer_jit(kernel, job, a, b, t, sid)
+        else:
+            self._answer_numpy(job, a, b, t, sid)
+        if job.o_all is not None and job.d_all is not None:
+            job.o_all[a:b] = o.transpose(1, 0, 2)
+            job.d_all[a:b] = d.transpose(1, 0, 2)
+
+    def _answer_jit(self, kernel: Any, job: _FrameJob, a: int, b: int,
+                    t: NDArray[np.float32], sid: NDArray[np.int32]) -> None:
+        fmt = self.meta.packet_format
+        C = fmt.columns_per_packet
+        k = self._kernel
+        none2 = np.zeros((0, 0))
+        rows = job.packets[a // C:b // C]
+        words = [fmt.pixel_word(rows, off, dt) for off, dt in k["words"]]
+        kernel(t, sid, job.noise[a:b] if job.noise is not None else none2, a,
+                     self.n_m, self.model.min_range_m, self._reach[0], self._reach[1],
+                     self._range_units, self._range_mult, k["luts"], self._signal32,
+                     k["clamp"], *words[:3], words[3] if len(words) == 4 else words[2][:0],
+                     k["words"][0] == k["words"][1], job.sid,
+                     job.t_all if job.t_all is not None else none2,
+                     job.ok_all if job.ok_all is not None else np.zeros((0, 0), bool))
+
+    def _answer_numpy(self, job: _FrameJob, a: int, b: int, t_bm: NDArray[np.float32],
+                      sid_bm: NDArray[np.int32]) -> None:
+        """The compiled kernel's work in numpy (where numba is missing; the tests hold the
+        two to the same bytes)."""
+        m = self.model
+        H, n = self.meta.pixels, b - a
+        fmt = self.meta.packet_format
+        C = fmt.columns_per_packet
+        # beam-major (H, n) answers read column-major (n, H), the packets' order
+        t = t_bm.T
+        sid = np.ascontiguousarray(sid_bm.T)
+        # the encoded range counts from the lidar axis (a miss is inf: never in reach)
+        tt = t.astype(np.float64)
+        if job.noise is not None:
+            tt += job.noise[a:b]
+        r = tt + self.n_m
+        ok = r >= m.min_range_m
+        bark = sid > 0
+        if self._reach[0] == self._reach[1]:
+            ok &= r <= self._reach[0]
+        else:
+            ok &= r <= np.where(bark, self._reach[1], self._reach[0])
+        bark &= ok
+        np.bitwise_or(sid, ok.view(np.int8) - 1, out=job.sid[a:b])  # -1: no return
+        rows = job.packets[a // C:b // C]
+        for (off, dt), v in self._pixel_words(r, ok, bark).items():
+            np.copyto(fmt.pixel_word(rows, off, dt), v.reshape(n // C, C, H), casting="unsafe")
+        if job.t_all is not None and job.ok_all is not None:
+            job.t_all[a:b] = tt
+            job.ok_all[a:b] = ok
+
+    def _pixel_words(self, r: FloatArray, ok: NDArray[np.bool_], bark: NDArray[np.bool_]
+                     ) -> dict[tuple[int, str], NDArray[np.generic]]:
+        """The first return's pixel words for (n, H) column-major answers: range from the
+        lidar axis in metres ``r``, whether it came back ``ok``, and whether from bark;
+        each field's value already shifted into its place in the word (:meth:`_layout`).
+        A value by class (none, terrain, stem) is ``v0 + ok (v1 - v0) + bark (v2 - v1)``,
+        in the word's unsigned type (its wrap-around is exact)."""
+        words: dict[tuple[int, str], NDArray[np.generic]] = {}
+        ok8, bark8 = ok.view(np.uint8), bark.view(np.uint8)
+
+        def put(name: str, v: NDArray[np.generic]) -> None:
+            key = self._word_of[name]
+            if key in words:  # fields sharing a word: integers, each in its own bits
+                words[key] = words[key] | v.astype(words[key].dtype, copy=False)
+            else:
+                words[key] = v
+
+        u = r * self._range_units  # range quanta
+        np.rint(u, out=u)
+        with np.errstate(invalid="ignore"):  # inf (no return) is zeroed by ok just below
+            ui = u.astype(np.int32)
+        ui *= ok
+        put("RANGE", ui.view(np.uint32) if self._range_mult == 1 else ui.view(np.uint32)
+            * np.uint32(self._range_mult))
+        for name, (v0, d1, d2) in self._luts.items():
+            v = np.multiply(ok8, d1, dtype=d1.dtype)  # typed: no conversion loops
+            if d2:
+                v += np.multiply(bark8, d2, dtype=d2.dtype)
+            if v0:
+                v += v0
+            put(name, v)
+        if "SIGNAL" in self._word_of:
+            # photons: reflectance over range squared (no return: reflectance 0)
+            den = np.empty(r.shape, np.float32)
+            np.maximum(r, 0.5, out=den, casting="same_kind")
+            den *= den
+            sig = np.take(self._signal32, ok8 + bark8, mode="clip")
+            sig /= den
+            if self._kernel["clamp"]:  # can saturate (nearer than 0.5 m)
+                np.minimum(sig, np.float32(65535.0), out=sig)
+            put("SIGNAL", sig)  # written truncated, as the sensor counts photons
+        return words
 
     def _second_return(self, o: NDArray[np.floating], d: NDArray[np.floating], t1: FloatArray,
                        ok1: NDArray[np.bool_], fields: dict[str, NDArray[np.uint32]]

@@ -28,7 +28,10 @@ from protocols.ouster._packets import (
     PacketFormat,
     decode_lidar_packet,
     decode_lidar_packets,
+    encode_lidar_columns,
     encode_lidar_frame,
+    encode_pixel_fields,
+    finish_lidar_packets,
     frame_from_packets,
 )
 from protocols.ouster._profiles import PROFILES, Field, Profile
@@ -60,7 +63,10 @@ __all__ = [
     "decode_lidar_packet",
     "decode_lidar_packets",
     "encode_imu_packet",
+    "encode_lidar_columns",
     "encode_lidar_frame",
+    "encode_pixel_fields",
+    "finish_lidar_packets",
     "frame_from_packets",
     "os0_64_metadata",
     "parse_mode",

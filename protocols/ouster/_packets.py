@@ -25,7 +25,8 @@ from protocols.ouster._errors import (
 from protocols.ouster._profiles import PROFILES, Field, Profile
 
 __all__ = ["LidarPacket", "PacketBatch", "PacketFormat", "decode_lidar_packet",
-           "decode_lidar_packets", "encode_lidar_frame", "frame_from_packets"]
+           "decode_lidar_packets", "encode_lidar_columns", "encode_lidar_frame",
+           "encode_pixel_fields", "finish_lidar_packets", "frame_from_packets"]
 
 CrcRows = Callable[[NDArray[np.uint8]], NDArray[np.uint64]]
 LEGACY_ENCODER_TICKS = 90112  # encoder counts per revolution (legacy column header)
@@ -82,6 +83,24 @@ class PacketFormat:
         px = cols[:, :, a:a + self.pixels_per_column * p.pixel_bytes]
         return px.reshape(*cols.shape[:2], self.pixels_per_column, p.pixel_bytes)
 
+    def pixel_word(self, packets: NDArray[np.uint8], offset: int, dtype: str
+                   ) -> NDArray[np.generic]:
+        """The (packets, columns, pixels) view of one pixel word (byte ``offset`` in the
+        pixel block, numpy ``dtype`` such as ``"<u4"``) of an (n, packet_bytes) array: what
+        a writer fills with values already shifted into place (``Field.offset``,
+        ``Field.dtype``)."""
+        return _word_view(self._pixels(self._columns(packets)), offset, dtype)
+
+    def pixel_fields(self, packets: NDArray[np.uint8], names: Sequence[str] | None = None
+                     ) -> dict[str, NDArray[np.uint32]]:
+        """The (H, n * columns_per_packet) image of each named field (default: all of the
+        profile's) in an (n, packet_bytes) array of packets, in packet order; no checks."""
+        pix = self._pixels(self._columns(packets))
+        n = packets.shape[0] * self.columns_per_packet
+        return {f.name: _decode_value(f, _word_view(pix, f.offset, f.dtype)).reshape(
+            n, self.pixels_per_column).T
+            for f in self.profile.fields if names is None or f.name in names}
+
 
 def _word_view(pix: NDArray[np.uint8], offset: int, dtype: str) -> NDArray[np.generic]:
     size = np.dtype(dtype).itemsize
@@ -110,6 +129,9 @@ def encode_lidar_frame(fmt: PacketFormat, fields: Mapping[str, NDArray[np.intege
                        out: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
     """Encode one frame into a (packets_per_frame, packet_bytes) uint8 array.
 
+    The same as :func:`encode_lidar_columns` over the whole frame, then
+    :func:`finish_lidar_packets`.
+
     Args:
         fmt: the packet format.
         fields: staggered (H, W) images by field name (RANGE in mm, ...); missing fields are 0.
@@ -120,53 +142,125 @@ def encode_lidar_frame(fmt: PacketFormat, fields: Mapping[str, NDArray[np.intege
             emulator passes a compiled one).
         out: reuse this array (must have the right shape and dtype).
     """
-    p = fmt.profile
-    H, W = fmt.pixels_per_column, fmt.columns_per_frame
-    P, C = fmt.packets_per_frame, fmt.columns_per_packet
+    _check_ids(frame_id, init_id, prod_sn)
+    arr = out if out is not None else np.empty((fmt.packets_per_frame, fmt.packet_bytes),
+                                               dtype=np.uint8)
+    encode_lidar_columns(fmt, arr, 0, fields, timestamps_ns, status)
+    return finish_lidar_packets(fmt, arr, frame_id=frame_id, init_id=init_id, prod_sn=prod_sn,
+                                crc_rows=crc_rows)
+
+
+def _check_ids(frame_id: int, init_id: int, prod_sn: int) -> None:
     if not 0 <= frame_id <= 0xFFFF or not 0 <= init_id < 1 << 24 or not 0 <= prod_sn < 1 << 40:
         raise ValueError(f"frame_id {frame_id} (16 bit), init_id {init_id} (24 bit) or prod_sn "
                          f"{prod_sn} (40 bit) out of range")
-    for name, img in fields.items():
-        if np.shape(img) != (H, W):
-            raise ValueError(f"field {name} has shape {np.shape(img)}; expected ({H}, {W})")
-        p.field(name)  # KeyError names the profile's fields
+
+
+def encode_lidar_columns(fmt: PacketFormat, frame: NDArray[np.uint8], first_column: int,
+                         fields: Mapping[str, NDArray[np.integer]],
+                         timestamps_ns: NDArray[np.integer],
+                         status: NDArray[np.integer] | None = None) -> None:
+    """Encode whole packets' worth of columns into their rows of a frame's packet array.
+
+    Columns ``first_column`` .. ``first_column + n`` (``n`` the width of the images; both
+    multiples of ``columns_per_packet``) go into packets ``first_column / C`` ... of
+    ``frame``, a (packets_per_frame, packet_bytes) uint8 array: those packets are zeroed, then
+    their column headers and pixels written. The packet headers, LEGACY's per-column frame_id
+    and the CRC are :func:`finish_lidar_packets`' (the frame_id may be decided last). Parts of
+    one frame may be encoded from several threads at once.
+
+    Args:
+        fields: staggered (H, n) images by field name; missing fields are 0. Images that are
+            transposed views of column-major (n, H) arrays are written without a copy.
+        timestamps_ns: (n,) column time stamps.
+        status: (n,) column status (default valid: 1, or 0xFFFFFFFF for LEGACY).
+    """
+    p = fmt.profile
+    H, W, C = fmt.pixels_per_column, fmt.columns_per_frame, fmt.columns_per_packet
     ts = np.asarray(timestamps_ns, dtype=np.uint64)
-    if ts.shape != (W,):
-        raise ValueError(f"timestamps_ns has shape {ts.shape}; expected ({W},)")
-    arr = out if out is not None else np.empty((P, fmt.packet_bytes), dtype=np.uint8)
+    n = ts.shape[0] if ts.ndim == 1 else -1
+    if n <= 0 or first_column % C or n % C or first_column + n > W:
+        raise ValueError(f"columns {first_column}..{first_column + n} with timestamps_ns of "
+                         f"shape {ts.shape}: expected whole packets of {C} columns within "
+                         f"0..{W}")
+    if frame.shape != (fmt.packets_per_frame, fmt.packet_bytes) or frame.dtype != np.uint8:
+        raise ValueError(f"packet array of shape {frame.shape} and dtype {frame.dtype}; "
+                         f"expected ({fmt.packets_per_frame}, {fmt.packet_bytes}) uint8")
+    for name, img in fields.items():
+        if np.shape(img) != (H, n):
+            raise ValueError(f"field {name} has shape {np.shape(img)}; expected ({H}, {n})")
+        p.field(name)  # KeyError names the profile's fields
+    P = n // C
+    arr = frame[first_column // C:first_column // C + P]
     arr[...] = 0
     cols = fmt._columns(arr)
-    mid = np.arange(W, dtype=np.uint16).reshape(P, C)
+    mid = np.arange(first_column, first_column + n, dtype=np.uint16).reshape(P, C)
     _word_view(cols, 0, "<u8")[...] = ts.reshape(P, C)
     _word_view(cols, 8, "<u2")[...] = mid
     if p.legacy:
-        st = (np.full(W, 0xFFFFFFFF, np.uint32) if status is None
+        st = (np.full(n, 0xFFFFFFFF, np.uint32) if status is None
               else np.asarray(status, np.uint32))
-        _word_view(cols, 10, "<u2")[...] = frame_id
         _word_view(cols, 12, "<u4")[...] = (mid.astype(np.uint64) * LEGACY_ENCODER_TICKS // W)
         _word_view(cols, fmt.col_bytes - 4, "<u4")[...] = st.reshape(P, C)
     else:
-        st = np.ones(W, np.uint16) if status is None else np.asarray(status, np.uint16)
+        st = np.ones(n, np.uint16) if status is None else np.asarray(status, np.uint16)
         _word_view(cols, 10, "<u2")[...] = st.reshape(P, C)
-    pix = fmt._pixels(cols)
-    # Fields sharing a word are combined in the (H, W) image layout; each word is then
-    # written once through a transposed view: (H, W) -> (packets, columns, pixels).
+    _write_fields(fmt, arr, fields)
+
+
+def encode_pixel_fields(fmt: PacketFormat, frame: NDArray[np.uint8], first_column: int,
+                        fields: Mapping[str, NDArray[np.integer]]) -> None:
+    """(Re)write the pixel words that hold the given fields, for columns ``first_column`` ..
+    ``first_column + n`` (whole packets) of a frame's packet array; a word's other fields
+    become 0. For fields known only after the columns were encoded (the DUAL profile's
+    second return, say). Images are staggered (H, n)."""
+    H, W, C = fmt.pixels_per_column, fmt.columns_per_frame, fmt.columns_per_packet
+    n = next(iter(fields.values())).shape[1] if fields else C
+    if first_column % C or n % C or first_column + n > W:
+        raise ValueError(f"columns {first_column}..{first_column + n}: expected whole "
+                         f"packets of {C} columns within 0..{W}")
+    for name, img in fields.items():
+        if np.shape(img) != (H, n):
+            raise ValueError(f"field {name} has shape {np.shape(img)}; expected ({H}, {n})")
+        fmt.profile.field(name)  # KeyError names the profile's fields
+    _write_fields(fmt, frame[first_column // C:(first_column + n) // C], fields)
+
+
+def _write_fields(fmt: PacketFormat, rows: NDArray[np.uint8],
+                  fields: Mapping[str, NDArray[np.integer]]) -> None:
+    # Fields sharing a word are combined in the (H, n) image layout; each word is then
+    # written once through a transposed view: (H, n) -> (packets, columns, pixels).
+    H, C = fmt.pixels_per_column, fmt.columns_per_packet
     words: dict[tuple[int, str], NDArray[np.uint32]] = {}
-    for f in p.fields:
+    for f in fmt.profile.fields:
         if f.name not in fields:
             continue
         v = _encode_value(f, fields[f.name])
         key = (f.offset, f.dtype)
         words[key] = words[key] | v if key in words else v
     for (off, dt), v in words.items():
-        _word_view(pix, off, dt)[...] = v.T.reshape(P, C, H)
-    if not p.legacy:
-        arr[:, 0:2].view("<u2")[:, 0] = 1  # packet_type: lidar
-        arr[:, 2:4].view("<u2")[:, 0] = frame_id
-        arr[:, 4:7] = np.frombuffer(init_id.to_bytes(3, "little"), np.uint8)
-        arr[:, 7:12] = np.frombuffer(prod_sn.to_bytes(5, "little"), np.uint8)
-        crc = (crc_rows or crc64_xz_rows)(arr[:, :-8])
-        arr[:, -8:].view("<u8")[:, 0] = crc
+        fmt.pixel_word(rows, off, dt)[...] = v.T.reshape(rows.shape[0], C, H)
+
+
+def finish_lidar_packets(fmt: PacketFormat, frame: NDArray[np.uint8], *, frame_id: int,
+                         init_id: int, prod_sn: int, crc_rows: CrcRows | None = None
+                         ) -> NDArray[np.uint8]:
+    """Write the packet headers (LEGACY: the frame_id of every column) and the CRC footers
+    of a frame whose columns :func:`encode_lidar_columns` wrote; returns ``frame``."""
+    _check_ids(frame_id, init_id, prod_sn)
+    arr = frame
+    if arr.shape != (fmt.packets_per_frame, fmt.packet_bytes) or arr.dtype != np.uint8:
+        raise ValueError(f"packet array of shape {arr.shape} and dtype {arr.dtype}; "
+                         f"expected ({fmt.packets_per_frame}, {fmt.packet_bytes}) uint8")
+    if fmt.profile.legacy:
+        _word_view(fmt._columns(arr), 10, "<u2")[...] = frame_id
+        return arr
+    arr[:, 0:2].view("<u2")[:, 0] = 1  # packet_type: lidar
+    arr[:, 2:4].view("<u2")[:, 0] = frame_id
+    arr[:, 4:7] = np.frombuffer(init_id.to_bytes(3, "little"), np.uint8)
+    arr[:, 7:12] = np.frombuffer(prod_sn.to_bytes(5, "little"), np.uint8)
+    crc = (crc_rows or crc64_xz_rows)(arr[:, :-8])
+    arr[:, -8:].view("<u8")[:, 0] = crc
     return arr
 
 
@@ -293,7 +387,6 @@ def decode_lidar_packets(fmt: PacketFormat, packets: NDArray[np.uint8], *,
             f"lidar packets of shape {arr.shape}; {p.name} with {fmt.pixels_per_column} "
             f"pixels and {fmt.columns_per_packet} columns per packet is {fmt.packet_bytes} "
             "bytes each")
-    n = arr.shape[0]
     cols = fmt._columns(arr)
     ts = _word_view(cols, 0, "<u8").astype(np.uint64)
     mid = _word_view(cols, 8, "<u2").astype(np.uint16)
@@ -331,8 +424,4 @@ def decode_lidar_packets(fmt: PacketFormat, packets: NDArray[np.uint8], *,
         raise MeasurementIdError(
             f"packet {i}: measurement_id {int(mid[i, j])}; must be below columns_per_frame "
             f"{fmt.columns_per_frame}")
-    pix = fmt._pixels(cols)
-    want_fields = [f for f in p.fields if fields is None or f.name in fields]
-    out = {f.name: _decode_value(f, _word_view(pix, f.offset, f.dtype)).reshape(
-        n * fmt.columns_per_packet, fmt.pixels_per_column).T for f in want_fields}
-    return PacketBatch(frame_id, ts, mid, status, out)
+    return PacketBatch(frame_id, ts, mid, status, fmt.pixel_fields(arr, fields))

@@ -4,6 +4,7 @@ validation errors and fuzzing."""
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import fastcrc
@@ -228,6 +229,40 @@ def test_validation_errors_say_what_was_expected() -> None:
 
 
 @settings(max_examples=300, deadline=None)
+@given(st.sampled_from(PROFILES), st.sampled_from([8, 16]), st.integers(0, 0xFFFF),
+       st.lists(st.integers(1, 8), min_size=1, max_size=8), st.integers(0, 2**32 - 1))
+def test_a_frame_encoded_in_pieces_is_the_frame_encoded_whole(
+        profile: str, cpp: int, frame_id: int, cuts: list[int], seed: int) -> None:
+    """Packet ranges encoded on their own (in any order, as the emulator's threads do),
+    then the headers and CRCs: the very bytes of the whole-frame encoder. The pixel fields
+    read back are what went in; a field rewritten later (DUAL's second return) lands."""
+    fmt = o.PacketFormat.create(profile, 64, cpp, 512)
+    rng = np.random.default_rng(seed)
+    fields = _random_fields(fmt, rng)
+    ts = rng.integers(0, 2**63, 512, dtype=np.uint64)
+    whole = o.encode_lidar_frame(fmt, fields, ts, frame_id=frame_id, init_id=77, prod_sn=88)
+    edges = np.unique(np.clip(np.cumsum([0, *cuts]), 0, fmt.packets_per_frame))
+    edges = np.unique(np.append(edges, fmt.packets_per_frame)) * cpp
+    parts = np.full_like(whole, 0xAB)  # stale bytes from an earlier frame
+    for a, b in list(itertools.pairwise(edges))[::-1]:
+        o.encode_lidar_columns(fmt, parts, int(a), {k: v[:, a:b] for k, v in fields.items()},
+                               ts[a:b])
+    o.finish_lidar_packets(fmt, parts, frame_id=frame_id, init_id=77, prod_sn=88)
+    assert np.array_equal(parts, whole)
+    back = fmt.pixel_fields(whole)
+    for f in fmt.profile.fields:
+        assert np.array_equal(back[f.name], fields[f.name]), f.name
+    name = fmt.profile.fields[-1].name
+    later = {name: fields[name][:, ::-1].copy()}
+    alone = {f.name: fields[f.name] for f in fmt.profile.fields
+             if (f.offset, f.dtype) == (fmt.profile.field(name).offset,
+                                        fmt.profile.field(name).dtype)}
+    o.encode_pixel_fields(fmt, parts, 0, {**alone, **later})
+    assert np.array_equal(fmt.pixel_fields(parts, [name])[name], later[name])
+    with pytest.raises(ValueError, match="whole packets"):
+        o.encode_lidar_columns(fmt, parts, cpp // 2, {}, ts[:cpp])
+
+
 @given(st.binary(min_size=0, max_size=64), st.integers(0, 12543), st.booleans())
 def test_fuzzed_packets_give_a_value_or_a_protocol_error(junk: bytes, at: int,
                                                          crc: bool) -> None:

@@ -1,0 +1,79 @@
+"""The lidar emulator's per-ray answer, compiled (numba): range, return class, stem id and
+the pixel bytes of a chunk of columns in one pass over its rays, without the GIL.
+
+It computes exactly what :meth:`Os0Emulator._answer_numpy` computes (the tests compare the
+two byte for byte); that numpy path runs where numba is missing. The packet layout (where
+each field's bytes go) comes in as numbers from :mod:`protocols.ouster`'s tables.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+
+@functools.cache
+def answer_kernel() -> Callable[..., None] | None:
+    """The compiled :func:`answer_chunk`, built (or loaded from numba's on-disk cache) on
+    first use: None where numba is missing or ``TCF_HIL_NO_JIT`` is set. numba is imported
+    only here, off the CLI's import path."""
+    if os.environ.get("TCF_HIL_NO_JIT", "") not in ("", "0"):
+        return None
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is a dependency; numpy stands in
+        return None
+    kernel: Callable[..., None] = numba.njit(cache=True, nogil=True)(answer_chunk)
+    return kernel
+
+
+def answer_chunk(t: Any, sid: Any, noise: Any, col0: int, n_m: float, min_r: float,
+                  reach_ground: float, reach_bark: float, range_units: float,
+                  range_mult: int, luts: Any, signal32: Any, clamp_signal: bool,
+                  w_range: Any, w_refl: Any, w_nir: Any, w_signal: Any,
+                  refl_in_range: bool, sid_out: Any, t_out: Any, ok_out: Any) -> None:
+    """Columns col0 .. col0 + n of a frame. ``t``/``sid`` (H, n): the cast, beam-major;
+    ``noise`` (n, H) or (0, 0); ``w_*`` (packets, columns, H): the pixel words of
+    RANGE, REFLECTIVITY, NEAR_IR and SIGNAL in the chunk's zeroed packets (SIGNAL
+    (0, 0, 0) where the profile has none; ``refl_in_range``: REFLECTIVITY shares
+    RANGE's word, and is or-ed in); ``luts`` (2, 3) the REFLECTIVITY and NEAR_IR words
+    by class; ``sid_out`` (W, H); ``t_out``/``ok_out`` (W, H) or (0, 0): the first return
+    for DUAL."""
+    H, n = t.shape
+    C = w_range.shape[1]
+    noisy = noise.shape[0] > 0
+    keep = t_out.shape[0] > 0
+    signal = w_signal.shape[0] > 0
+    for c in range(n):
+        p = c // C
+        j = c - p * C
+        for h in range(H):
+            tt = np.float64(t[h, c])
+            if noisy:
+                tt += noise[c, h]
+            r = tt + n_m
+            s = sid[h, c]
+            bark = s > 0
+            ok = r >= min_r and r <= (reach_bark if bark else reach_ground)
+            cls = (2 if bark else 1) if ok else 0
+            sid_out[col0 + c, h] = s if ok else -1
+            if keep:
+                t_out[col0 + c, h] = tt
+                ok_out[col0 + c, h] = ok
+            w_range[p, j, h] = np.int64(np.rint(r * range_units)) * range_mult if ok else 0
+            if refl_in_range:
+                w_refl[p, j, h] |= luts[0, cls]
+            else:
+                w_refl[p, j, h] = luts[0, cls]
+            w_nir[p, j, h] = luts[1, cls]
+            if signal:
+                den = np.float32(max(r, 0.5))
+                den = den * den
+                sig = signal32[cls] / den
+                if clamp_signal and sig > np.float32(65535.0):
+                    sig = np.float32(65535.0)
+                w_signal[p, j, h] = np.int64(sig)
