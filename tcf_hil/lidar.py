@@ -405,6 +405,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
 
     run_kw.setdefault("udp_dest", dest)
     run = run or LidarRun(scn, **run_kw)
+    run.emu.warm_up()  # compiled before the fork: the producer's first frame is not late
     dest = run.meta.udp_dest
     ctx = mp.get_context("fork")
     slot_bytes = _slot_bytes(run)

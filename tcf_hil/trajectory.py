@@ -17,9 +17,13 @@ the IMU) are central differences over ``DIFF_NS``.
 
 from __future__ import annotations
 
+import functools
 import math
+import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -390,11 +394,19 @@ class Trajectory:
         sparse (fewer than two per knot). ``pieces`` (from :meth:`dense_poses`, covering the
         times) are used instead of building them: the same poses."""
         t = np.asarray(t_ns, dtype=np.int64)
+        use = self.dense_pieces(t, knot_ns, pieces)
+        return self.sensor_pose(t) if use is None else use.at(t)
+
+    def dense_pieces(self, t_ns: IntArray, knot_ns: int | None = None,
+                     pieces: DensePoses | None = None) -> DensePoses | None:
+        """The pieces :meth:`sensor_pose_dense` evaluates for these times (``pieces`` where
+        they cover them, else new ones), or None where it takes the exact poses."""
+        t = np.asarray(t_ns, dtype=np.int64)
         if t.ndim != 1 or len(t) < 8:
-            return self.sensor_pose(t)
+            return None
         lo, hi = int(t[0]), int(t[-1])
         if hi <= lo or bool(np.any(t[1:] < t[:-1])):
-            return self.sensor_pose(t)
+            return None
         h = pieces.knot_ns if pieces is not None else (knot_ns or self.dense_knot_ns())
         # knots on the absolute grid of multiples of h, the last one past every time: a
         # time's pose does not depend on which other times were asked with it (a frame
@@ -402,13 +414,9 @@ class Trajectory:
         g0, g1 = lo // h * h, (hi // h + 1) * h
         if pieces is None or not pieces.knots[0] <= g0 < g1 <= pieces.knots[-1]:
             knots = self._dense_knots(g0, g1, h)
-            if 4 * len(knots) > len(t):
-                return self.sensor_pose(t)
-            return self._dense_pieces(h, knots).at(t)
+            return None if 4 * len(knots) > len(t) else self._dense_pieces(h, knots)
         k0, k1 = np.searchsorted(pieces.knots, [g0, g1])
-        if 4 * (k1 - k0 + 1) > len(t):
-            return self.sensor_pose(t)
-        return pieces.at(t)
+        return None if 4 * (k1 - k0 + 1) > len(t) else pieces
 
     def dense_poses(self, lo_ns: int, hi_ns: int, knot_ns: int | None = None) -> DensePoses:
         """The pieces :meth:`sensor_pose_dense` evaluates, for times in [lo_ns, hi_ns): a
@@ -469,6 +477,37 @@ class Trajectory:
         return accel, np.degrees(w)
 
 
+def _eval_pieces(t: Any, knots: Any, va: Any, d1: Any, d2: Any, hm: Any, pos: Any,
+                 rot: Any) -> None:
+    """:meth:`DensePoses.at`, one time at a time, with numpy's operations in numpy's order
+    (the same bits; compiled by numba where it is installed)."""
+    last = len(knots) - 2
+    for n in range(len(t)):
+        i = min(max(np.searchsorted(knots, t[n], side="right") - 1, 0), last)
+        x = np.float64(t[n] - knots[i])
+        for q in range(12):
+            v = (x - hm[0, i]) * d2[q, i]
+            v += d1[q, i]
+            v *= x
+            v += va[q, i]
+            if q < 3:
+                pos[n, q] = v
+            else:
+                rot[n, (q - 3) // 3, (q - 3) % 3] = v
+
+
+@functools.cache
+def _pieces_kernel() -> Callable[..., None] | None:
+    if os.environ.get("TCF_HIL_NO_JIT", "") not in ("", "0"):
+        return None
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is a dependency; numpy stands in
+        return None
+    kernel: Callable[..., None] = numba.njit(cache=True, nogil=True)(_eval_pieces)
+    return kernel
+
+
 @dataclass(frozen=True)
 class DensePoses:
     """Quadratic pieces of the sensor pose between knots (:meth:`Trajectory.dense_poses`):
@@ -483,6 +522,12 @@ class DensePoses:
         t = np.asarray(t_ns, dtype=np.int64)
         knots = self.knots
         va, d1, d2, hm = self._parts  # (12, k - 1) each, hm (1, k - 1)
+        kernel = _pieces_kernel()
+        if kernel is not None and t.ndim == 1:
+            pos = np.empty((len(t), 3))
+            rot = np.empty((len(t), 3, 3))
+            kernel(t, knots, va, d1, d2, hm, pos, rot)
+            return pos, rot
         if len(t) > 1 and bool(np.all(t[1:] >= t[:-1])):
             # ascending times: each interval's run of them, its coefficients repeated
             edges = np.empty(len(knots), np.int64)

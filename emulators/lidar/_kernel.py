@@ -77,3 +77,34 @@ def answer_chunk(t: Any, sid: Any, noise: Any, col0: int, n_m: float, min_r: flo
                 if clamp_signal and sig > np.float32(65535.0):
                     sig = np.float32(65535.0)
                 w_signal[p, j, h] = np.int64(sig)
+
+
+
+@functools.cache
+def frames_kernel() -> Callable[..., None] | None:
+    """The compiled :func:`column_frames` (see :func:`answer_kernel`)."""
+    if answer_kernel() is None:
+        return None
+    import numba
+
+    kernel: Callable[..., None] = numba.njit(cache=True, nogil=True)(column_frames)
+    return kernel
+
+
+def column_frames(pos: Any, rot: Any, cos: Any, sin: Any, lr: Any, lt: Any, n_m: float,
+                  mt: Any, oc: Any) -> None:
+    """Per column c (``pos`` (n, 3), ``rot`` (n, 3, 3), the encoder angle's ``cos``/``sin``
+    (n,)): ``M_c = R_c L Rz(theta_c)`` into ``mt`` (3, n, 3) float32 as ``mt[j, c, i] =
+    M_c[i, j]``, and the beam origin ``p_c + R_c t_L + n M_c e_x`` into ``oc`` (n, 3)
+    float32; sums left to right, one rounding per operation (as the numpy path)."""
+    for c in range(pos.shape[0]):
+        for i in range(3):
+            r0, r1, r2 = rot[c, i, 0], rot[c, i, 1], rot[c, i, 2]
+            a0 = r0 * lr[0, 0] + r1 * lr[1, 0] + r2 * lr[2, 0]
+            a1 = r0 * lr[0, 1] + r1 * lr[1, 1] + r2 * lr[2, 1]
+            a2 = r0 * lr[0, 2] + r1 * lr[1, 2] + r2 * lr[2, 2]
+            m0 = a0 * cos[c] + a1 * sin[c]
+            mt[0, c, i] = m0
+            mt[1, c, i] = a1 * cos[c] - a0 * sin[c]
+            mt[2, c, i] = a2
+            oc[c, i] = pos[c, i] + (r0 * lt[0] + r1 * lt[1] + r2 * lt[2]) + n_m * m0

@@ -18,7 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from emulators.lidar._kernel import answer_kernel
+from emulators.lidar._kernel import answer_kernel, frames_kernel
 from protocols.ouster import (
     Field,
     PacketFormat,
@@ -105,8 +105,9 @@ class FrameResult:
 class _FrameJob:
     """What a frame's column chunks share: the ray factors, the noise, and where they write."""
 
-    x: NDArray[np.float32]  # (3, 3W) M_c entries
-    oc: NDArray[np.float32]  # (W, 3) beam origins
+    pieces: Any  # the pose pieces each chunk evaluates at its column times, or None
+    pos: FloatArray  # (W, 3) column poses: filled by the chunks, or exact beforehand
+    rot: FloatArray  # (W, 3, 3)
     noise: FloatArray | None  # (W, H)
     sid: NDArray[np.int32]  # (W, H) stem id out
     packets: NDArray[np.uint8]
@@ -127,16 +128,18 @@ class Os0Emulator:
     in the scene are ``M_c b_h`` with ``M_c = R_c L Rz(theta_c)``: one small matrix product
     (beams x 3 by 3 x columns) makes them, in float32, as the casters take them.
 
-    Column poses are asked of the pose source for a second of frames at once when frames are
-    read in order (through ``sensor_pose_dense(t_ns)`` where the source has it, e.g.
-    :class:`tcf_hil.trajectory.Trajectory`: the same poses for many close times, faster).
-    A frame is worked in chunks of columns, each turned into rays, cast, answered and, when a
-    packet array is given, encoded on its own, spread over ``threads`` threads (numpy, BLAS
-    and the casters release the GIL): the results do not depend on the split."""
+    Column poses come from pieces the pose source builds for two seconds of frames at once
+    while frames are read in order (``dense_poses``/``sensor_pose_dense`` where the source has
+    them, e.g. :class:`tcf_hil.trajectory.Trajectory`; else ``sensor_pose`` per frame). A
+    frame is worked in chunks of columns, each turned into rays, cast, answered and encoded
+    into its packets' columns on its own, spread over ``threads`` threads. The per-ray answer
+    is a compiled kernel (numba; :mod:`emulators.lidar._kernel`), numpy where numba is
+    missing: the same bytes. numpy, BLAS, the kernel and the casters release the GIL; the
+    results do not depend on the split."""
 
     MIN_RAYS_PER_CHUNK = 8192
     RAYS_PER_CHUNK = 32768
-    BLOCK_COLUMNS = 64  # rays are made this many columns at a time: one fixed product shape
+    BLOCK_COLUMNS = 128  # rays are made this many columns at a time: one fixed product shape
 
     def __init__(self, meta: SensorMetadata, scene: RayScene, poses: PoseSource,
                  model: ReturnModel | None = None, *, seed: int = 0,
@@ -232,48 +235,75 @@ class Os0Emulator:
             raise ValueError(f"max_range_m {self.model.max_range_m}: beyond what "
                              f"{fmt.profile.name}'s RANGE field carries")
 
+    def warm_up(self) -> None:
+        """Compile the kernels (numba, or load them from its on-disk cache) for this sensor
+        and return model now, not in the first frame of a live stream: one frame of a
+        throwaway twin (this emulator's noise stream is left alone)."""
+        twin = Os0Emulator(self.meta, self.scene, self.poses, self.model,
+                           start_ns=self.start_ns, threads=1)
+        twin.jit = self.jit
+        twin.frame(0)
+
     def column_times(self, k: int) -> NDArray[np.int64]:
         w = self.meta.columns
         return (self.start_ns + k * self.period_ns
                 + (np.arange(w, dtype=np.int64) * self.period_ns) // w)
 
     def column_poses(self, k: int) -> tuple[FloatArray, FloatArray]:
-        """Frame k's sensor pose per column: positions (W, 3), rotations (W, 3, 3).
+        """Frame k's sensor pose per column: positions (W, 3), rotations (W, 3, 3)."""
+        pieces, ts = self._pose_pieces(k)
+        if pieces is None:
+            return self._pose_at(ts)
+        pos, rot = pieces.at(ts)
+        return pos, rot
+
+    def _pose_pieces(self, k: int) -> tuple[Any, NDArray[np.int64]]:
+        """How frame k's column poses are had: (pieces to evaluate at the column times, or
+        None for the pose source's own ``sensor_pose``/``sensor_pose_dense``), the times.
 
         A pose source with ``dense_poses(lo_ns, hi_ns)`` (a
-        :class:`tcf_hil.trajectory.Trajectory`) builds its pieces for a second of frames at
-        a time while frames are read in order, and each frame's poses come from them: the
-        same knots as one frame at a time, so the same poses up to the last bits of the
-        exact poses at the knots (numpy's vector maths may round differently in a longer
-        batch)."""
+        :class:`tcf_hil.trajectory.Trajectory`) builds its pieces for two seconds of frames at
+        a time while frames are read in order: the same knots as one frame at a time, so the
+        same poses up to the last bits of the exact poses at the knots (numpy's vector maths
+        may round differently in a longer batch)."""
         ts = self.column_times(k)
         dense = getattr(self.poses, "dense_poses", None)
         if dense is None:
-            return self._pose_at(ts)
+            return None, ts
         blk = self._pose_block
         if blk is None or not blk[0] <= k < blk[1]:
-            nf = self.meta.frequency_hz if blk is not None and k == blk[1] else 1
+            nf = 2 * self.meta.frequency_hz if blk is not None and k == blk[1] else 1
             lo, hi = int(ts[0]), int(self.column_times(k + nf - 1)[-1])
             h = self.poses.dense_knot_ns()  # type: ignore[attr-defined]
             blk = self._pose_block = (k, k + nf, dense(lo // h * h, (hi // h + 1) * h, h))
-        pieces = blk[2]
-        return self.poses.sensor_pose_dense(ts, pieces=pieces)  # type: ignore[attr-defined]
+        return self.poses.dense_pieces(ts, pieces=blk[2]), ts  # type: ignore[attr-defined]
 
-    def _column_rays(self, pos: FloatArray, rot: FloatArray
+    def _column_rays(self, pos: FloatArray, rot: FloatArray, a: int = 0
                      ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """The frame's ray factors: (3, 3W) float32 with [j, 3c + i] = M_c[i, j], and the
-        beam origins (W, 3) float32 in the scene."""
-        w = len(pos)
-        r2 = np.ascontiguousarray(rot).reshape(-1, 3)
-        a = (r2 @ self._l_rot).reshape(w, 3, 3)  # R_c L
-        q = (r2 @ self._l_tr).reshape(w, 3) + pos  # where the lidar frame's origin is
-        mt = np.empty((3, w, 3))  # M_c transposed: [j, c, i]
-        a0, a1 = a[:, :, 0], a[:, :, 1]
-        np.add(a0 * self._cos, a1 * self._sin, out=mt[0])
-        np.subtract(a1 * self._cos, a0 * self._sin, out=mt[1])
-        mt[2] = a[:, :, 2]
-        origins = q + self.n_m * mt[0]
-        return mt.reshape(3, 3 * w).astype(np.float32), origins.astype(np.float32)
+        """The ray factors of columns a .. a + n (poses (n, 3), (n, 3, 3)): (3, 3n) float32
+        with [j, 3c + i] = M_c[i, j], and the beam origins (n, 3) float32 in the scene.
+        Sums written out, left to right (the compiled kernel and numpy alike, no BLAS): the
+        same bits whatever the split into chunks."""
+        n = len(pos)
+        cos, sin = self._cos[a:a + n, 0], self._sin[a:a + n, 0]
+        mt = np.empty((3, n, 3), np.float32)
+        oc = np.empty((n, 3), np.float32)
+        kernel = frames_kernel() if self.jit else None
+        if kernel is not None:
+            kernel(pos, rot, cos, sin, self._l_rot, self._l_tr, self.n_m, mt, oc)
+            return mt.reshape(3, 3 * n), oc
+        lr, lt = self._l_rot, self._l_tr
+        for i in range(3):
+            r0, r1, r2 = rot[:, i, 0], rot[:, i, 1], rot[:, i, 2]
+            a0 = r0 * lr[0, 0] + r1 * lr[1, 0] + r2 * lr[2, 0]
+            a1 = r0 * lr[0, 1] + r1 * lr[1, 1] + r2 * lr[2, 1]
+            a2 = r0 * lr[0, 2] + r1 * lr[1, 2] + r2 * lr[2, 2]
+            m0 = a0 * cos + a1 * sin
+            mt[0, :, i] = m0
+            mt[1, :, i] = a1 * cos - a0 * sin
+            mt[2, :, i] = a2
+            oc[:, i] = pos[:, i] + (r0 * lt[0] + r1 * lt[1] + r2 * lt[2]) + self.n_m * m0
+        return mt.reshape(3, 3 * n), oc
 
     def _make_rays(self, x: NDArray[np.float32], oc: NDArray[np.float32], a: int, b: int
                    ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
@@ -305,9 +335,9 @@ class Os0Emulator:
 
     def _chunks(self) -> list[tuple[int, int]]:
         """Whole blocks of columns, about ``RAYS_PER_CHUNK`` rays each (their arrays stay in
-        a core's cache), at least two per thread."""
+        a core's cache), at least one per thread."""
         H, W = self.meta.pixels, self.meta.columns
-        n = max(W * H // self.RAYS_PER_CHUNK, 2 * self.threads if self.threads > 1 else 1)
+        n = max(W * H // self.RAYS_PER_CHUNK, self.threads)
         n = max(1, min(n, W // self._block, W * H // self.MIN_RAYS_PER_CHUNK))
         cuts = sorted({round(W * i / n / self._block) * self._block for i in range(n + 1)})
         return list(itertools.pairwise(cuts))
@@ -330,9 +360,10 @@ class Os0Emulator:
             raise ValueError(f"packet array of shape {packets.shape} and dtype "
                              f"{packets.dtype}; expected {shape} uint8")
         arr = packets
-        ts = self.column_times(k)
-        pos, rot = self.column_poses(k)
-        x, oc = self._column_rays(pos, rot)
+        pieces, ts = self._pose_pieces(k)
+        # column poses: evaluated by each chunk for its columns, or exact for the frame now
+        pos, rot = (np.empty((W, 3)), np.empty((W, 3, 3))) if pieces is not None \
+            else self._pose_at(ts)
         noise = (self.rng.normal(0.0, m.noise_sigma_m, (H, W)).T if m.noise_sigma_m > 0
                  else None)
         dual = "RANGE2" in self.profile_fields  # only what the profile carries
@@ -341,7 +372,8 @@ class Os0Emulator:
         d_all = np.empty((W, H, 3), np.float32) if dual else None
         t_all = np.empty((W, H)) if dual else None
         ok_all = np.empty((W, H), bool) if dual else None
-        job = _FrameJob(x, oc, noise, sid_out, arr, ts, o_all, d_all, t_all, ok_all)
+        job = _FrameJob(pieces, pos, rot, noise, sid_out, arr, ts, o_all, d_all, t_all,
+                        ok_all)
         chunks = self._chunks()
         if self.threads == 1 or len(chunks) == 1:
             for a, b in chunks:
@@ -365,7 +397,10 @@ class Os0Emulator:
     def _chunk(self, job: _FrameJob, a: int, b: int) -> None:
         """Columns a..b of a frame: rays, cast, returns, their packets' columns."""
         H, n = self.meta.pixels, b - a
-        o, d = self._make_rays(job.x, job.oc, a, b)
+        if job.pieces is not None:
+            job.pos[a:b], job.rot[a:b] = job.pieces.at(job.ts[a:b])
+        x, oc = self._column_rays(job.pos[a:b], job.rot[a:b], a)
+        o, d = self._make_rays(x, oc, 0, n)
         t32, sid_bm = self._cast32(o.reshape(-1, 3), d.reshape(-1, 3))
         t = np.asarray(t32, np.float32).reshape(H, n)  # beam-major, as cast
         sid = np.asarray(sid_bm, np.int32).reshape(H, n)

@@ -270,15 +270,15 @@ def test_the_compiled_answer_is_the_numpy_one_byte_for_byte(
 
 def test_frames_read_in_order_are_the_frames_read_alone(
         world: tuple[Scene, Trajectory]) -> None:
-    """Read in order, column poses come from pieces built for a second of frames at once;
+    """Read in order, column poses come from pieces built for two seconds of frames at once;
     read alone, from a frame's own: the same knots, so the same poses up to the last bits
     of the exact poses at them (numpy's vector maths may round a time differently in a
     longer batch), and the same returns bar a grazing ray's flip."""
     scene, track = world
     meta = os0_64_metadata("1024x20")
     run = Os0Emulator(meta, scene, track, start_ns=track.t0_ns)
-    frames = {k: run.frame(k) for k in range(18, 45)}  # crosses two one-second blocks
-    for k in (18, 19, 30, 37, 38, 44):
+    frames = {k: run.frame(k) for k in range(18, 64)}  # 18 alone, then 19-58 and 59-98
+    for k in (18, 19, 30, 58, 59, 63):
         alone = Os0Emulator(meta, scene, track, start_ns=track.t0_ns).frame(k)
         assert np.abs(alone.positions - frames[k].positions).max() < 1e-12
         assert np.abs(alone.rotations - frames[k].rotations).max() < 1e-12
@@ -287,3 +287,24 @@ def test_frames_read_in_order_are_the_frames_read_alone(
     exact_p, exact_r = track.sensor_pose(run.column_times(30))
     assert np.abs(frames[30].positions - exact_p).max() < POS_TOL_M
     assert np.abs(frames[30].rotations - exact_r).max() < ROT_TOL
+
+
+def test_compiled_pose_pieces_are_numpys(world: tuple[Scene, Trajectory],
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """The pieces are evaluated by a numba kernel where numba is installed: the same bits as
+    the numpy evaluation, in order or not."""
+    import tcf_hil.trajectory as trajectory
+
+    _, track = world
+    if trajectory._pieces_kernel() is None:
+        pytest.skip("numba is not installed here: only the numpy path runs")
+    h = track.dense_knot_ns()
+    lo = track.t0_ns + 1_234_567_890
+    pieces = track.dense_poses(lo // h * h, (lo + 2_000_000_000) // h * h + h, h)
+    t = lo + np.arange(4096, dtype=np.int64) * 488_281
+    shuffled = np.random.default_rng(2).permutation(t)
+    compiled = [pieces.at(t), pieces.at(shuffled)]
+    monkeypatch.setattr(trajectory, "_pieces_kernel", lambda: None)
+    for (p, r), times in zip(compiled, (t, shuffled), strict=True):
+        p0, r0 = pieces.at(times)
+        assert np.array_equal(p, p0) and np.array_equal(r, r0)
