@@ -30,7 +30,9 @@ from emulators.lidar import (
     PacedSender,
     ReturnModel,
     SensorApi,
+    carried_range_m,
 )
+from emulators.lidar import warm_up as warm_up_kernels
 from protocols.ouster import (
     IMU_PACKET_BYTES,
     ImuPacket,
@@ -43,11 +45,13 @@ from protocols.ouster import (
 from protocols.pcap import PcapWriter, UdpDatagram
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil._io import atomic_path, ensure_dir, write_bytes_atomic, write_json_atomic
+from tcf_hil.errors import ConfigError
 from tcf_hil.faults import FaultLog, fault_plans, faults_active
 from tcf_hil.forest import Forest, generate_forest, ground_truth
 from tcf_hil.scenario import Scenario
 from tcf_hil.scene import Scene
 from tcf_hil.trajectory import Trajectory, quaternions
+from tcf_hil.trajectory import warm_up as warm_up_poses
 
 IMU_PERIOD_NS = 10_000_000  # 100 Hz
 
@@ -102,6 +106,11 @@ class LidarRun:
         self.meta: SensorMetadata = meta or sensor_metadata(
             scn, mode=mode, profile=profile, seed=self.forest.seed, udp_dest=udp_dest,
             udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
+        limit = carried_range_m(self.meta.packet_format)
+        if model is not None and model.max_range_m > limit:
+            raise ConfigError("max_range_m", model.max_range_m,
+                              f"at most {limit:.0f} m: what {self.meta.profile}'s RANGE "
+                              "field carries")
         self.emu = Os0Emulator(self.meta, self.scene, self.track, model, seed=self.forest.seed,
                                start_ns=self.track.t0_ns,
                                threads=getattr(self.scene.caster, "threads", None))
@@ -405,7 +414,8 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
 
     run_kw.setdefault("udp_dest", dest)
     run = run or LidarRun(scn, **run_kw)
-    run.emu.warm_up()  # compiled before the fork: the producer's first frame is not late
+    warm_up_kernels(run.meta, run.emu.model)  # compiled before the fork: the first frame
+    warm_up_poses()  # is not late (the first run on a machine compiles; seconds)
     dest = run.meta.udp_dest
     ctx = mp.get_context("fork")
     slot_bytes = _slot_bytes(run)
@@ -567,6 +577,9 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
         reinit.set()
         inner[0].set()
 
+    # compiled before the API answers: a client that connects at once gets packets at once
+    warm_up_kernels(first, run_kw.get("model"))
+    warm_up_poses()
     api = SensorApi(first, http_host, http_port, on_reinit=on_reinit).start()
 
     def relay() -> None:

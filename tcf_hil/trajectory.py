@@ -496,6 +496,13 @@ def _eval_pieces(t: Any, knots: Any, va: Any, d1: Any, d2: Any, hm: Any, pos: An
                 rot[n, (q - 3) // 3, (q - 3) % 3] = v
 
 
+def warm_up() -> None:
+    """Compile the pose pieces' kernel (numba; or load it from its on-disk cache) now, not
+    in the first frame of a live stream."""
+    DensePoses(10, np.array([0, 10], np.int64), np.zeros((1, 37))).at(
+        np.arange(8, dtype=np.int64))
+
+
 @functools.cache
 def _pieces_kernel() -> Callable[..., None] | None:
     if os.environ.get("TCF_HIL_NO_JIT", "") not in ("", "0"):

@@ -101,6 +101,35 @@ class FrameResult:
         return self.packet_format.pixel_fields(self.packets, self.field_names)
 
 
+class _Nothing:
+    """A scene with nothing in it."""
+
+    def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
+             ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+        return np.full(len(origins), np.inf, np.float32), np.full(len(origins), -1, np.int32)
+
+
+class _Still:
+    """A sensor that never moves."""
+
+    def sensor_pose(self, t_ns: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
+        return np.zeros((len(t_ns), 3)), np.tile(np.eye(3), (len(t_ns), 1, 1))
+
+
+def warm_up(meta: SensorMetadata, model: ReturnModel | None = None) -> None:
+    """Compile the emulator's kernels (numba; or load them from its on-disk cache) for this
+    sensor and return model now, not in the first frame of a live stream (seconds, the first
+    time on a machine): one frame of a still sensor in an empty scene."""
+    Os0Emulator(meta, _Nothing(), _Still(), model, threads=1).frame(0)
+
+
+def carried_range_m(fmt: PacketFormat) -> float:
+    """The longest range a profile's RANGE field can carry, in metres."""
+    f = fmt.profile.field("RANGE")
+    most_mm = f.mask >> f.shift if f.shift >= 0 else f.mask << -f.shift
+    return float(most_mm) / 1000.0
+
+
 @dataclass(frozen=True)
 class _FrameJob:
     """What a frame's column chunks share: the ray factors, the noise, and where they write."""
@@ -232,17 +261,12 @@ class Os0Emulator:
         self._range_mult = q << f.shift if f.shift >= 0 else q >> -f.shift
         most = math.ceil(max(self._reach) * 1000.0 / q) * self._range_mult
         if self._range_mult << max(0, -f.shift) != q << max(0, f.shift) or most > f.mask:
-            raise ValueError(f"max_range_m {self.model.max_range_m}: beyond what "
-                             f"{fmt.profile.name}'s RANGE field carries")
+            raise ValueError(f"max_range_m {self.model.max_range_m}: {fmt.profile.name} "
+                             f"carries ranges up to {carried_range_m(fmt):.0f} m")
 
     def warm_up(self) -> None:
-        """Compile the kernels (numba, or load them from its on-disk cache) for this sensor
-        and return model now, not in the first frame of a live stream: one frame of a
-        throwaway twin (this emulator's noise stream is left alone)."""
-        twin = Os0Emulator(self.meta, self.scene, self.poses, self.model,
-                           start_ns=self.start_ns, threads=1)
-        twin.jit = self.jit
-        twin.frame(0)
+        """:func:`warm_up` for this sensor and return model."""
+        warm_up(self.meta, self.model)
 
     def column_times(self, k: int) -> NDArray[np.int64]:
         w = self.meta.columns

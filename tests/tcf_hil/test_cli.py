@@ -157,3 +157,16 @@ def test_generation_errors_name_the_scenario_file(tmp_path: Path,
                  '[distribution]\nkind = "even"\ncorridor_half_width_m = 0.0\n')
     code, _, err = run(["forest", "generate", str(p), "--out", str(tmp_path / "o")], capsys)
     assert code == 1 and str(p) in err and "stems.count" in err
+
+
+def test_a_range_cap_the_profile_cannot_carry_is_a_clear_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """RNG15 carries ranges in 15 bits of 8 mm (262 m): a longer cap would wrap into other
+    ranges on the wire. One line naming the setting and the limit; nothing written."""
+    code, _, err = run(["lidar", "pcap", "forest-ii", "--profile", "RNG15_RFL8_NIR8",
+                        "--max-range", "400", "--frames", "1", "--out", str(tmp_path / "o")],
+                       capsys)
+    assert code == 1
+    assert "max_range_m = 400.0 is invalid" in err and "262 m" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o" / "lidar.pcap").exists()
