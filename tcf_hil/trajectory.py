@@ -17,9 +17,7 @@ the IMU) are central differences over ``DIFF_NS``.
 
 from __future__ import annotations
 
-import functools
 import math
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -28,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from emulators._jit import compiled
 from tcf_hil.errors import ConfigError
 from tcf_hil.forest import Terrain
 from tcf_hil.scenario import PoseErrorConfig, TrackConfig
@@ -503,16 +502,8 @@ def warm_up() -> None:
         np.arange(8, dtype=np.int64))
 
 
-@functools.cache
 def _pieces_kernel() -> Callable[..., None] | None:
-    if os.environ.get("TCF_HIL_NO_JIT", "") not in ("", "0"):
-        return None
-    try:
-        import numba
-    except ImportError:  # pragma: no cover - numba is a dependency; numpy stands in
-        return None
-    kernel: Callable[..., None] = numba.njit(cache=True, nogil=True)(_eval_pieces)
-    return kernel
+    return compiled(_eval_pieces)
 
 
 @dataclass(frozen=True)

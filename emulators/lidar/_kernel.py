@@ -8,27 +8,17 @@ each field's bytes go) comes in as numbers from :mod:`protocols.ouster`'s tables
 
 from __future__ import annotations
 
-import functools
-import os
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
+from emulators._jit import compiled
 
-@functools.cache
+
 def answer_kernel() -> Callable[..., None] | None:
-    """The compiled :func:`answer_chunk`, built (or loaded from numba's on-disk cache) on
-    first use: None where numba is missing or ``TCF_HIL_NO_JIT`` is set. numba is imported
-    only here, off the CLI's import path."""
-    if os.environ.get("TCF_HIL_NO_JIT", "") not in ("", "0"):
-        return None
-    try:
-        import numba
-    except ImportError:  # pragma: no cover - numba is a dependency; numpy stands in
-        return None
-    kernel: Callable[..., None] = numba.njit(cache=True, nogil=True)(answer_chunk)
-    return kernel
+    """The compiled :func:`answer_chunk` (:func:`emulators._jit.compiled`), or None."""
+    return compiled(answer_chunk)
 
 
 def answer_chunk(t: Any, sid: Any, noise: Any, col0: int, n_m: float, min_r: float,
@@ -80,15 +70,9 @@ def answer_chunk(t: Any, sid: Any, noise: Any, col0: int, n_m: float, min_r: flo
 
 
 
-@functools.cache
 def frames_kernel() -> Callable[..., None] | None:
-    """The compiled :func:`column_frames` (see :func:`answer_kernel`)."""
-    if answer_kernel() is None:
-        return None
-    import numba
-
-    kernel: Callable[..., None] = numba.njit(cache=True, nogil=True)(column_frames)
-    return kernel
+    """The compiled :func:`column_frames`, or None."""
+    return compiled(column_frames)
 
 
 def column_frames(pos: Any, rot: Any, cos: Any, sin: Any, lr: Any, lt: Any, n_m: float,
