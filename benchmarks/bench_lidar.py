@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from emulators.lidar import Os0Emulator
-from protocols.ouster import encode_lidar_frame, finish_lidar_packets, os0_64_metadata
+from protocols.ouster import finish_lidar_packets, os0_64_metadata
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil.forest import generate_forest
 from tcf_hil.scenario import load_scenario
@@ -64,13 +64,8 @@ def main() -> None:
                     t0 = time.perf_counter()
                     fr = emu.frame(k, packets=buf)
                     t1 = time.perf_counter()
-                    if fr.packets is not None:
-                        finish_lidar_packets(fmt, fr.packets, frame_id=1, init_id=meta.init_id,
-                                             prod_sn=meta.prod_sn, crc_rows=crc)
-                    else:
-                        encode_lidar_frame(fmt, fr.fields, fr.timestamps_ns, frame_id=1,
-                                           init_id=meta.init_id, prod_sn=meta.prod_sn,
-                                           crc_rows=crc, out=buf)
+                    finish_lidar_packets(fmt, fr.packets, frame_id=1, init_id=meta.init_id,
+                                         prod_sn=meta.prod_sn, crc_rows=crc)
                     t2 = time.perf_counter()
                     pipe.append(t2 - t0)
                     enc.append(t2 - t1)

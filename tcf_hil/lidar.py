@@ -38,7 +38,6 @@ from protocols.ouster import (
     ImuPacket,
     SensorMetadata,
     encode_imu_packet,
-    encode_lidar_frame,
     finish_lidar_packets,
     os0_64_metadata,
 )
@@ -153,9 +152,7 @@ class LidarRun:
                 fid_base = None
             elif fid_base is None and action != "silent":
                 fid_base = k
-            arr = fr.packets if fr.packets is not None else encode_lidar_frame(
-                fmt, fr.fields, fr.timestamps_ns, frame_id=0, init_id=self.meta.init_id,
-                prod_sn=self.meta.prod_sn)
+            arr = fr.packets
             finish_lidar_packets(fmt, arr, frame_id=(k - (fid_base or 0)) & 0xFFFF,
                                  init_id=self.meta.init_id, prod_sn=self.meta.prod_sn,
                                  crc_rows=crc)

@@ -83,21 +83,16 @@ class FrameResult:
 
     frame_index: int
     timestamps_ns: NDArray[np.uint64]  # (W,)
-    field_images: dict[str, NDArray[np.uint32]] | None  # staggered (H, W); None: read packets
     stem_id: NDArray[np.int32]  # (H, W): -1 no return, 0 terrain, else the stem
     stem_id2: NDArray[np.int32] | None  # the DUAL profile's second return, else None
     positions: FloatArray  # (W, 3) sensor position per column
     rotations: FloatArray  # (W, 3, 3)
-    packets: NDArray[np.uint8] | None = None  # (packets_per_frame, packet_bytes)
-    packet_format: PacketFormat | None = None
-    field_names: tuple[str, ...] = ()  # the fields the emulator modelled
+    packets: NDArray[np.uint8]  # (packets_per_frame, packet_bytes)
+    packet_format: PacketFormat
+    field_names: tuple[str, ...]  # the fields the emulator modelled
 
     @cached_property
     def fields(self) -> dict[str, NDArray[np.uint32]]:
-        if self.field_images is not None:
-            return self.field_images
-        if self.packets is None or self.packet_format is None:
-            raise ValueError("a frame result needs its field images or its packets")
         return self.packet_format.pixel_fields(self.packets, self.field_names)
 
 
@@ -202,7 +197,6 @@ class Os0Emulator:
         # By return class (0 none, 1 terrain, 2 stem): reflectance, reach, encoded values.
         m = self.model
         refl = np.array([0.0, m.reflectance["ground"], m.reflectance["bark"]])
-        self._refl = refl
         self._refl_signal = refl * m.signal_scale
         self._reach = [float(m.max_range_m * min(1.0, math.sqrt(r / m.reference_reflectance)))
                        for r in refl[1:]]
@@ -415,8 +409,8 @@ class Os0Emulator:
             sid2 = self._second_return(o_all.reshape(-1, 3), d_all.reshape(-1, 3), t_all.T,
                                        ok_all.T, second)
             encode_pixel_fields(fmt, arr, 0, second)
-        return FrameResult(k, ts.astype(np.uint64), None, sid_out.T, sid2, pos, rot, arr,
-                           fmt, self._field_names)
+        return FrameResult(k, ts.astype(np.uint64), sid_out.T, sid2, pos, rot, arr, fmt,
+                           self._field_names)
 
     def _chunk(self, job: _FrameJob, a: int, b: int) -> None:
         """Columns a..b of a frame: rays, cast, returns, their packets' columns."""
