@@ -233,20 +233,16 @@ class Os0Emulator:
                 raise ValueError(f"{f.name} values {v.tolist()} do not fit {fmt.profile.name}")
             return w
 
-        self._luts = {}
-        lut_words = {}
-        for name, values in (("REFLECTIVITY", self._reflectivity), ("NEAR_IR", self._nir)):
-            dt = np.dtype(fields[name].dtype).newbyteorder("=")
-            w = lut_words[name] = [int(v) for v in place(fields[name], values)]
-            wrap = 1 << (8 * dt.itemsize)  # unsigned differences wrap around exactly
-            self._luts[name] = (dt.type(w[0]), dt.type((w[1] - w[0]) % wrap),
-                                dt.type((w[2] - w[1]) % wrap))
+        # REFLECTIVITY and NEAR_IR words by class, in the word's type
+        self._luts: dict[str, NDArray[np.generic]] = {name: place(fields[name], values).astype(
+            np.dtype(fields[name].dtype).newbyteorder("="))
+            for name, values in (("REFLECTIVITY", self._reflectivity), ("NEAR_IR", self._nir))}
         self._signal32 = self._refl_signal.astype(np.float32)
         # the same for the compiled kernel: the words it writes, the values by class
         names = [x for x in ("RANGE", "REFLECTIVITY", "NEAR_IR", "SIGNAL") if x in self._word_of]
         self._kernel: dict[str, Any] = {
             "words": [self._word_of[x] for x in names],
-            "luts": np.array([lut_words[x] for x in ("REFLECTIVITY", "NEAR_IR")], np.int64),
+            "luts": np.array([self._luts[x] for x in ("REFLECTIVITY", "NEAR_IR")], np.int64),
             "clamp": bool(self._signal32.max() > 65535.0 * 0.25)}
         # range in quanta of quantum_mm; the word holds mm shifted by the field's shift
         f = fields["RANGE"]
@@ -483,9 +479,8 @@ class Os0Emulator:
                      ) -> dict[tuple[int, str], NDArray[np.generic]]:
         """The first return's pixel words for (n, H) column-major answers: range from the
         lidar axis in metres ``r``, whether it came back ``ok``, and whether from bark;
-        each field's value already shifted into its place in the word (:meth:`_layout`).
-        A value by class (none, terrain, stem) is ``v0 + ok (v1 - v0) + bark (v2 - v1)``,
-        in the word's unsigned type (its wrap-around is exact)."""
+        each field's value already shifted into its place in the word (:meth:`_layout`);
+        REFLECTIVITY, NEAR_IR and SIGNAL's reflectance looked up by return class."""
         words: dict[tuple[int, str], NDArray[np.generic]] = {}
         ok8, bark8 = ok.view(np.uint8), bark.view(np.uint8)
 
@@ -503,19 +498,15 @@ class Os0Emulator:
         ui *= ok
         put("RANGE", ui.view(np.uint32) if self._range_mult == 1 else ui.view(np.uint32)
             * np.uint32(self._range_mult))
-        for name, (v0, d1, d2) in self._luts.items():
-            v = np.multiply(ok8, d1, dtype=d1.dtype)  # typed: no conversion loops
-            if d2:
-                v += np.multiply(bark8, d2, dtype=d2.dtype)
-            if v0:
-                v += v0
-            put(name, v)
+        cls = ok8 + bark8  # 0 none, 1 terrain, 2 stem
+        for name, lut in self._luts.items():
+            put(name, np.take(lut, cls, mode="clip"))
         if "SIGNAL" in self._word_of:
             # photons: reflectance over range squared (no return: reflectance 0)
             den = np.empty(r.shape, np.float32)
             np.maximum(r, 0.5, out=den, casting="same_kind")
             den *= den
-            sig = np.take(self._signal32, ok8 + bark8, mode="clip")
+            sig = np.take(self._signal32, cls, mode="clip")
             sig /= den
             if self._kernel["clamp"]:  # can saturate (nearer than 0.5 m)
                 np.minimum(sig, np.float32(65535.0), out=sig)

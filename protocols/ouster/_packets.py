@@ -150,6 +150,12 @@ def encode_lidar_frame(fmt: PacketFormat, fields: Mapping[str, NDArray[np.intege
                                 crc_rows=crc_rows)
 
 
+def _check_frame(fmt: PacketFormat, frame: NDArray[np.uint8]) -> None:
+    if frame.shape != (fmt.packets_per_frame, fmt.packet_bytes) or frame.dtype != np.uint8:
+        raise ValueError(f"packet array of shape {frame.shape} and dtype {frame.dtype}; "
+                         f"expected ({fmt.packets_per_frame}, {fmt.packet_bytes}) uint8")
+
+
 def _check_ids(frame_id: int, init_id: int, prod_sn: int) -> None:
     if not 0 <= frame_id <= 0xFFFF or not 0 <= init_id < 1 << 24 or not 0 <= prod_sn < 1 << 40:
         raise ValueError(f"frame_id {frame_id} (16 bit), init_id {init_id} (24 bit) or prod_sn "
@@ -183,9 +189,7 @@ def encode_lidar_columns(fmt: PacketFormat, frame: NDArray[np.uint8], first_colu
         raise ValueError(f"columns {first_column}..{first_column + n} with timestamps_ns of "
                          f"shape {ts.shape}: expected whole packets of {C} columns within "
                          f"0..{W}")
-    if frame.shape != (fmt.packets_per_frame, fmt.packet_bytes) or frame.dtype != np.uint8:
-        raise ValueError(f"packet array of shape {frame.shape} and dtype {frame.dtype}; "
-                         f"expected ({fmt.packets_per_frame}, {fmt.packet_bytes}) uint8")
+    _check_frame(fmt, frame)
     for name, img in fields.items():
         if np.shape(img) != (H, n):
             raise ValueError(f"field {name} has shape {np.shape(img)}; expected ({H}, {n})")
@@ -249,9 +253,7 @@ def finish_lidar_packets(fmt: PacketFormat, frame: NDArray[np.uint8], *, frame_i
     of a frame whose columns :func:`encode_lidar_columns` wrote; returns ``frame``."""
     _check_ids(frame_id, init_id, prod_sn)
     arr = frame
-    if arr.shape != (fmt.packets_per_frame, fmt.packet_bytes) or arr.dtype != np.uint8:
-        raise ValueError(f"packet array of shape {arr.shape} and dtype {arr.dtype}; "
-                         f"expected ({fmt.packets_per_frame}, {fmt.packet_bytes}) uint8")
+    _check_frame(fmt, arr)
     if fmt.profile.legacy:
         _word_view(fmt._columns(arr), 10, "<u2")[...] = frame_id
         return arr
