@@ -37,7 +37,7 @@ class Caster(Protocol):
     name: str
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
-             ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+             ) -> tuple[NDArray[np.float32], NDArray[np.integer]]:
         """Hit distance along each unit direction (inf on a miss) and triangle id (-1)."""
         ...
 
@@ -52,30 +52,48 @@ def default_threads() -> int:
 
 
 class EmbreeCaster:
-    """embreex's scene, robust mode. embreex traces a batch on one core but releases the GIL,
-    so a large batch is split over ``threads`` threads (about 1.6x on 2 cores)."""
+    """Embree in robust mode (without it rays slip through edges shared by two triangles),
+    from the library the embreex wheel ships: bound directly (:mod:`emulators._embree`: the
+    scene handle and ``rtcIntersect1`` from compiled code, so the lidar emulator casts and
+    answers its rays in one call without the GIL) where compiled kernels are on, else
+    through embreex's own scene; the same hits either way. A batch is traced on one core
+    with the GIL released, so a large one is split over ``threads`` threads (about 1.6x on
+    2 cores)."""
 
     name = "embree"
     MIN_RAYS_PER_THREAD = 16384
 
     def __init__(self, vertices: FloatArray, faces: NDArray[np.int64],
-                 threads: int | None = None) -> None:
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
+                 threads: int | None = None, direct: bool = True) -> None:
+        from emulators._jit import jit_enabled
 
-        # Robust mode: without it rays slip through edges shared by two triangles.
-        self._scene = rtcore_scene.EmbreeScene(robust=True)
-        TriangleMesh(scene=self._scene, vertices=vertices.astype(np.float32),
-                     indices=faces.astype(np.int32))
+        self.direct_scene: Any = None
+        if direct and jit_enabled():
+            from emulators._embree import direct_scene
+
+            self.direct_scene = direct_scene(vertices, faces)
+        if self.direct_scene is None:
+            from embreex import rtcore_scene
+            from embreex.mesh_construction import TriangleMesh
+
+            self._scene = rtcore_scene.EmbreeScene(robust=True)
+            TriangleMesh(scene=self._scene, vertices=vertices.astype(np.float32),
+                         indices=faces.astype(np.int32))
         self.threads = threads or default_threads()
         self._pool: ThreadPoolExecutor | None = None
         self._pool_pid = 0
         self._pool_lock = threading.Lock()
 
     def _run(self, o: NDArray[np.float32], d: NDArray[np.float32], t: NDArray[np.float32],
-             prim: NDArray[np.int64]) -> None:
+             prim: NDArray[np.int32]) -> None:
+        if self.direct_scene is not None:
+            from emulators._embree import cast_rays
+
+            cast_rays(self.direct_scene.intersect, self.direct_scene.handle, o, d, t, prim)
+            return
         # t comes in as inf and is traced in place: the hit distance, inf on a miss (and the
         # primitive RTC_INVALID_GEOMETRY_ID, -1 as int32)
+        t.fill(np.inf)
         r = self._scene.run(o, d, dists=t, output=1)
         prim[:] = r["primID"]
         if r["tfar"] is not t:
@@ -83,21 +101,23 @@ class EmbreeCaster:
 
     def cast1(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
               ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
-        """:meth:`cast` on the calling thread, with embreex's own arrays (no copies): for
-        callers that spread their rays over threads themselves."""
+        """:meth:`cast` on the calling thread: for callers that spread their rays over
+        threads themselves."""
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
+        if self.direct_scene is not None:
+            return self.direct_scene.cast(o, d)
         t = np.full(len(o), np.inf, np.float32)
         r = self._scene.run(o, d, dists=t, output=1)
         return r["tfar"], r["primID"]
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
-             ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+             ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
         n = len(o)
-        t = np.full(n, np.inf, np.float32)
-        prim = np.empty(n, np.int64)
+        t = np.empty(n, np.float32)
+        prim = np.empty(n, np.int32)
         parts = min(self.threads, n // self.MIN_RAYS_PER_THREAD)
         if parts <= 1:
             self._run(o, d, t, prim)
@@ -125,7 +145,7 @@ class Open3dCaster:
                                   o3d.core.Tensor(faces.astype(np.uint32)))
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
-             ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+             ) -> tuple[NDArray[np.float32], NDArray[np.integer]]:
         rays = np.concatenate([origins, directions], axis=1).astype(np.float32)
         ans = self._scene.cast_rays(self._o3d.core.Tensor(rays))
         t = ans["t_hit"].numpy().astype(np.float32)
@@ -192,10 +212,22 @@ class Scene:
         t, prim = (one or self.caster.cast)(origins, directions)
         return t, self._stem_ids(prim)
 
-    def _stem_ids(self, prim: NDArray[np.integer]) -> NDArray[np.int32]:
+    def direct(self) -> tuple[int, int, NDArray[np.int32]] | None:
+        """For compiled kernels that cast themselves (the lidar emulator's): ``(address of
+        rtcIntersect1, the RTCScene, stem id by triangle with -1 last)``, or None where the
+        backend has no directly bound Embree scene (:class:`EmbreeCaster`)."""
+        ds = getattr(self.caster, "direct_scene", None)
+        if ds is None:
+            return None
+        return ds.intersect, ds.handle, self._stem_table()
+
+    def _stem_table(self) -> NDArray[np.int32]:
+        """Stem id by triangle, then -1 last: a miss (triangle -1) looks itself up."""
         if self._sid_of_prim is None or self._sid_of_prim[0] is not self.stem_id:
-            # stem id by triangle, then -1 last: a miss (triangle -1) looks itself up
             self._sid_of_prim = (self.stem_id,
                                  np.append(self.stem_id, np.int32(-1)).astype(np.int32))
-        sid: NDArray[np.int32] = self._sid_of_prim[1][prim]
+        return self._sid_of_prim[1]
+
+    def _stem_ids(self, prim: NDArray[np.integer]) -> NDArray[np.int32]:
+        sid: NDArray[np.int32] = self._stem_table()[prim]
         return sid

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from emulators._jit import compiled
+from emulators._jit import compiled, jit_enabled
 
 
 def answer_kernel() -> Callable[..., None] | None:
@@ -26,14 +26,14 @@ def answer_chunk(t: Any, sid: Any, noise: Any, col0: int, n_m: float, min_r: flo
                   range_mult: int, luts: Any, signal32: Any, clamp_signal: bool,
                   w_range: Any, w_refl: Any, w_nir: Any, w_signal: Any,
                   refl_in_range: bool, sid_out: Any, t_out: Any, ok_out: Any) -> None:
-    """Columns col0 .. col0 + n of a frame. ``t``/``sid`` (H, n): the cast, beam-major;
+    """Columns col0 .. col0 + n of a frame. ``t``/``sid`` (n, H): the cast, column-major;
     ``noise`` (n, H) or (0, 0); ``w_*`` (packets, columns, H): the pixel words of
     RANGE, REFLECTIVITY, NEAR_IR and SIGNAL in the chunk's zeroed packets (SIGNAL
     (0, 0, 0) where the profile has none; ``refl_in_range``: REFLECTIVITY shares
     RANGE's word, and is or-ed in); ``luts`` (2, 3) the REFLECTIVITY and NEAR_IR words
     by class; ``sid_out`` (W, H); ``t_out``/``ok_out`` (W, H) or (0, 0): the first return
     for DUAL."""
-    H, n = t.shape
+    n, H = t.shape
     C = w_range.shape[1]
     noisy = noise.shape[0] > 0
     keep = t_out.shape[0] > 0
@@ -42,11 +42,11 @@ def answer_chunk(t: Any, sid: Any, noise: Any, col0: int, n_m: float, min_r: flo
         p = c // C
         j = c - p * C
         for h in range(H):
-            tt = np.float64(t[h, c])
+            tt = np.float64(t[c, h])
             if noisy:
                 tt += noise[c, h]
             r = tt + n_m
-            s = sid[h, c]
+            s = sid[c, h]
             bark = s > 0
             ok = r >= min_r and r <= (reach_bark if bark else reach_ground)
             cls = (2 if bark else 1) if ok else 0
@@ -68,6 +68,35 @@ def answer_chunk(t: Any, sid: Any, noise: Any, col0: int, n_m: float, min_r: flo
                     sig = np.float32(65535.0)
                 w_signal[p, j, h] = np.int64(sig)
 
+
+def fused_kernel() -> Callable[..., None] | None:
+    """:func:`emulators.lidar._fused.cast_answer_blocks` (blocks of columns encoded, their
+    rays made, cast through Embree and answered in one call), or None where compiled kernels
+    are off."""
+    if not jit_enabled():
+        return None
+    from emulators.lidar._fused import cast_answer_blocks
+
+    kernel: Callable[..., None] = cast_answer_blocks
+    return kernel
+
+
+def rays_kernel() -> Callable[..., None] | None:
+    """The compiled :func:`make_rays`, or None."""
+    return compiled(make_rays)
+
+
+def make_rays(beams: Any, mt: Any, oc: Any, o: Any, d: Any) -> None:
+    """The rays of n columns, column-major: ``o``/``d`` (n, H, 3) float32, from the beams'
+    unit vectors ``beams`` (H, 3) and the columns' factors ``mt`` (3, n, 3) and beam origins
+    ``oc`` (n, 3) (:func:`column_frames`): ``d[c, h, i] = sum_j beams[h, j] mt[j, c, i]``,
+    summed left to right in float32, one rounding per operation (as the numpy path)."""
+    for c in range(o.shape[0]):
+        for h in range(o.shape[1]):
+            b0, b1, b2 = beams[h, 0], beams[h, 1], beams[h, 2]
+            for i in range(3):
+                d[c, h, i] = b0 * mt[0, c, i] + b1 * mt[1, c, i] + b2 * mt[2, c, i]
+                o[c, h, i] = oc[c, i]
 
 
 def frames_kernel() -> Callable[..., None] | None:

@@ -18,7 +18,8 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from emulators.lidar._kernel import answer_kernel, frames_kernel
+from emulators._jit import jit_enabled
+from emulators.lidar._kernel import answer_kernel, frames_kernel, fused_kernel, rays_kernel
 from protocols.ouster import (
     Field,
     PacketFormat,
@@ -35,7 +36,12 @@ class RayScene(Protocol):
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.floating], NDArray[np.int32]]:
         """(distance along each unit ray, inf on a miss; stem id: 0 terrain, -1 nothing),
-        for rays in float64 or float32 (what the emulator passes)."""
+        for rays in float64 or float32 (what the emulator passes).
+
+        A scene may also offer ``cast32(o, d)`` (float32 rays, float32 distances, on the
+        calling thread) and ``direct()``: ``(rtcIntersect1's address, an RTCScene handle,
+        stem id by triangle with -1 last)`` or None, an Embree scene the emulator's compiled
+        kernel casts through itself (:mod:`emulators._embree`)."""
         ...
 
 
@@ -97,11 +103,24 @@ class FrameResult:
 
 
 class _Nothing:
-    """A scene with nothing in it."""
+    """A scene with nothing in it; with ``embree``, an Embree scene of one triangle far away
+    that it hands over (``direct``), as :class:`tcf_hil.scene.Scene` does."""
+
+    def __init__(self, embree: bool = False) -> None:
+        self._embree: Any = None
+        if embree and jit_enabled():
+            from emulators._embree import direct_scene
+
+            far = np.array([[1e6, 0.0, 0.0], [1e6, 1.0, 0.0], [1e6, 0.0, 1.0]])
+            self._embree = direct_scene(far, np.array([[0, 1, 2]]))
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
         return np.full(len(origins), np.inf, np.float32), np.full(len(origins), -1, np.int32)
+
+    def direct(self) -> tuple[int, int, NDArray[np.int32]] | None:
+        e = self._embree
+        return None if e is None else (e.intersect, e.handle, np.array([0, -1], np.int32))
 
 
 class _Still:
@@ -114,8 +133,10 @@ class _Still:
 def warm_up(meta: SensorMetadata, model: ReturnModel | None = None) -> None:
     """Compile the emulator's kernels (numba; or load them from its on-disk cache) for this
     sensor and return model now, not in the first frame of a live stream (seconds, the first
-    time on a machine): one frame of a still sensor in an empty scene."""
-    Os0Emulator(meta, _Nothing(), _Still(), model, threads=1).frame(0)
+    time on a machine): one frame of a still sensor in an empty scene, cast by the scene
+    (open3d's way) and through a directly bound Embree scene (the fused kernel)."""
+    for embree in (False, True):
+        Os0Emulator(meta, _Nothing(embree), _Still(), model, threads=1).frame(0)
 
 
 def carried_range_m(fmt: PacketFormat) -> float:
@@ -129,9 +150,8 @@ def carried_range_m(fmt: PacketFormat) -> float:
 class _FrameJob:
     """What a frame's column chunks share: the ray factors, the noise, and where they write."""
 
-    pieces: Any  # the pose pieces each chunk evaluates at its column times, or None
-    pos: FloatArray  # (W, 3) column poses: filled by the chunks, or exact beforehand
-    rot: FloatArray  # (W, 3, 3)
+    mt: NDArray[np.float32]  # (3, W, 3) ray factors (Os0Emulator._column_rays)
+    oc: NDArray[np.float32]  # (W, 3) beam origins
     noise: FloatArray | None  # (W, H)
     sid: NDArray[np.int32]  # (W, H) stem id out
     packets: NDArray[np.uint8]
@@ -149,21 +169,26 @@ class Os0Emulator:
     ``L Rz(theta_c) b_h`` from ``L Rz(theta_c) (n, 0, 0) + t_L`` (``L, t_L`` the
     lidar-to-sensor transform, ``theta_c`` the encoder angle, ``b_h`` the beam's unit vector,
     ``n`` the beam-origin offset). With the sensor pose ``(R_c, p_c)`` of the column, its rays
-    in the scene are ``M_c b_h`` with ``M_c = R_c L Rz(theta_c)``: one small matrix product
-    (beams x 3 by 3 x columns) makes them, in float32, as the casters take them.
+    in the scene are ``M_c b_h`` with ``M_c = R_c L Rz(theta_c)``: per ray, three products
+    and two sums in float32 (as the casters take rays), ``M_c`` made once per column.
 
     Column poses come from pieces the pose source builds for two seconds of frames at once
     while frames are read in order (``dense_poses``/``sensor_pose_dense`` where the source has
-    them, e.g. :class:`tcf_hil.trajectory.Trajectory`; else ``sensor_pose`` per frame). A
-    frame is worked in chunks of columns, each turned into rays, cast, answered and encoded
-    into its packets' columns on its own, spread over ``threads`` threads. The per-ray answer
-    is a compiled kernel (numba; :mod:`emulators.lidar._kernel`), numpy where numba is
-    missing: the same bytes. numpy, BLAS, the kernel and the casters release the GIL; the
-    results do not depend on the split."""
+    them, e.g. :class:`tcf_hil.trajectory.Trajectory`; else ``sensor_pose`` per frame); a
+    frame's poses and ``M_c`` are made first. Then, where the scene hands over an Embree
+    scene (``direct()``) and numba is here, one compiled call per thread (this one and
+    ``threads - 1`` more) takes blocks of columns in turn and, without the GIL, encodes
+    their packets' columns, makes their rays, casts them and answers each into its pixel
+    (:func:`emulators.lidar._fused.cast_answer_blocks`). Otherwise chunks of columns are
+    spread over ``threads`` threads, each encoded (:func:`protocols.ouster.
+    encode_lidar_columns`), its rays made, cast by the scene and answered (compiled kernels
+    in :mod:`emulators.lidar._kernel`, or numpy where numba is missing). Every path writes
+    the same bytes whatever the split (the tests hold them to it)."""
 
-    MIN_RAYS_PER_CHUNK = 8192
-    RAYS_PER_CHUNK = 32768
-    BLOCK_COLUMNS = 128  # rays are made this many columns at a time: one fixed product shape
+    FUSED_BLOCK_COLUMNS = 16  # the fused kernel's unit of work, taken by the threads in turn
+    MIN_RAYS_PER_CHUNK = 8192  # the other path's chunks: about RAYS_PER_CHUNK rays each,
+    RAYS_PER_CHUNK = 32768  # whole blocks of BLOCK_COLUMNS columns (whole packets)
+    BLOCK_COLUMNS = 128
 
     def __init__(self, meta: SensorMetadata, scene: RayScene, poses: PoseSource,
                  model: ReturnModel | None = None, *, seed: int = 0,
@@ -193,7 +218,8 @@ class Os0Emulator:
         self.period_ns = 1_000_000_000 // meta.frequency_hz
         self.n_m = meta.lidar_origin_to_beam_origin_mm / 1000.0
         self.quantum_mm = 8 if meta.profile == "RNG15_RFL8_NIR8" else 1
-        self.profile_fields = set(meta.packet_format.field_names)
+        self._fmt = meta.packet_format
+        self.profile_fields = set(self._fmt.field_names)
         # By return class (0 none, 1 terrain, 2 stem): reflectance, reach, encoded values.
         m = self.model
         refl = np.array([0.0, m.reflectance["ground"], m.reflectance["bark"]])
@@ -206,7 +232,7 @@ class Os0Emulator:
         if meta.profile == "RNG15_RFL8_NIR8":
             nir = np.minimum(nir, 4080) // 16 * 16
         self._nir = nir
-        self._layout(meta.packet_format)
+        self._layout(self._fmt)
         self.threads = max(1, threads or (len(os.sched_getaffinity(0))
                                           if hasattr(os, "sched_getaffinity")
                                           else (os.cpu_count() or 1)))
@@ -214,6 +240,9 @@ class Os0Emulator:
         self._pool_pid = 0
         self._pose_block: tuple[int, int, Any] | None = None
         self.jit = True  # the compiled per-ray kernel (numba), where it can be had
+        self._direct: tuple[int, int, NDArray[np.int32]] | None = None
+        self._direct_asked = False
+        self._template: NDArray[np.uint8] | None = None
 
     def _layout(self, fmt: PacketFormat) -> None:
         """Where the first return's fields go in a pixel, and their values by return class
@@ -294,8 +323,8 @@ class Os0Emulator:
 
     def _column_rays(self, pos: FloatArray, rot: FloatArray, a: int = 0
                      ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """The ray factors of columns a .. a + n (poses (n, 3), (n, 3, 3)): (3, 3n) float32
-        with [j, 3c + i] = M_c[i, j], and the beam origins (n, 3) float32 in the scene.
+        """The ray factors of columns a .. a + n (poses (n, 3), (n, 3, 3)): (3, n, 3) float32
+        with [j, c, i] = M_c[i, j], and the beam origins (n, 3) float32 in the scene.
         Sums written out, left to right (the compiled kernel and numpy alike, no BLAS): the
         same bits whatever the split into chunks."""
         n = len(pos)
@@ -305,7 +334,7 @@ class Os0Emulator:
         kernel = frames_kernel() if self.jit else None
         if kernel is not None:
             kernel(pos, rot, cos, sin, self._l_rot, self._l_tr, self.n_m, mt, oc)
-            return mt.reshape(3, 3 * n), oc
+            return mt, oc
         lr, lt = self._l_rot, self._l_tr
         for i in range(3):
             r0, r1, r2 = rot[:, i, 0], rot[:, i, 1], rot[:, i, 2]
@@ -317,19 +346,34 @@ class Os0Emulator:
             mt[1, :, i] = a1 * cos - a0 * sin
             mt[2, :, i] = a2
             oc[:, i] = pos[:, i] + (r0 * lt[0] + r1 * lt[1] + r2 * lt[2]) + self.n_m * m0
-        return mt.reshape(3, 3 * n), oc
+        return mt, oc
 
-    def _make_rays(self, x: NDArray[np.float32], oc: NDArray[np.float32], a: int, b: int
-                   ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """Columns a..b's rays, beam-major: origins and directions (H, b - a, 3) float32."""
-        h, blk = self.meta.pixels, self._block
-        d = np.empty((h, 3 * (b - a)), np.float32)
-        for c in range(a, b, blk):
-            np.matmul(self._beams32, x[:, 3 * c:3 * (c + blk)],
-                      out=d[:, 3 * (c - a):3 * (c - a + blk)])
-        o = np.empty((h, 3 * (b - a)), np.float32)
-        o[...] = oc[a:b].reshape(1, -1)  # a whole row at a time, not 3 floats at a time
-        return o.reshape(h, b - a, 3), d.reshape(h, b - a, 3)
+    def _make_rays(self, mt: NDArray[np.float32], oc: NDArray[np.float32],
+                   o: NDArray[np.float32], d: NDArray[np.float32]) -> None:
+        """The rays of the columns of ``mt``/``oc`` (:meth:`_column_rays`), column-major,
+        into ``o``/``d`` (n, H, 3) float32: ``d[c, h] = M_c b_h`` summed left to right, one
+        rounding per operation (:func:`emulators.lidar._kernel.make_rays`, or numpy: the
+        same bits)."""
+        kernel = rays_kernel() if self.jit else None
+        if kernel is not None:
+            kernel(self._beams32, mt, oc, o, d)
+            return
+        b = self._beams32[None, :, :, None]  # (1, H, 3, 1)
+        np.multiply(b[:, :, 0], mt[0][:, None, :], out=d)
+        d += b[:, :, 1] * mt[1][:, None, :]
+        d += b[:, :, 2] * mt[2][:, None, :]
+        o[...] = oc[:, None, :]
+
+    def _direct_scene(self) -> tuple[int, int, NDArray[np.int32]] | None:
+        """What the fused kernel casts through (``rtcIntersect1``, the RTCScene, stem id by
+        triangle), where the scene offers it (``direct()``) and compiled kernels are on."""
+        if not self.jit:
+            return None
+        if not self._direct_asked:
+            direct = getattr(self.scene, "direct", None)
+            self._direct = direct() if direct is not None else None
+            self._direct_asked = True
+        return self._direct
 
     def rays(self, k: int, dtype: type[np.floating] = np.float64
              ) -> tuple[NDArray[np.floating], NDArray[np.floating], FloatArray, FloatArray]:
@@ -339,9 +383,10 @@ class Os0Emulator:
         pos, rot = self.column_poses(k)
         # Rays of column c are in the sensor frame of column c's pose.
         if dtype == np.float32:
-            o32, d32 = self._make_rays(*self._column_rays(pos, rot), 0, len(pos))
-            return (np.ascontiguousarray(o32.transpose(1, 0, 2)).reshape(-1, 3),
-                    np.ascontiguousarray(d32.transpose(1, 0, 2)).reshape(-1, 3), pos, rot)
+            o32 = np.empty((len(pos), self.meta.pixels, 3), np.float32)
+            d32 = np.empty_like(o32)
+            self._make_rays(*self._column_rays(pos, rot), o32, d32)
+            return o32.reshape(-1, 3), d32.reshape(-1, 3), pos, rot
         rt = rot.transpose(0, 2, 1)
         o = np.matmul(self._origins_wh, rt) + pos[:, None, :]
         d = np.matmul(self._directions_wh, rt)
@@ -359,14 +404,14 @@ class Os0Emulator:
     def frame(self, k: int, packets: NDArray[np.uint8] | None = None) -> FrameResult:
         """Frame k, written into packets: ``packets`` (the frame's (packets_per_frame,
         packet_bytes) uint8 array) or a new array, :attr:`FrameResult.packets` either way.
-        Each column chunk encodes its columns as it finishes
-        (:func:`protocols.ouster.encode_lidar_columns`, then the pixel words straight from
-        the return model); the packet headers and CRCs are left to the caller
-        (:func:`protocols.ouster.finish_lidar_packets`), who chooses the frame_id. The DUAL
-        profile's second return is cast over the whole frame after the chunks."""
+        Every column is encoded (:func:`protocols.ouster.encode_lidar_columns`, then the
+        pixel words straight from the return model); the packet headers and CRCs are left to
+        the caller (:func:`protocols.ouster.finish_lidar_packets`), who chooses the
+        frame_id. The DUAL profile's second return is cast over the whole frame after the
+        first."""
         m = self.model
         H, W = self.meta.pixels, self.meta.columns
-        fmt = self.meta.packet_format
+        fmt = self._fmt
         shape = (fmt.packets_per_frame, fmt.packet_bytes)
         if packets is None:
             packets = np.empty(shape, np.uint8)
@@ -375,9 +420,8 @@ class Os0Emulator:
                              f"{packets.dtype}; expected {shape} uint8")
         arr = packets
         pieces, ts = self._pose_pieces(k)
-        # column poses: evaluated by each chunk for its columns, or exact for the frame now
-        pos, rot = (np.empty((W, 3)), np.empty((W, 3, 3))) if pieces is not None \
-            else self._pose_at(ts)
+        pos, rot = pieces.at(ts) if pieces is not None else self._pose_at(ts)
+        mt, oc = self._column_rays(pos, rot)
         noise = (self.rng.normal(0.0, m.noise_sigma_m, (H, W)).T if m.noise_sigma_m > 0
                  else None)
         dual = "RANGE2" in self.profile_fields  # only what the profile carries
@@ -386,18 +430,13 @@ class Os0Emulator:
         d_all = np.empty((W, H, 3), np.float32) if dual else None
         t_all = np.empty((W, H)) if dual else None
         ok_all = np.empty((W, H), bool) if dual else None
-        job = _FrameJob(pieces, pos, rot, noise, sid_out, arr, ts, o_all, d_all, t_all,
-                        ok_all)
-        chunks = self._chunks()
-        if self.threads == 1 or len(chunks) == 1:
-            for a, b in chunks:
-                self._chunk(job, a, b)
+        job = _FrameJob(mt, oc, noise, sid_out, arr, ts, o_all, d_all, t_all, ok_all)
+        direct = self._direct_scene()
+        fused = fused_kernel() if direct is not None else None
+        if direct is not None and fused is not None:
+            self._fused_frame(fused, direct, job)
         else:
-            if self._pool is None or self._pool_pid != os.getpid():  # threads die in a fork
-                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="os0")
-                self._pool_pid = os.getpid()
-            for f in [self._pool.submit(self._chunk, job, a, b) for a, b in chunks]:
-                f.result()
+            self._run(self._chunk, [(job, a, b) for a, b in self._chunks()])
         sid2 = None
         if o_all is not None and d_all is not None and t_all is not None \
                 and ok_all is not None:  # only what the profile carries
@@ -408,53 +447,90 @@ class Os0Emulator:
         return FrameResult(k, ts.astype(np.uint64), sid_out.T, sid2, pos, rot, arr, fmt,
                            self._field_names)
 
+    def _run(self, fn: Any, calls: list[tuple[Any, ...]], here: bool = False) -> None:
+        """``fn(*c)`` for every ``c`` of ``calls``, spread over the pool's threads (or here,
+        for one thread or one call); ``here``: the last call on this thread meanwhile."""
+        if self.threads == 1 or len(calls) == 1:
+            for c in calls:
+                fn(*c)
+            return
+        if self._pool is None or self._pool_pid != os.getpid():  # threads die in a fork
+            self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="os0")
+            self._pool_pid = os.getpid()
+        running = [self._pool.submit(fn, *c) for c in (calls[:-1] if here else calls)]
+        try:
+            if here:
+                fn(*calls[-1])
+        finally:
+            for f in running:
+                f.result()
+
+    def _fused_frame(self, fused: Any, direct: tuple[int, int, NDArray[np.int32]],
+                     job: _FrameJob) -> None:
+        """The frame through :func:`emulators.lidar._fused.cast_answer_blocks`: one call per
+        thread (this one too), each taking the next block of columns until none is left, so
+        the threads finish together."""
+        fmt, W = self._fmt, self.meta.columns
+        width = math.lcm(math.gcd(W, self.FUSED_BLOCK_COLUMNS), fmt.columns_per_packet)
+        if self._template is None:  # every column encoded, at time 0
+            self._template = np.empty((fmt.packets_per_frame, fmt.packet_bytes), np.uint8)
+            encode_lidar_columns(fmt, self._template, 0, {}, np.zeros(W, np.int64))
+        none3 = np.zeros((0, 0, 0), np.float32)
+        head = (*direct, self._beams32, job.mt, job.oc)
+        answer = self._answer_args(job, 0, W)  # whole-frame; the kernel slices each block's
+        tail = (width, job.o_all if job.o_all is not None else none3,
+                job.d_all if job.d_all is not None else none3, self._template, job.packets,
+                fmt.column_timestamps(job.packets), job.ts, answer[0], *answer[2:])
+        starts = np.arange(0, W, width)
+        counter = np.zeros(1, np.int64)
+        n = min(self.threads, len(starts))
+        self._run(fused, [(*head, starts, counter, *tail)] * n, here=True)
+
     def _chunk(self, job: _FrameJob, a: int, b: int) -> None:
-        """Columns a..b of a frame: rays, cast, returns, their packets' columns."""
+        """Columns a..b of a frame where the cast is the scene's own (not an Embree scene
+        it hands over): column headers, rays, the cast, returns into their packets."""
         H, n = self.meta.pixels, b - a
-        if job.pieces is not None:
-            job.pos[a:b], job.rot[a:b] = job.pieces.at(job.ts[a:b])
-        x, oc = self._column_rays(job.pos[a:b], job.rot[a:b], a)
-        o, d = self._make_rays(x, oc, 0, n)
-        t32, sid_bm = self._cast32(o.reshape(-1, 3), d.reshape(-1, 3))
-        t = np.asarray(t32, np.float32).reshape(H, n)  # beam-major, as cast
-        sid = np.asarray(sid_bm, np.int32).reshape(H, n)
-        encode_lidar_columns(self.meta.packet_format, job.packets, a, {}, job.ts[a:b])
+        encode_lidar_columns(self._fmt, job.packets, a, {}, job.ts[a:b])
+        if job.o_all is not None and job.d_all is not None:  # DUAL keeps the rays
+            o, d = job.o_all[a:b], job.d_all[a:b]
+        else:
+            o = np.empty((n, H, 3), np.float32)
+            d = np.empty_like(o)
+        self._make_rays(job.mt[:, a:b], job.oc[a:b], o, d)
+        t32, sid_cm = self._cast32(o.reshape(-1, 3), d.reshape(-1, 3))
+        t = np.asarray(t32, np.float32).reshape(n, H)  # column-major, as cast
+        sid = np.asarray(sid_cm, np.int32).reshape(n, H)
         kernel = answer_kernel() if self.jit else None
         if kernel is not None:
-            self._answer_jit(kernel, job, a, b, t, sid)
+            kernel(t, sid, *self._answer_args(job, a, b))
         else:
             self._answer_numpy(job, a, b, t, sid)
-        if job.o_all is not None and job.d_all is not None:
-            job.o_all[a:b] = o.transpose(1, 0, 2)
-            job.d_all[a:b] = d.transpose(1, 0, 2)
 
-    def _answer_jit(self, kernel: Any, job: _FrameJob, a: int, b: int,
-                    t: NDArray[np.float32], sid: NDArray[np.int32]) -> None:
-        fmt = self.meta.packet_format
+    def _answer_args(self, job: _FrameJob, a: int, b: int) -> tuple[Any, ...]:
+        """:func:`emulators.lidar._kernel.answer_chunk`'s arguments after ``t`` and ``sid``,
+        for columns a..b."""
+        fmt = self._fmt
         C = fmt.columns_per_packet
         k = self._kernel
         none2 = np.zeros((0, 0))
         rows = job.packets[a // C:b // C]
         words = [fmt.pixel_word(rows, off, dt) for off, dt in k["words"]]
-        kernel(t, sid, job.noise[a:b] if job.noise is not None else none2, a,
-                     self.n_m, self.model.min_range_m, self._reach[0], self._reach[1],
-                     self._range_units, self._range_mult, k["luts"], self._signal32,
-                     k["clamp"], *words[:3], words[3] if len(words) == 4 else words[2][:0],
-                     k["words"][0] == k["words"][1], job.sid,
-                     job.t_all if job.t_all is not None else none2,
-                     job.ok_all if job.ok_all is not None else np.zeros((0, 0), bool))
+        return (job.noise[a:b] if job.noise is not None else none2, a,
+                self.n_m, self.model.min_range_m, self._reach[0], self._reach[1],
+                self._range_units, self._range_mult, k["luts"], self._signal32,
+                k["clamp"], *words[:3], words[3] if len(words) == 4 else words[2][:0],
+                k["words"][0] == k["words"][1], job.sid,
+                job.t_all if job.t_all is not None else none2,
+                job.ok_all if job.ok_all is not None else np.zeros((0, 0), bool))
 
-    def _answer_numpy(self, job: _FrameJob, a: int, b: int, t_bm: NDArray[np.float32],
-                      sid_bm: NDArray[np.int32]) -> None:
+    def _answer_numpy(self, job: _FrameJob, a: int, b: int, t: NDArray[np.float32],
+                      sid: NDArray[np.int32]) -> None:
         """The compiled kernel's work in numpy (where numba is missing; the tests hold the
-        two to the same bytes)."""
+        two to the same bytes): ``t``/``sid`` (n, H), column-major as the packets."""
         m = self.model
         H, n = self.meta.pixels, b - a
-        fmt = self.meta.packet_format
+        fmt = self._fmt
         C = fmt.columns_per_packet
-        # beam-major (H, n) answers read column-major (n, H), the packets' order
-        t = t_bm.T
-        sid = np.ascontiguousarray(sid_bm.T)
         # the encoded range counts from the lidar axis (a miss is inf: never in reach)
         tt = t.astype(np.float64)
         if job.noise is not None:

@@ -91,6 +91,12 @@ class PacketFormat:
         ``Field.dtype``)."""
         return _word_view(self._pixels(self._columns(packets)), offset, dtype)
 
+    def column_timestamps(self, packets: NDArray[np.uint8]) -> NDArray[np.generic]:
+        """The (packets, columns) view of the column time stamps (ns) of an (n, packet_bytes)
+        array: the one column header word that changes from frame to frame (a writer may
+        copy the rest from packets encoded once, :func:`encode_lidar_columns`)."""
+        return _word_view(self._columns(packets), 0, "<u8")
+
     def pixel_fields(self, packets: NDArray[np.uint8], names: Sequence[str] | None = None
                      ) -> dict[str, NDArray[np.uint32]]:
         """The (H, n * columns_per_packet) image of each named field (default: all of the
@@ -199,7 +205,7 @@ def encode_lidar_columns(fmt: PacketFormat, frame: NDArray[np.uint8], first_colu
     arr[...] = 0
     cols = fmt._columns(arr)
     mid = np.arange(first_column, first_column + n, dtype=np.uint16).reshape(P, C)
-    _word_view(cols, 0, "<u8")[...] = ts.reshape(P, C)
+    fmt.column_timestamps(arr)[...] = ts.reshape(P, C)
     _word_view(cols, 8, "<u2")[...] = mid
     if p.legacy:
         st = (np.full(n, 0xFFFFFFFF, np.uint32) if status is None

@@ -1,0 +1,96 @@
+"""Blocks of columns encoded, made, cast through Embree and answered in one compiled call,
+without the GIL: the rays (:func:`~emulators.lidar._kernel.make_rays`), ``rtcIntersect1`` per ray
+(:mod:`emulators._embree`) and the per-ray answer
+(:func:`~emulators.lidar._kernel.answer_chunk`), the very kernels the chunk path calls one
+after the other with Python in between. Imported lazily (numba), only where the scene hands
+over an Embree scene (:meth:`tcf_hil.scene.Scene.direct`) and compiled kernels are on.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+from emulators._embree import intersect1, new_rayhit
+from emulators._jit import compiled, numba_module
+from emulators.lidar._kernel import answer_chunk, make_rays
+
+numba = numba_module()  # its cache directory set before the kernels below are declared
+
+_make_rays = compiled(make_rays)
+_answer_chunk = compiled(answer_chunk)
+
+
+@intrinsic
+def _take(typingctx: Any, counter: Any) -> Any:
+    """``counter[0]++`` as one atomic step (int64 array): the next block for a thread."""
+    sig = types.int64(counter)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary,
+                                       [context.get_constant(types.intp, 0)])
+        return builder.atomic_rmw("add", ptr, context.get_constant(types.int64, 1),
+                                  "monotonic")
+
+    return sig, codegen
+
+
+@numba.njit(cache=True, nogil=True)
+def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: Any, oc: Any,
+                       starts: Any, counter: Any, width: int, o_all: Any, d_all: Any, template: Any,
+                       packets: Any, ts_words: Any, ts: Any, noise: Any, n_m: float,
+                       min_r: float, reach_ground: float, reach_bark: float,
+                       range_units: float, range_mult: int, luts: Any, signal32: Any,
+                       clamp_signal: bool, w_range: Any, w_refl: Any, w_nir: Any,
+                       w_signal: Any, refl_in_range: bool, sid_out: Any, t_out: Any,
+                       ok_out: Any) -> None:
+    """The blocks of ``width`` columns starting at ``starts`` of a frame, as many as this
+    thread takes (``counter``, an int64 array of one: the next block; several threads may
+    run this call on the same frame at once, each taking the next block when done), each:
+    its packets
+    copied from ``template`` (the frame's packets with every column encoded at time 0,
+    :func:`protocols.ouster.encode_lidar_columns`) and its column times written into
+    ``ts_words`` (:meth:`protocols.ouster.PacketFormat.column_timestamps`); its rays (into
+    ``o_all``/``d_all`` (W, H, 3) where they are kept, DUAL; else (0, 0, 0)) from the frame's
+    factors ``mt`` (3, W, 3) and origins ``oc`` (W, 3); each cast (``fn`` is
+    ``rtcIntersect1``, ``scene`` the RTCScene, ``stem_of_prim`` the stem id by triangle with
+    -1 last for a miss); then :func:`~emulators.lidar._kernel.answer_chunk` with the rest
+    of the arguments, which are whole-frame too (the word views (P, C, H), ``noise``
+    (W, H) or (0, 0))."""
+    H = beams.shape[0]
+    C = w_range.shape[1]
+    keep = o_all.shape[0] > 0
+    o_s = np.empty((width, H, 3), np.float32)
+    d_s = np.empty((width, H, 3), np.float32)
+    t = np.empty((width, H), np.float32)
+    sid = np.empty((width, H), np.int32)
+    rf, ru, addr = new_rayhit()
+    while True:
+        i: int = _take(counter)  # type: ignore[call-arg]  # numba supplies typingctx
+        if i >= starts.shape[0]:
+            break
+        a = starts[i]
+        b = a + width
+        p0, p1 = a // C, b // C
+        packets[p0:p1] = template[p0:p1]
+        for c in range(a, b):
+            ts_words[c // C, c % C] = ts[c]
+        o = o_all[a:b] if keep else o_s[:]
+        d = d_all[a:b] if keep else d_s[:]
+        _make_rays(beams, mt[:, a:b], oc[a:b], o, d)
+        for c in range(width):
+            for h in range(H):
+                t[c, h], prim = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
+                                           o[c, h, 2], d[c, h, 0], d[c, h, 1], d[c, h, 2])
+                sid[c, h] = stem_of_prim[prim]
+        _answer_chunk(t, sid, noise[a:b] if noise.shape[0] > 0 else noise[:0], a, n_m, min_r,
+                      reach_ground, reach_bark, range_units, range_mult, luts, signal32,
+                      clamp_signal, w_range[p0:p1], w_refl[p0:p1], w_nir[p0:p1],
+                      w_signal[p0:p1] if w_signal.shape[0] > 0 else w_signal[:0],
+                      refl_in_range, sid_out, t_out, ok_out)
