@@ -58,6 +58,10 @@ def main() -> None:
                 n = max(1, int(track.duration_ns // emu.period_ns))
                 k0 = max(1, n // 2 - a.frames // 2)
                 emu.frame(k0 - 1)  # warm-up: pools, caches, the first pose block
+                o, d, _, _ = ray_maker.rays(k0 - 1, np.float32)
+                for caster in (scene.caster, embreex):  # and the casts (embreex commits its
+                    if caster is not None:  # scene on its first cast)
+                        caster.cast(o, d)
                 bare, pipe, enc, other = [], [], [], []
                 for k in range(k0, k0 + a.frames):
                     o, d, _, _ = ray_maker.rays(k, np.float32)  # what frame() casts

@@ -26,71 +26,83 @@ _answer_chunk = compiled(answer_chunk)
 
 
 @intrinsic
-def _take(typingctx: Any, counter: Any) -> Any:
-    """``counter[0]++`` as one atomic step (int64 array): the next block for a thread."""
-    sig = types.int64(counter)
+def _fetch_add(typingctx: Any, counter: Any, index: Any, value: Any) -> Any:
+    """``counter[index] += value`` as one atomic step (an int64 array), giving the value
+    before; adding 0 reads what other threads wrote."""
+    sig = types.int64(counter, types.intp, types.int64)
 
     def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
         aryty = signature.args[0]
         ary = context.make_array(aryty)(context, builder, args[0])
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary,
-                                       [context.get_constant(types.intp, 0)])
-        return builder.atomic_rmw("add", ptr, context.get_constant(types.int64, 1),
-                                  "monotonic")
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1]])
+        return builder.atomic_rmw("add", ptr, args[2], "seq_cst")
 
     return sig, codegen
 
 
 @numba.njit(cache=True, nogil=True)
 def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: Any, oc: Any,
-                       starts: Any, counter: Any, width: int, o_all: Any, d_all: Any, template: Any,
-                       packets: Any, ts_words: Any, ts: Any, noise: Any, n_m: float,
-                       min_r: float, reach_ground: float, reach_bark: float,
+                       starts: Any, counter: Any, wait_all: bool, width: int, o_all: Any,
+                       d_all: Any, template: Any, packets: Any, ts_words: Any, ts: Any,
+                       noise: Any, n_m: float, min_r: float, reach_ground: float, reach_bark: float,
                        range_units: float, range_mult: int, luts: Any, signal32: Any,
                        clamp_signal: bool, w_range: Any, w_refl: Any, w_nir: Any,
                        w_signal: Any, refl_in_range: bool, sid_out: Any, t_out: Any,
                        ok_out: Any) -> None:
     """The blocks of ``width`` columns starting at ``starts`` of a frame, as many as this
-    thread takes (``counter``, an int64 array of one: the next block; several threads may
-    run this call on the same frame at once, each taking the next block when done), each:
-    its packets
-    copied from ``template`` (the frame's packets with every column encoded at time 0,
-    :func:`protocols.ouster.encode_lidar_columns`) and its column times written into
-    ``ts_words`` (:meth:`protocols.ouster.PacketFormat.column_timestamps`); its rays (into
-    ``o_all``/``d_all`` (W, H, 3) where they are kept, DUAL; else (0, 0, 0)) from the frame's
-    factors ``mt`` (3, W, 3) and origins ``oc`` (W, 3); each cast (``fn`` is
-    ``rtcIntersect1``, ``scene`` the RTCScene, ``stem_of_prim`` the stem id by triangle with
-    -1 last for a miss); then :func:`~emulators.lidar._kernel.answer_chunk` with the rest
-    of the arguments, which are whole-frame too (the word views (P, C, H), ``noise``
+    thread takes: several threads run this call on the same frame at once, each taking the
+    next block when done. ``counter`` (int64, shared): the next block; 0 while the caller
+    still makes ``mt``/``oc`` (this call waits), 1 to go, 2 to stop at once; the blocks
+    done (``wait_all``: return only once all are, not just those this call took).
+
+    Each block: its packets copied from ``template`` (the frame's packets with every
+    column encoded at time 0, :func:`protocols.ouster.encode_lidar_columns`) and its column
+    times written into ``ts_words`` (:meth:`protocols.ouster.PacketFormat.column_timestamps`);
+    its rays (into ``o_all``/``d_all`` (W, H, 3) where they are kept, DUAL; else (0, 0, 0))
+    from the frame's factors ``mt`` (3, W, 3) and origins ``oc`` (W, 3); each cast (``fn``
+    is ``rtcIntersect1``, ``scene`` the RTCScene, ``stem_of_prim`` the stem id by triangle
+    with -1 last for a miss); then :func:`~emulators.lidar._kernel.answer_chunk` with the
+    rest of the arguments, which are whole-frame too (the word views (P, C, H), ``noise``
     (W, H) or (0, 0))."""
     H = beams.shape[0]
     C = w_range.shape[1]
     keep = o_all.shape[0] > 0
-    o_s = np.empty((width, H, 3), np.float32)
-    d_s = np.empty((width, H, 3), np.float32)
+    o = np.empty((width, H, 3), np.float32)
+    d = np.empty((width, H, 3), np.float32)
     t = np.empty((width, H), np.float32)
     sid = np.empty((width, H), np.int32)
     rf, ru, addr = new_rayhit()
-    while True:
-        i: int = _take(counter)  # type: ignore[call-arg]  # numba supplies typingctx
-        if i >= starts.shape[0]:
+    nb = starts.shape[0]
+    state = 0
+    while state == 0:
+        state = _fetch_add(counter, 1, 0)  # type: ignore[call-arg]  # numba: typingctx
+    while state == 1:
+        i: int = _fetch_add(counter, 0, 1)  # type: ignore[call-arg]
+        if i >= nb:
             break
         a = starts[i]
         b = a + width
         p0, p1 = a // C, b // C
-        packets[p0:p1] = template[p0:p1]
+        for p in range(p0, p1):  # element loops: numba's slice assignment is slower
+            for i in range(packets.shape[1]):
+                packets[p, i] = template[p, i]
         for c in range(a, b):
             ts_words[c // C, c % C] = ts[c]
-        o = o_all[a:b] if keep else o_s[:]
-        d = d_all[a:b] if keep else d_s[:]
-        _make_rays(beams, mt[:, a:b], oc[a:b], o, d)
+        _make_rays(beams, mt, oc, a, o, d)
         for c in range(width):
             for h in range(H):
                 t[c, h], prim = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
                                            o[c, h, 2], d[c, h, 0], d[c, h, 1], d[c, h, 2])
                 sid[c, h] = stem_of_prim[prim]
+                if keep:
+                    for i in range(3):
+                        o_all[a + c, h, i] = o[c, h, i]
+                        d_all[a + c, h, i] = d[c, h, i]
         _answer_chunk(t, sid, noise[a:b] if noise.shape[0] > 0 else noise[:0], a, n_m, min_r,
                       reach_ground, reach_bark, range_units, range_mult, luts, signal32,
                       clamp_signal, w_range[p0:p1], w_refl[p0:p1], w_nir[p0:p1],
                       w_signal[p0:p1] if w_signal.shape[0] > 0 else w_signal[:0],
                       refl_in_range, sid_out, t_out, ok_out)
+        _fetch_add(counter, 2, 1)
+    while wait_all and state == 1 and _fetch_add(counter, 2, 0) < nb:  # type: ignore[call-arg]
+        pass  # the other threads' last blocks

@@ -86,17 +86,25 @@ def rays_kernel() -> Callable[..., None] | None:
     return compiled(make_rays)
 
 
-def make_rays(beams: Any, mt: Any, oc: Any, o: Any, d: Any) -> None:
-    """The rays of n columns, column-major: ``o``/``d`` (n, H, 3) float32, from the beams'
-    unit vectors ``beams`` (H, 3) and the columns' factors ``mt`` (3, n, 3) and beam origins
-    ``oc`` (n, 3) (:func:`column_frames`): ``d[c, h, i] = sum_j beams[h, j] mt[j, c, i]``,
-    summed left to right in float32, one rounding per operation (as the numpy path)."""
+def make_rays(beams: Any, mt: Any, oc: Any, col0: int, o: Any, d: Any) -> None:
+    """The rays of columns col0 .. col0 + n, column-major: ``o``/``d`` (n, H, 3) float32,
+    from the beams' unit vectors ``beams`` (H, 3) and the frame's factors ``mt`` (3, W, 3)
+    and beam origins ``oc`` (W, 3) (:func:`column_frames`): ``d[c, h, i] = sum_j
+    beams[h, j] mt[j, col0 + c, i]``, summed left to right in float32, one rounding per
+    operation (as the numpy path)."""
     for c in range(o.shape[0]):
+        # the column's factors in locals: the stores below may alias the arrays
+        k = col0 + c
+        m00, m01, m02 = mt[0, k, 0], mt[0, k, 1], mt[0, k, 2]
+        m10, m11, m12 = mt[1, k, 0], mt[1, k, 1], mt[1, k, 2]
+        m20, m21, m22 = mt[2, k, 0], mt[2, k, 1], mt[2, k, 2]
+        ox, oy, oz = oc[k, 0], oc[k, 1], oc[k, 2]
         for h in range(o.shape[1]):
             b0, b1, b2 = beams[h, 0], beams[h, 1], beams[h, 2]
-            for i in range(3):
-                d[c, h, i] = b0 * mt[0, c, i] + b1 * mt[1, c, i] + b2 * mt[2, c, i]
-                o[c, h, i] = oc[c, i]
+            d[c, h, 0] = b0 * m00 + b1 * m10 + b2 * m20
+            d[c, h, 1] = b0 * m01 + b1 * m11 + b2 * m21
+            d[c, h, 2] = b0 * m02 + b1 * m12 + b2 * m22
+            o[c, h, 0], o[c, h, 1], o[c, h, 2] = ox, oy, oz
 
 
 def frames_kernel() -> Callable[..., None] | None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -155,6 +156,7 @@ class _FrameJob:
     noise: FloatArray | None  # (W, H)
     sid: NDArray[np.int32]  # (W, H) stem id out
     packets: NDArray[np.uint8]
+    views: list[NDArray[Any]]  # Os0Emulator._views(packets)
     ts: NDArray[np.int64]
     o_all: NDArray[np.float32] | None  # DUAL: the rays and first returns, (W, H, ...)
     d_all: NDArray[np.float32] | None
@@ -216,6 +218,7 @@ class Os0Emulator:
         self._l_rot, self._l_tr = lts[:3, :3].copy(), lts[:3, 3] / 1000.0
         self._block = math.gcd(w, self.BLOCK_COLUMNS)
         self.period_ns = 1_000_000_000 // meta.frequency_hz
+        self._col_offsets = (np.arange(w, dtype=np.int64) * self.period_ns) // w
         self.n_m = meta.lidar_origin_to_beam_origin_mm / 1000.0
         self.quantum_mm = 8 if meta.profile == "RNG15_RFL8_NIR8" else 1
         self._fmt = meta.packet_format
@@ -243,6 +246,8 @@ class Os0Emulator:
         self._direct: tuple[int, int, NDArray[np.int32]] | None = None
         self._direct_asked = False
         self._template: NDArray[np.uint8] | None = None
+        self._view_geometry: list[tuple[Any, ...]] | None = None
+        self._pending: list[Any] = []  # helper calls of the last fused frame
 
     def _layout(self, fmt: PacketFormat) -> None:
         """Where the first return's fields go in a pixel, and their values by return class
@@ -288,9 +293,7 @@ class Os0Emulator:
         warm_up(self.meta, self.model)
 
     def column_times(self, k: int) -> NDArray[np.int64]:
-        w = self.meta.columns
-        return (self.start_ns + k * self.period_ns
-                + (np.arange(w, dtype=np.int64) * self.period_ns) // w)
+        return self._col_offsets + (self.start_ns + k * self.period_ns)
 
     def column_poses(self, k: int) -> tuple[FloatArray, FloatArray]:
         """Frame k's sensor pose per column: positions (W, 3), rotations (W, 3, 3)."""
@@ -321,16 +324,17 @@ class Os0Emulator:
             blk = self._pose_block = (k, k + nf, dense(lo // h * h, (hi // h + 1) * h, h))
         return self.poses.dense_pieces(ts, pieces=blk[2]), ts  # type: ignore[attr-defined]
 
-    def _column_rays(self, pos: FloatArray, rot: FloatArray, a: int = 0
+    def _column_rays(self, pos: FloatArray, rot: FloatArray, a: int = 0,
+                     out: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None
                      ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """The ray factors of columns a .. a + n (poses (n, 3), (n, 3, 3)): (3, n, 3) float32
-        with [j, c, i] = M_c[i, j], and the beam origins (n, 3) float32 in the scene.
-        Sums written out, left to right (the compiled kernel and numpy alike, no BLAS): the
-        same bits whatever the split into chunks."""
+        with [j, c, i] = M_c[i, j], and the beam origins (n, 3) float32 in the scene (into
+        ``out`` where given). Sums written out, left to right (the compiled kernel and numpy
+        alike, no BLAS): the same bits whatever the split into chunks."""
         n = len(pos)
         cos, sin = self._cos[a:a + n, 0], self._sin[a:a + n, 0]
-        mt = np.empty((3, n, 3), np.float32)
-        oc = np.empty((n, 3), np.float32)
+        mt, oc = out if out is not None else (np.empty((3, n, 3), np.float32),
+                                              np.empty((n, 3), np.float32))
         kernel = frames_kernel() if self.jit else None
         if kernel is not None:
             kernel(pos, rot, cos, sin, self._l_rot, self._l_tr, self.n_m, mt, oc)
@@ -348,21 +352,22 @@ class Os0Emulator:
             oc[:, i] = pos[:, i] + (r0 * lt[0] + r1 * lt[1] + r2 * lt[2]) + self.n_m * m0
         return mt, oc
 
-    def _make_rays(self, mt: NDArray[np.float32], oc: NDArray[np.float32],
+    def _make_rays(self, mt: NDArray[np.float32], oc: NDArray[np.float32], col0: int,
                    o: NDArray[np.float32], d: NDArray[np.float32]) -> None:
-        """The rays of the columns of ``mt``/``oc`` (:meth:`_column_rays`), column-major,
-        into ``o``/``d`` (n, H, 3) float32: ``d[c, h] = M_c b_h`` summed left to right, one
-        rounding per operation (:func:`emulators.lidar._kernel.make_rays`, or numpy: the
-        same bits)."""
+        """The rays of columns col0 .. col0 + n of the frame's ``mt``/``oc``
+        (:meth:`_column_rays`), column-major, into ``o``/``d`` (n, H, 3) float32:
+        ``d[c, h] = M_c b_h`` summed left to right, one rounding per operation
+        (:func:`emulators.lidar._kernel.make_rays`, or numpy: the same bits)."""
         kernel = rays_kernel() if self.jit else None
         if kernel is not None:
-            kernel(self._beams32, mt, oc, o, d)
+            kernel(self._beams32, mt, oc, col0, o, d)
             return
+        cols = slice(col0, col0 + len(o))
         b = self._beams32[None, :, :, None]  # (1, H, 3, 1)
-        np.multiply(b[:, :, 0], mt[0][:, None, :], out=d)
-        d += b[:, :, 1] * mt[1][:, None, :]
-        d += b[:, :, 2] * mt[2][:, None, :]
-        o[...] = oc[:, None, :]
+        np.multiply(b[:, :, 0], mt[0, cols][:, None, :], out=d)
+        d += b[:, :, 1] * mt[1, cols][:, None, :]
+        d += b[:, :, 2] * mt[2, cols][:, None, :]
+        o[...] = oc[cols, None, :]
 
     def _direct_scene(self) -> tuple[int, int, NDArray[np.int32]] | None:
         """What the fused kernel casts through (``rtcIntersect1``, the RTCScene, stem id by
@@ -385,7 +390,7 @@ class Os0Emulator:
         if dtype == np.float32:
             o32 = np.empty((len(pos), self.meta.pixels, 3), np.float32)
             d32 = np.empty_like(o32)
-            self._make_rays(*self._column_rays(pos, rot), o32, d32)
+            self._make_rays(*self._column_rays(pos, rot), 0, o32, d32)
             return o32.reshape(-1, 3), d32.reshape(-1, 3), pos, rot
         rt = rot.transpose(0, 2, 1)
         o = np.matmul(self._origins_wh, rt) + pos[:, None, :]
@@ -419,9 +424,8 @@ class Os0Emulator:
             raise ValueError(f"packet array of shape {packets.shape} and dtype "
                              f"{packets.dtype}; expected {shape} uint8")
         arr = packets
+        self._settle()
         pieces, ts = self._pose_pieces(k)
-        pos, rot = pieces.at(ts) if pieces is not None else self._pose_at(ts)
-        mt, oc = self._column_rays(pos, rot)
         noise = (self.rng.normal(0.0, m.noise_sigma_m, (H, W)).T if m.noise_sigma_m > 0
                  else None)
         dual = "RANGE2" in self.profile_fields  # only what the profile carries
@@ -430,12 +434,15 @@ class Os0Emulator:
         d_all = np.empty((W, H, 3), np.float32) if dual else None
         t_all = np.empty((W, H)) if dual else None
         ok_all = np.empty((W, H), bool) if dual else None
-        job = _FrameJob(mt, oc, noise, sid_out, arr, ts, o_all, d_all, t_all, ok_all)
+        mt, oc = np.empty((3, W, 3), np.float32), np.empty((W, 3), np.float32)
+        job = _FrameJob(mt, oc, noise, sid_out, arr, self._views(arr), ts, o_all, d_all, t_all,
+                        ok_all)
         direct = self._direct_scene()
         fused = fused_kernel() if direct is not None else None
         if direct is not None and fused is not None:
-            self._fused_frame(fused, direct, job)
+            pos, rot = self._fused_frame(fused, direct, job, pieces)
         else:
+            pos, rot = self._poses(job, pieces)
             self._run(self._chunk, [(job, a, b) for a, b in self._chunks()])
         sid2 = None
         if o_all is not None and d_all is not None and t_all is not None \
@@ -447,29 +454,48 @@ class Os0Emulator:
         return FrameResult(k, ts.astype(np.uint64), sid_out.T, sid2, pos, rot, arr, fmt,
                            self._field_names)
 
-    def _run(self, fn: Any, calls: list[tuple[Any, ...]], here: bool = False) -> None:
+    def _poses(self, job: _FrameJob, pieces: Any) -> tuple[FloatArray, FloatArray]:
+        """The frame's column poses (from ``pieces``, or exact), and from them its ray
+        factors into ``job.mt``/``job.oc``."""
+        pos, rot = pieces.at(job.ts) if pieces is not None else self._pose_at(job.ts)
+        self._column_rays(pos, rot, out=(job.mt, job.oc))
+        return pos, rot
+
+    def _pool_here(self) -> ThreadPoolExecutor:
+        if self._pool is None or self._pool_pid != os.getpid():  # threads die in a fork
+            self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="os0")
+            self._pool_pid = os.getpid()
+            self._pending = []
+        return self._pool
+
+    def _run(self, fn: Any, calls: list[tuple[Any, ...]]) -> None:
         """``fn(*c)`` for every ``c`` of ``calls``, spread over the pool's threads (or here,
-        for one thread or one call); ``here``: the last call on this thread meanwhile."""
+        for one thread or one call)."""
         if self.threads == 1 or len(calls) == 1:
             for c in calls:
                 fn(*c)
             return
-        if self._pool is None or self._pool_pid != os.getpid():  # threads die in a fork
-            self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="os0")
-            self._pool_pid = os.getpid()
-        running = [self._pool.submit(fn, *c) for c in (calls[:-1] if here else calls)]
-        try:
-            if here:
-                fn(*calls[-1])
-        finally:
-            for f in running:
-                f.result()
+        pool = self._pool_here()
+        for f in [pool.submit(fn, *c) for c in calls]:
+            f.result()
 
-    def _fused_frame(self, fused: Any, direct: tuple[int, int, NDArray[np.int32]],
-                     job: _FrameJob) -> None:
+    def _settle(self) -> None:
+        """Wait for the helper calls of the last fused frame to have returned (their blocks
+        are done by then; only their return may be outstanding), and raise what they
+        raised."""
+        pending, self._pending = self._pending, []
+        for f in pending:
+            f.result()
+
+    def _fused_frame(self, fused: Callable[..., None],
+                     direct: tuple[int, int, NDArray[np.int32]],
+                     job: _FrameJob, pieces: Any) -> tuple[FloatArray, FloatArray]:
         """The frame through :func:`emulators.lidar._fused.cast_answer_blocks`: one call per
-        thread (this one too), each taking the next block of columns until none is left, so
-        the threads finish together."""
+        thread, each taking the next block of columns until none is left, so the threads
+        finish together. The helper threads' calls start first and wait (spinning, without
+        the GIL) while this thread makes the column poses and ray factors, then this thread
+        joins them and returns once every block is done, without waiting for their calls to
+        return (:meth:`_settle`). Returns the column poses."""
         fmt, W = self._fmt, self.meta.columns
         width = math.lcm(math.gcd(W, self.FUSED_BLOCK_COLUMNS), fmt.columns_per_packet)
         if self._template is None:  # every column encoded, at time 0
@@ -480,11 +506,24 @@ class Os0Emulator:
         answer = self._answer_args(job, 0, W)  # whole-frame; the kernel slices each block's
         tail = (width, job.o_all if job.o_all is not None else none3,
                 job.d_all if job.d_all is not None else none3, self._template, job.packets,
-                fmt.column_timestamps(job.packets), job.ts, answer[0], *answer[2:])
+                job.views[-1], job.ts, answer[0], *answer[2:])
         starts = np.arange(0, W, width)
-        counter = np.zeros(1, np.int64)
+        counter = np.zeros(3, np.int64)  # the next block, go (1) or stop (2), blocks done
         n = min(self.threads, len(starts))
-        self._run(fused, [(*head, starts, counter, *tail)] * n, here=True)
+        pool = self._pool_here() if n > 1 else None
+        helpers = [pool.submit(fused, *head, starts, counter, False, *tail)
+                   for _ in range(n - 1)] if pool is not None else []
+        try:
+            pos, rot = self._poses(job, pieces)
+            counter[1] = 1
+        except BaseException:
+            counter[1] = 2
+            for f in helpers:
+                f.result()
+            raise
+        self._pending = helpers
+        fused(*head, starts, counter, True, *tail)
+        return pos, rot
 
     def _chunk(self, job: _FrameJob, a: int, b: int) -> None:
         """Columns a..b of a frame where the cast is the scene's own (not an Embree scene
@@ -496,7 +535,7 @@ class Os0Emulator:
         else:
             o = np.empty((n, H, 3), np.float32)
             d = np.empty_like(o)
-        self._make_rays(job.mt[:, a:b], job.oc[a:b], o, d)
+        self._make_rays(job.mt, job.oc, a, o, d)
         t32, sid_cm = self._cast32(o.reshape(-1, 3), d.reshape(-1, 3))
         t = np.asarray(t32, np.float32).reshape(n, H)  # column-major, as cast
         sid = np.asarray(sid_cm, np.int32).reshape(n, H)
@@ -506,15 +545,32 @@ class Os0Emulator:
         else:
             self._answer_numpy(job, a, b, t, sid)
 
+    def _views(self, packets: NDArray[np.uint8]) -> list[NDArray[Any]]:
+        """The frame's pixel words the kernels write (:attr:`_kernel` ``words``, each
+        (P, C, H)) and its column time stamps (P, C): protocols' views
+        (:meth:`protocols.ouster.PacketFormat.pixel_word`, ``column_timestamps``), remade
+        on each frame's packets from their offsets and strides (a fraction of the time)."""
+        fmt = self._fmt
+        if self._view_geometry is None:
+            probe = np.zeros((fmt.packets_per_frame, fmt.packet_bytes), np.uint8)
+            base = probe.__array_interface__["data"][0]
+            views = [fmt.pixel_word(probe, off, dt) for off, dt in self._kernel["words"]]
+            views.append(fmt.column_timestamps(probe))
+            self._view_geometry = [(v.shape, v.dtype, v.__array_interface__["data"][0] - base,
+                                    v.strides) for v in views]
+        if not packets.flags.c_contiguous:
+            return [fmt.pixel_word(packets, off, dt) for off, dt in self._kernel["words"]] \
+                + [fmt.column_timestamps(packets)]
+        return [np.ndarray(shape, dt, buffer=packets, offset=off, strides=st)
+                for shape, dt, off, st in self._view_geometry]
+
     def _answer_args(self, job: _FrameJob, a: int, b: int) -> tuple[Any, ...]:
         """:func:`emulators.lidar._kernel.answer_chunk`'s arguments after ``t`` and ``sid``,
         for columns a..b."""
-        fmt = self._fmt
-        C = fmt.columns_per_packet
+        C = self._fmt.columns_per_packet
         k = self._kernel
         none2 = np.zeros((0, 0))
-        rows = job.packets[a // C:b // C]
-        words = [fmt.pixel_word(rows, off, dt) for off, dt in k["words"]]
+        words = [v[a // C:b // C] for v in job.views[:-1]]
         return (job.noise[a:b] if job.noise is not None else none2, a,
                 self.n_m, self.model.min_range_m, self._reach[0], self._reach[1],
                 self._range_units, self._range_mult, k["luts"], self._signal32,
