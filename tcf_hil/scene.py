@@ -203,6 +203,12 @@ class Scene:
         t, prim = self.caster.cast(origins, directions)
         return t.astype(np.float64), self._stem_ids(prim)
 
+    @property
+    def threads_itself(self) -> bool:
+        """Whether a cast spreads over the CPUs by itself (open3d): callers then cast from
+        one thread. Embree's :meth:`cast32` runs on the calling thread."""
+        return not hasattr(self.caster, "cast1")
+
     def cast32(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
                ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
         """:meth:`cast` for float32 rays with the distance in float32 (the casters' own

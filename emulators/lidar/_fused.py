@@ -84,8 +84,8 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
         b = a + width
         p0, p1 = a // C, b // C
         for p in range(p0, p1):  # element loops: numba's slice assignment is slower
-            for i in range(packets.shape[1]):
-                packets[p, i] = template[p, i]
+            for q in range(packets.shape[1]):
+                packets[p, q] = template[p, q]
         for c in range(a, b):
             ts_words[c // C, c % C] = ts[c]
         _make_rays(beams, mt, oc, a, o, d)
@@ -95,9 +95,9 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
                                            o[c, h, 2], d[c, h, 0], d[c, h, 1], d[c, h, 2])
                 sid[c, h] = stem_of_prim[prim]
                 if keep:
-                    for i in range(3):
-                        o_all[a + c, h, i] = o[c, h, i]
-                        d_all[a + c, h, i] = d[c, h, i]
+                    for q in range(3):
+                        o_all[a + c, h, q] = o[c, h, q]
+                        d_all[a + c, h, q] = d[c, h, q]
         _answer_chunk(t, sid, noise[a:b] if noise.shape[0] > 0 else noise[:0], a, n_m, min_r,
                       reach_ground, reach_bark, range_units, range_mult, luts, signal32,
                       clamp_signal, w_range[p0:p1], w_refl[p0:p1], w_nir[p0:p1],

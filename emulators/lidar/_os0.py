@@ -40,9 +40,11 @@ class RayScene(Protocol):
         for rays in float64 or float32 (what the emulator passes).
 
         A scene may also offer ``cast32(o, d)`` (float32 rays, float32 distances, on the
-        calling thread) and ``direct()``: ``(rtcIntersect1's address, an RTCScene handle,
-        stem id by triangle with -1 last)`` or None, an Embree scene the emulator's compiled
-        kernel casts through itself (:mod:`emulators._embree`)."""
+        calling thread), ``threads_itself`` (True: a cast spreads over the CPUs by itself,
+        so the emulator casts from one thread) and ``direct()``: ``(rtcIntersect1's
+        address, an RTCScene handle, stem id by triangle with -1 last)`` or None, an Embree
+        scene the emulator's compiled kernel casts through itself
+        (:mod:`emulators._embree`)."""
         ...
 
 
@@ -182,7 +184,8 @@ class Os0Emulator:
     ``threads - 1`` more) takes blocks of columns in turn and, without the GIL, encodes
     their packets' columns, makes their rays, casts them and answers each into its pixel
     (:func:`emulators.lidar._fused.cast_answer_blocks`). Otherwise chunks of columns are
-    spread over ``threads`` threads, each encoded (:func:`protocols.ouster.
+    spread over ``threads`` threads (one at a time where the scene's cast spreads over the
+    CPUs by itself, ``threads_itself``: open3d), each encoded (:func:`protocols.ouster.
     encode_lidar_columns`), its rays made, cast by the scene and answered (compiled kernels
     in :mod:`emulators.lidar._kernel`, or numpy where numba is missing). Every path writes
     the same bytes whatever the split (the tests hold them to it)."""
@@ -443,7 +446,12 @@ class Os0Emulator:
             pos, rot = self._fused_frame(fused, direct, job, pieces)
         else:
             pos, rot = self._poses(job, pieces)
-            self._run(self._chunk, [(job, a, b) for a, b in self._chunks()])
+            chunks = [(job, a, b) for a, b in self._chunks()]
+            if getattr(self.scene, "threads_itself", False):  # one cast at a time (open3d)
+                for c in chunks:
+                    self._chunk(*c)
+            else:
+                self._run(self._chunk, chunks)
         sid2 = None
         if o_all is not None and d_all is not None and t_all is not None \
                 and ok_all is not None:  # only what the profile carries
