@@ -662,7 +662,8 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
 @click.option("--frames", type=click.IntRange(min=1), default=None,
               help="Stop after this many frames (default: the whole track).")
 @click.option("--record", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Also write what was sent (pcap) and the sidecar files here.")
+              help="Also write what was sent (pcap) and the sidecar files here (with "
+                   "--http-port, a client's re-initialisation n goes into DIR/reinit-n).")
 @click.option("--http-port", type=click.IntRange(0, 65535), default=None,
               help="Serve the sensor's HTTP API on this port (ouster-sdk and ouster-cli "
                    "need 80, which needs root); the API stays up until Ctrl-C.")
@@ -682,30 +683,10 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     by `tcf-hil lidar pcap`):
       sensor.SensorFrameSetSource("127.0.0.1", sensor_info=[core.SensorInfo(json_text)])
     """
-    from tcf_hil.lidar import serve_sensor, stream_lidar
+    from tcf_hil.lidar import RecordResult, serve_sensor, stream_lidar
 
     scn = _scenario_with_faults(scenario_name, faults)
     stop = threading.Event()
-    if http_port is not None:
-        host = http_address or sensor_address
-        console.print(f"sensor {scn.name} {mode} {profile}: HTTP API on {host}:{http_port}, "
-                      f"UDP from {sensor_address} (Ctrl-C stops)")
-        try:
-            serve_sensor(scn, http_host=host, http_port=http_port, sensor_ip=sensor_address,
-                         speed=speed, stop=stop, mode=mode, profile=profile, seed=seed,
-                         max_frames=frames, udp_dest=dest, udp_port_lidar=lidar_port,
-                         udp_port_imu=imu_port,
-                         on_result=lambda r: console.print(
-                             f"stream ended: {r.packets} lidar packets in {r.frames} frames"))
-        except KeyboardInterrupt:
-            stop.set()
-        except OSError as err:
-            raise click.ClickException(f"cannot serve {host}:{http_port}: {err.strerror} "
-                                       "(port 80 needs root; or pass the metadata file to "
-                                       "the client instead)") from err
-        return
-    console.print(f"streaming {scn.name} {mode} {profile} from {sensor_address} to "
-                  f"{dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
 
     def first_ctrl_c(_sig: int, _frame: object) -> None:
         # finish the frame on the wire, then write the recording: a second Ctrl-C aborts
@@ -714,24 +695,44 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
         signal.signal(signal.SIGINT, signal.default_int_handler)
         signal.signal(signal.SIGTERM, _terminate)
 
+    def summary(r: RecordResult) -> None:
+        p50, p99 = r.pacing_us
+        console.print(f"sent {r.packets} lidar packets in {r.frames} frames; pacing error "
+                      f"p50 {p50:.0f} us, p99 {p99:.0f} us "
+                      f"({'SCHED_FIFO' if r.realtime else 'ordinary scheduling: not permitted'}"
+                      f"; pacing loop {100 * r.sender_cpu_share:.0f} % of a core); "
+                      f"refused {r.refused}")
+
     previous = signal.signal(signal.SIGINT, first_ctrl_c)
     previous_term = signal.signal(signal.SIGTERM, first_ctrl_c)
     try:
-        r = stream_lidar(scn, sensor_ip=sensor_address, dest=dest, speed=speed, record=record,
-                         stop=stop, mode=mode, profile=profile, seed=seed, max_frames=frames,
-                         udp_port_lidar=lidar_port, udp_port_imu=imu_port)
+        if http_port is not None:
+            host = http_address or sensor_address
+            console.print(f"sensor {scn.name} {mode} {profile}: HTTP API on {host}:"
+                          f"{http_port}, UDP from {sensor_address} (Ctrl-C stops)")
+            try:
+                serve_sensor(scn, http_host=host, http_port=http_port,
+                             sensor_ip=sensor_address, speed=speed, stop=stop, mode=mode,
+                             profile=profile, seed=seed, max_frames=frames, udp_dest=dest,
+                             udp_port_lidar=lidar_port, udp_port_imu=imu_port, record=record,
+                             on_result=summary)
+            except OSError as err:
+                raise click.ClickException(
+                    f"cannot serve {host}:{http_port}: {err.strerror} (port 80 needs root; "
+                    "or pass the metadata file to the client instead)") from err
+            return
+        console.print(f"streaming {scn.name} {mode} {profile} from {sensor_address} to "
+                      f"{dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
+        summary(stream_lidar(scn, sensor_ip=sensor_address, dest=dest, speed=speed,
+                             record=record, stop=stop, mode=mode, profile=profile, seed=seed,
+                             max_frames=frames, udp_port_lidar=lidar_port,
+                             udp_port_imu=imu_port))
     except KeyboardInterrupt:
         stop.set()
         raise
     finally:
         signal.signal(signal.SIGINT, previous)
         signal.signal(signal.SIGTERM, previous_term)
-    p50, p99 = r.pacing_us
-    console.print(f"sent {r.packets} lidar packets in {r.frames} frames; pacing error p50 "
-                  f"{p50:.0f} us, p99 {p99:.0f} us "
-                  f"({'SCHED_FIFO' if r.realtime else 'ordinary scheduling: not permitted'}; "
-                  f"pacing loop {100 * r.sender_cpu_share:.0f} % of a core); "
-                  f"refused {r.refused}")
 
 
 # ----------------------------------------------------------------------- harvester / CAN

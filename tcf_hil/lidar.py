@@ -13,6 +13,7 @@ import io
 import math
 import multiprocessing as mp
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -299,6 +300,10 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
     ``stop``, answers ("final", bookkeeping) as of exactly those frames (it runs a few frames
     ahead), and with ``rec`` the pcap holds exactly those frames too."""
     parent = os.getppid()  # a producer whose sender was killed must not live on
+    # a terminal's Ctrl-C reaches the whole process group: the sender decides when to stop
+    # (and the sender's own handlers, inherited through the fork, are not this process's)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if parent_end is not None:
         parent_end.close()  # the fork's copy of the reading end: a dead reader breaks the pipe
     with contextlib.suppress(OSError):
@@ -555,12 +560,14 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
                  sensor_ip: str = "127.0.0.1", speed: float = 1.0,
                  stop: threading.Event | None = None, ready: threading.Event | None = None,
                  on_result: Callable[[RecordResult], None] | None = None,
-                 **run_kw: Any) -> SensorApi:
+                 record: str | Path | None = None, **run_kw: Any) -> SensorApi:
     """The emulated sensor as a client meets a real one: the HTTP API on ``http_host``
     (port 80 for ouster-sdk and ouster-cli) and the UDP stream to the configured
     ``udp_dest``. A configuration change with ``reinit`` restarts the stream with the new
     metadata (new init_id, frame_id from 0), as the real sensor does. Runs until the track
-    ends and ``stop`` is set; returns the (closed) API object for inspection."""
+    ends and ``stop`` is set; returns the (closed) API object for inspection. ``record``:
+    what was sent goes there (:func:`stream_lidar`); after the n-th re-initialisation, into
+    its ``reinit-n`` folder (the metadata changed)."""
     stop = stop or threading.Event()
     meta_kw = {k: run_kw[k] for k in ("mode", "profile", "seed", "udp_dest", "udp_port_lidar",
                                       "udp_port_imu") if k in run_kw}
@@ -588,14 +595,18 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
         ready.set()
     kw = {k: v for k, v in run_kw.items()
           if k not in ("mode", "profile", "udp_dest", "udp_port_lidar", "udp_port_imu")}
+    segment = 0
     try:
         while not stop.is_set():
             reinit.clear()
             inner[0] = threading.Event()
             if stop.is_set():
                 break
+            out = None if record is None else (
+                Path(record) if segment == 0 else Path(record) / f"reinit-{segment}")
+            segment += 1
             r = stream_lidar(scn, sensor_ip=sensor_ip, speed=speed, stop=inner[0],
-                             meta=current[0], **kw)
+                             meta=current[0], record=out, **kw)
             if on_result is not None:
                 on_result(r)
             if not reinit.is_set():

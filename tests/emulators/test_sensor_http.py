@@ -117,8 +117,9 @@ def test_stock_ouster_cli_records_from_the_emulated_sensor(tmp_path: Path) -> No
         pytest.skip("ouster-cli is not on PATH")
     exe = shutil.which("tcf-hil")
     cmd = [exe] if exe else [sys.executable, "-m", "tcf_hil.cli"]
+    rec = tmp_path / "rec"
     sensor = subprocess.Popen([*cmd, "lidar", "stream", "forest-ii", "--mode", "512x10",
-                               "--http-port", "80", "--frames", "400"],
+                               "--http-port", "80", "--frames", "400", "--record", str(rec)],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         for _ in range(100):
@@ -134,10 +135,18 @@ def test_stock_ouster_cli_records_from_the_emulated_sensor(tmp_path: Path) -> No
     finally:
         sensor.send_signal(signal.SIGINT)
         try:
-            sensor.wait(timeout=20)
+            said, _ = sensor.communicate(timeout=30)
         except subprocess.TimeoutExpired:
             sensor.kill()
+            said = ""
     from ouster.sdk import pcap as opcap
+
+    # Ctrl-C finished the frame on the wire and kept the recording, as without the API
+    assert sensor.returncode == 0, said
+    sent = int(said.split(" lidar packets in ")[1].split()[0])
+    recorded = list(opcap.PcapFrameSetSource(str(rec / "lidar.pcap"),
+                                             meta=[str(rec / "metadata.json")]))
+    assert len(recorded) == sent >= 5
 
     metas = list(tmp_path.glob("x*.json"))  # ouster-cli exits 0 even when it cannot connect
     assert metas, f"ouster-cli saved no metadata: {proc.stdout}{proc.stderr}"
@@ -149,3 +158,52 @@ def test_stock_ouster_cli_records_from_the_emulated_sensor(tmp_path: Path) -> No
     assert all(int(np.count_nonzero(f.field("RANGE"))) > 10_000 for f in frames[1:])
     assert json.loads(meta.read_text())["sensor_info"]["prod_line"] == "OS-0-64"
     assert os.path.getsize(out) > 500_000
+
+
+def test_a_reinit_during_a_recorded_stream_starts_a_new_recording(tmp_path: Path) -> None:
+    """serve_sensor with ``record``: what was sent before a client's re-initialisation goes
+    to DIR, what after it to DIR/reinit-1, each with the metadata it was sent under."""
+    import threading
+
+    from ouster.sdk import pcap as opcap
+
+    from tcf_hil.lidar import serve_sensor
+    from tcf_hil.scenario import load_scenario
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    udp = []
+    for _ in range(2):
+        u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        u.bind(("127.0.0.1", 0))
+        udp.append(u)
+    rec, stop, ready = tmp_path / "rec", threading.Event(), threading.Event()
+    results: list[Any] = []
+    worker = threading.Thread(target=serve_sensor, args=(load_scenario("forest-ii"),), kwargs=dict(
+        http_port=port, stop=stop, ready=ready, record=rec, mode="512x20", speed=4.0,
+        udp_port_lidar=udp[0].getsockname()[1], udp_port_imu=udp[1].getsockname()[1],
+        on_result=results.append))
+    worker.start()
+    try:
+        assert ready.wait(60)
+        time.sleep(1.0)
+        req = urllib.request.Request(f"http://127.0.0.1:{port}/api/v1/sensor/config?reinit=true",
+                                     data=b'{"lidar_mode": "1024x10"}', method="POST")
+        assert urllib.request.urlopen(req, timeout=5).status == 200
+        time.sleep(1.5)
+    finally:
+        stop.set()
+        worker.join(60)
+        for u in udp:
+            u.close()
+    assert not worker.is_alive() and len(results) == 2
+    for out, r, mode in ((rec, results[0], "512x20"), (rec / "reinit-1", results[1], "1024x10")):
+        meta = json.loads((out / "metadata.json").read_text())
+        assert meta["config_params"]["lidar_mode"] == mode
+        frames = list(opcap.PcapFrameSetSource(str(out / "lidar.pcap"),
+                                               meta=[str(out / "metadata.json")]))
+        assert len(frames) == r.frames > 3
+    first = json.loads((rec / "metadata.json").read_text())["sensor_info"]
+    second = json.loads((rec / "reinit-1" / "metadata.json").read_text())["sensor_info"]
+    assert first["initialization_id"] != second["initialization_id"]
