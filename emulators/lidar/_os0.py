@@ -492,6 +492,8 @@ class Os0Emulator:
         are done by then; only their return may be outstanding), and raise what they
         raised."""
         pending, self._pending = self._pending, []
+        if self._pool_pid != os.getpid():
+            return  # a forked copy: those threads and their futures stayed in the parent
         for f in pending:
             f.result()
 

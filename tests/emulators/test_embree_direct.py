@@ -100,3 +100,28 @@ def test_no_jit_falls_back_to_embreex(monkeypatch: pytest.MonkeyPatch,
     t1, p1 = direct.caster.cast(o, d)
     assert np.array_equal(t, t1) and np.array_equal(p, p1)
     assert np.isfinite(t[0]) and not np.isfinite(t[1])  # the ground below, the sky above
+
+
+def test_a_forked_emulator_makes_the_same_frames(world: tuple[Scene, Scene, Trajectory]
+                                                 ) -> None:
+    """The helper threads of the fused frame stay in the parent: a forked copy (the live
+    stream's frame producer) starts its own, does not wait on the parent's futures, and
+    writes the same bytes."""
+    import multiprocessing as mp
+
+    direct, _, track = world
+    emu = Os0Emulator(os0_64_metadata("1024x10"), direct, track, start_ns=track.t0_ns,
+                      threads=2)
+    want = emu.frame(5).packets.copy()
+    emu.frame(6)  # its helper's return may be outstanding at the fork (a race: not forced)
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+
+    def child() -> None:
+        q.put(bool(np.array_equal(emu.frame(5).packets, want)))
+
+    proc = ctx.Process(target=child)
+    proc.start()
+    assert q.get(timeout=60) is True
+    proc.join(10)
+    assert proc.exitcode == 0
