@@ -327,15 +327,15 @@ class Os0Emulator:
             blk = self._pose_block = (k, k + nf, dense(lo // h * h, (hi // h + 1) * h, h))
         return self.poses.dense_pieces(ts, pieces=blk[2]), ts  # type: ignore[attr-defined]
 
-    def _column_rays(self, pos: FloatArray, rot: FloatArray, a: int = 0,
+    def _column_rays(self, pos: FloatArray, rot: FloatArray,
                      out: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None
                      ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """The ray factors of columns a .. a + n (poses (n, 3), (n, 3, 3)): (3, n, 3) float32
-        with [j, c, i] = M_c[i, j], and the beam origins (n, 3) float32 in the scene (into
-        ``out`` where given). Sums written out, left to right (the compiled kernel and numpy
-        alike, no BLAS): the same bits whatever the split into chunks."""
+        """The frame's ray factors from its column poses ((W, 3), (W, 3, 3)): (3, W, 3)
+        float32 with [j, c, i] = M_c[i, j], and the beam origins (W, 3) float32 in the scene
+        (into ``out`` where given). Sums written out, left to right (the compiled kernel and
+        numpy alike, no BLAS): the same bits whatever the split into blocks."""
         n = len(pos)
-        cos, sin = self._cos[a:a + n, 0], self._sin[a:a + n, 0]
+        cos, sin = self._cos[:, 0], self._sin[:, 0]
         mt, oc = out if out is not None else (np.empty((3, n, 3), np.float32),
                                               np.empty((n, 3), np.float32))
         kernel = frames_kernel() if self.jit else None
