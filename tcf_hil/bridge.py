@@ -27,9 +27,10 @@ from pathlib import Path
 from typing import IO, Any, cast
 
 from emulators.harvester import BusSpec, SimClock
-from emulators.lidar import SensorApi
+from emulators.lidar import Route, SensorApi
 from protocols.harvester import eds_path
 from tcf_hil._io import ensure_dir, read_json, write_bytes_atomic, write_json_atomic
+from tcf_hil.endpoints import SensorHost, UdpPorts, claim_sensor_host, reserve_udp_ports
 from tcf_hil.evaluation import EvalConfig
 from tcf_hil.faults import FaultLog, fault_plans, faults_active
 from tcf_hil.harvester import HarvesterModel, open_bus, run_harvester
@@ -48,8 +49,9 @@ RUN_T0_NS = 60_000_000_000
 ENV_DOC: tuple[tuple[str, str], ...] = (
     ("TCF_RUN_DIR", "the run directory"),
     ("TCF_METADATA", "the sensor's metadata JSON file"),
-    ("TCF_SENSOR_URL", "the sensor's HTTP API, http://HOST:PORT"),
-    ("TCF_SENSOR_HOST", "the address lidar packets come from"),
+    ("TCF_SENSOR_URL", "the sensor's HTTP API, http://HOST (port 80, as a real sensor's)"),
+    ("TCF_SENSOR_HOST", "the sensor's own address: packets come from it, its API answers "
+                        "on port 80 there (SensorFrameSetSource(HOST) works)"),
     ("TCF_LIDAR_BIND", "the address they go to (the metadata's udp_dest)"),
     ("TCF_LIDAR_PORT", "lidar UDP port"),
     ("TCF_IMU_PORT", "IMU UDP port"),
@@ -62,6 +64,8 @@ ENV_DOC: tuple[tuple[str, str], ...] = (
     ("TCF_EDS", "the harvester node's EDS file"),
     ("TCF_PUBLISH_URL", "POST forests here (http://127.0.0.1:PORT/publish)"),
     ("TCF_PUBLISH_FILE", "or rewrite this file atomically with each forest"),
+    ("TCF_PUBLISH", "where tcf-hil's reference SIC publishes (stdout unless set: "
+                    "file:PATH or an http:// URL; yours may ignore it)"),
 )
 
 
@@ -77,13 +81,14 @@ def udp_port_taken(host: str, port: int) -> bool:
         s.close()
 
 
-def wait_for_listener(host: str, port: int, timeout_s: float, alive: Callable[[], bool],
-                      stop: threading.Event) -> bool:
+def wait_for_listener(host: str, port: int | Callable[[], int], timeout_s: float,
+                      alive: Callable[[], bool], stop: threading.Event) -> bool:
     """Wait until something listens on ``host:port`` (UDP), ``alive()`` turns false or
-    ``stop`` is set; False after ``timeout_s``."""
+    ``stop`` is set; False after ``timeout_s``. ``port`` may be a callable: the port the
+    sensor sends to now (a client can move it through the HTTP API while starting)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and alive() and not stop.is_set():
-        if udp_port_taken(host, port):
+        if udp_port_taken(host, port() if callable(port) else port):
             return True
         time.sleep(0.05)
     return False
@@ -171,7 +176,8 @@ def check_sic_command(command: str, shell: bool) -> None:
 @dataclass
 class RunResult:
     out: Path
-    status: str  # complete | sic-exited | interrupted | failed
+    #: complete | sic-exited | sic-failed | can-conflict | interrupted | failed
+    status: str
     message: str
     scores: Scores | None
     manifest: dict[str, Any]
@@ -281,8 +287,8 @@ def _versions() -> dict[str, str]:
 
 def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
-               speed: float = 1.0, can: str = "auto", shell: bool = False,
-               sensor_ip: str = "127.0.0.1", lead_s: float = 3.0, grace_s: float = 30.0,
+               speed: float = 1.0, can: str = "own", shell: bool = False,
+               sensor_ip: str | None = None, lead_s: float = 3.0, grace_s: float = 30.0,
                duration_s: float | None = None, backend: str = "embree",
                eval_cfg: EvalConfig | None = None, stop: threading.Event | None = None,
                announce: Callable[[str], None] = lambda s: None,
@@ -292,18 +298,63 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
     """One live run into ``out`` (see the module docstring). ``stop`` ends it early (Ctrl-C):
     everything is closed, and the forest published so far is scored. ``record_lidar``: keep
     lidar.pcap and sensor_poses.csv (off for long runs: 2048x10 sends 16 MB/s).
-    ``on_start`` gets the manifest once the clock runs (the SIC's pid is in it)."""
-    from tcf_hil.lidar import LidarRun, stream_lidar
+    ``on_start`` gets the manifest once the clock runs (the SIC's pid is in it).
 
+    The run owns its endpoints (:mod:`tcf_hil.endpoints`): a sensor address of its own
+    (``sensor_ip`` None: 127.0.0.N claimed, its HTTP API on port 80 there), free UDP ports
+    (7502/7503 unless taken) and, with ``can="own"``, a CAN bus of its own. On a joined bus
+    (``can`` a spec) a second node with the harvester's id stops the run ("can-conflict")."""
     stop = stop or threading.Event()
+    if lead_s * speed * 1e9 >= RUN_T0_NS:
+        raise ValueError(f"lead {lead_s} s at speed {speed} reaches before simulation time 0")
     out = ensure_dir(out)
     ensure_dir(out / "sic")
     started = _dt.datetime.now(_dt.UTC)
     t_mono0 = time.monotonic()
-    lidar_port = free_udp_port(sensor_ip, 7502)
-    imu_port = free_udp_port(sensor_ip, 7503)
-    if lead_s * speed * 1e9 >= RUN_T0_NS:
-        raise ValueError(f"lead {lead_s} s at speed {speed} reaches before simulation time 0")
+    claims = contextlib.ExitStack()
+    host, ports = claim_run_endpoints(claims, sensor_ip, (7502, 7503), announce)
+    try:
+        return _run_bridge(scn, sic, out, host, ports, mode=mode, profile=profile, seed=seed,
+                           speed=speed, can=can, shell=shell, lead_s=lead_s, grace_s=grace_s,
+                           duration_s=duration_s, backend=backend, eval_cfg=eval_cfg,
+                           stop=stop, announce=announce, progress=progress, ready_s=ready_s,
+                           record_lidar=record_lidar, on_start=on_start, started=started,
+                           t_mono0=t_mono0)
+    finally:
+        claims.close()
+
+
+def claim_run_endpoints(claims: contextlib.ExitStack, sensor_ip: str | None,
+                        preferred: tuple[int, int], announce: Callable[[str], None]
+                        ) -> tuple[SensorHost, UdpPorts]:
+    """The run's sensor host (``sensor_ip`` given: that address, its API on a free port)
+    and its lidar and IMU ports on 127.0.0.1, released by ``claims``."""
+    if sensor_ip is None:
+        host = claims.enter_context(claim_sensor_host(announce))
+    else:
+        host = SensorHost(sensor_ip, 0)
+    ports = claims.enter_context(reserve_udp_ports("127.0.0.1", list(preferred)))
+    return host, ports
+
+
+def sensor_url(api: SensorApi) -> str:
+    """The API's base URL (no port when it is 80, as for a real sensor)."""
+    h, p = cast(tuple[str, int], api.address[:2])
+    return f"http://{h}" if p == 80 else f"http://{h}:{p}"
+
+
+def _run_bridge(scn: Scenario, sic: str, out: Path, host: SensorHost, ports: UdpPorts, *,
+                mode: str, profile: str, seed: int | None, speed: float, can: str,
+                shell: bool, lead_s: float, grace_s: float, duration_s: float | None,
+                backend: str, eval_cfg: EvalConfig | None, stop: threading.Event,
+                announce: Callable[[str], None], progress: Callable[[int, int], None] | None,
+                ready_s: float, record_lidar: bool,
+                on_start: Callable[[dict[str, Any]], None] | None, started: _dt.datetime,
+                t_mono0: float) -> RunResult:
+    from tcf_hil.lidar import LidarRun, stream_lidar
+
+    sensor_ip = host.address
+    lidar_port, imu_port = ports.ports
     announce(f"building {scn.name} ({mode}, {profile}) ...")
     # the track starts at simulation time 60 s: the harvester's lead before it never
     # reaches negative times (the CAN pose time is an unsigned 32-bit microsecond count)
@@ -347,9 +398,22 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
     forked = threading.Event()
     threads: list[threading.Thread] = []
     late_ref: list[_LateClock] = []
+    conflict: list[str] = []
+    route = Route(run.meta.udp_dest, lidar_port, imu_port)
+    redirects: list[dict[str, Any]] = []
+
+    def redirect(new: Any) -> None:  # a client's set_config moved the stream (HTTP thread)
+        route.set(new.udp_dest, new.udp_port_lidar, new.udp_port_imu)
+        redirects.append({"udp_dest": new.udp_dest, "udp_port_lidar": new.udp_port_lidar,
+                          "udp_port_imu": new.udp_port_imu,
+                          "at_s": round(time.monotonic() - t_mono0, 3)})
+        write_bytes_atomic(out / "metadata.json", new.dumps().encode())
+        announce(f"sensor: a client moved the stream to {new.udp_dest}:"
+                 f"{new.udp_port_lidar}/{new.udp_port_imu}")
+
     try:
         with open_bus(can, announce=announce) as spec, SensorApi(
-                run.meta, "127.0.0.1", 0, fixed=True) as api:
+                run.meta, sensor_ip, host.http_port, fixed=True, on_redirect=redirect) as api:
             env = _environment(out, run.meta, spec, api, server.url, sensor_ip,
                                scn.harvester.node_id)
             manifest["endpoints"] = {k: v for k, v in env.items() if k.startswith("TCF_")}
@@ -366,13 +430,14 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                     scn, run.forest.terrain, spec, seed=run.forest.seed, log_path=out / "can.log",
                     speed=speed, stop=harv_stop, clock=harv_clock[0], t0_ns=t0,
                     duration_s=lead_s * speed + seconds, faults=can_faults,
-                    on_fault=flog.log if flog is not None else None))
+                    on_fault=flog.log if flog is not None else None,
+                    on_conflict=conflict.append))
 
             def on_lidar_fault(ev: dict[str, Any]) -> None:
                 assert flog is not None
                 flog.log(ev)
                 if ev["kind"] == "lidar_reinit":  # the sensor serves its new identity
-                    new = api.meta.with_changes(init_id=ev["init_id"])
+                    new = api.meta.with_changes(init_id=ev["init_id"])  # and destination
                     api.set_metadata(new)
                     write_bytes_atomic(out / "metadata.json", new.dumps().encode())
 
@@ -383,7 +448,7 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                         scn, sensor_ip=sensor_ip, record=out, run=run, stop=end_stream,
                         clock=late, progress=progress, pcap_in_place=True, forked=forked,
                         on_fault=on_lidar_fault if flog is not None else None,
-                        pcap=record_lidar)
+                        pcap=record_lidar, route=route)
                 except BaseException as err:
                     lidar_error.append(err)
                 finally:
@@ -407,11 +472,11 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                 # the clock starts once the SIC listens on the lidar port (or after ready_s):
                 # a slow start-up must not cost it the first frames
                 proc = sic_proc
-                if not wait_for_listener("127.0.0.1", lidar_port, ready_s,
-                                         lambda: proc.poll() is None, stop):
+                if not wait_for_listener(route.dest_ip, lambda: route.port(lidar_port),
+                                         ready_s, lambda: proc.poll() is None, stop):
                     if proc.poll() is None and not stop.is_set():
-                        announce(f"the SIC does not listen on UDP {lidar_port} after "
-                                 f"{ready_s:g} s; starting anyway")
+                        announce(f"the SIC does not listen on UDP {route.port(lidar_port)} "
+                                 f"after {ready_s:g} s; starting anyway")
             clock = SimClock.start(t0, speed, lead_ns=lead_ns)
             late.set(clock)
             # the harvester's view of the same clock starts now, lead_ns * speed before t0
@@ -426,12 +491,16 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             th_h = threading.Thread(target=harvester, name="harvester", daemon=True)
             th_h.start()
             threads.append(th_h)
-            announce(f"run: lidar to 127.0.0.1:{lidar_port}, sensor API {env['TCF_SENSOR_URL']}, "
-                     f"CAN {spec}; {run.frames} frames")
+            announce(f"run: sensor {sensor_ip} (API {env['TCF_SENSOR_URL']}), lidar to "
+                     f"{route.dest_ip}:{route.port(lidar_port)}, CAN {spec}; "
+                     f"{run.frames} frames")
             while th_l.is_alive() and sic_proc is not None:
                 th_l.join(0.2)
                 if stop.is_set():
                     status, message = "interrupted", "stopped by the user"
+                    break
+                if conflict:  # the SIC would get two machines' poses: nothing to score
+                    status, message = "can-conflict", conflict[0]
                     break
                 if sic_proc.poll() is not None:
                     rc = sic_proc.poll()
@@ -443,6 +512,8 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
             th_l.join()
             if lidar_error:
                 raise lidar_error[0]
+            if conflict and status == "complete":  # it came in the stream's last moments
+                status, message = "can-conflict", conflict[0]
             if sic_proc is not None:
                 if status == "complete":
                     announce("stream ended; waiting for the SIC's final forest ...")
@@ -472,6 +543,8 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
         if flog is not None:
             flog.close()
             manifest["faults"]["injected"] = flog.summary()
+        if redirects:
+            manifest["sensor_redirects"] = redirects
         if lidar_result is not None:
             manifest["lidar"] = {"frames_sent": lidar_result.frames,
                                  "packets_sent": lidar_result.packets,
@@ -481,7 +554,7 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
         if harv_result:
             h = harv_result[0]
             manifest["can"] = {"bus": h.spec, "node_id": h.node_id, "frames_logged": h.log_frames,
-                               "log_error": h.log_error}
+                               "log_error": h.log_error, "conflict": h.conflict}
         write_end_manifest(out, manifest, status, message, rc, sic_proc, inbox)
     status, message = conclude(status, message, rc, sic_proc, grace_s, inbox, out)
     return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)
@@ -523,7 +596,7 @@ def _environment(out: Path, meta: Any, spec: BusSpec, api: SensorApi, publish_ur
     env.update({
         "TCF_RUN_DIR": str(out.resolve()),
         "TCF_METADATA": str((out / "metadata.json").resolve()),
-        "TCF_SENSOR_URL": f"http://{cast(str, api.address[0])}:{api.address[1]}",
+        "TCF_SENSOR_URL": sensor_url(api),
         "TCF_SENSOR_HOST": sensor_ip,
         "TCF_LIDAR_BIND": meta.udp_dest,
         "TCF_LIDAR_PORT": str(meta.udp_port_lidar),
@@ -551,7 +624,7 @@ def finish_run(out: Path, manifest: dict[str, Any], inbox: Inbox, status: str, m
     from tcf_hil.report import write_report
 
     gt_doc = read_json(out / "ground_truth.json") if (out / "ground_truth.json").exists() \
-        else None
+        and status != "can-conflict" else None  # poses mixed with another node's: no score
     scores: Scores | None = None
     timeline: list[dict[str, Any]] = []
     valid = inbox.valid

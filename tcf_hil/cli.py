@@ -113,6 +113,7 @@ def _bridge(scn: Any, sic: str, out: Path, replay_dir: Path | None = None, **kw:
     recording is kept and scored); prints the score table. Returns the exit status."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
+    from tcf_hil._logs import library_logs
     from tcf_hil.bridge import run_bridge
 
     stop = threading.Event()
@@ -127,9 +128,9 @@ def _bridge(scn: Any, sic: str, out: Path, replay_dir: Path | None = None, **kw:
     previous = signal.signal(signal.SIGINT, on_signal)
     previous_term = signal.signal(signal.SIGTERM, on_signal)
     try:
-        with Progress("[progress.description]{task.description}", BarColumn(),
-                      MofNCompleteColumn(), TimeRemainingColumn(), console=err_console,
-                      transient=True) as prog:
+        with library_logs(out / "bench.log"), Progress(
+                "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
+                TimeRemainingColumn(), console=err_console, transient=True) as prog:
             task = prog.add_task("frames on the wire", total=None)
 
             def step(done: int, total: int) -> None:
@@ -146,6 +147,9 @@ def _bridge(scn: Any, sic: str, out: Path, replay_dir: Path | None = None, **kw:
     finally:
         signal.signal(signal.SIGINT, previous)
         signal.signal(signal.SIGTERM, previous_term)
+    if r.status == "can-conflict":  # nothing was scored: its poses were not the run's
+        click.echo(f"Error: {r.message}; nothing scored (run directory {r.out}/)", err=True)
+        return 1
     _print_run(r)
     if r.status == "complete" and r.scores is not None \
             and r.publications > r.invalid_publications:
@@ -227,8 +231,11 @@ def demo(out: Path | None, seed: int | None, preset: str) -> None:
               show_default=True, help="Simulation seconds per second (1 = real time).")
 @click.option("--duration", type=click.FloatRange(min=0.1), default=None,
               help="Stop the stream after this many simulated seconds (default: the track).")
-@click.option("--can", "can_spec", default="auto", show_default=True,
-              help="CAN bus: auto, socketcan:IFACE, socketcand:HOST:PORT:CHANNEL.")
+@click.option("--can", "can_spec", default="own", show_default=True,
+              help="CAN bus: own (a CAN server of the run's own on a free port: no other "
+                   "bench or harvester can mix in), or join one on purpose: auto, "
+                   "socketcan:IFACE, socketcand:HOST:PORT:CHANNEL. On a joined bus a second "
+                   "node with the harvester's id stops the run (exit 1).")
 @click.option("--grace", type=click.FloatRange(min=0), default=30.0, show_default=True,
               help="Seconds the SIC gets after the stream ends to publish its final forest "
                    "and exit (then SIGTERM, then SIGKILL).")
@@ -251,9 +258,16 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     its HTTP API) on one simulation clock, launches --sic as its own process with the
     endpoints in its environment, records everything into the run directory, and scores
     the SIC's last published forest against all trees and against the trees the sensor saw.
-    Exit status 0 when the run completed and the SIC published a valid forest, 3 when the
-    SIC failed (exited early or with an error, or published nothing valid), 130 when
-    stopped by Ctrl-C/SIGTERM (the partial run is still recorded and scored).
+    Exit status 0 when the run completed and the SIC published a valid forest, 1 when a
+    second node with the harvester's id was on a joined CAN bus, 3 when the SIC failed
+    (exited early or with an error, or published nothing valid), 130 when stopped by
+    Ctrl-C/SIGTERM (the partial run is still recorded and scored).
+
+    \b
+    The run owns its endpoints: the sensor gets a loopback address of its own (127.0.0.2,
+    ...; packets come from it, its HTTP API answers on port 80 there, so
+    SensorFrameSetSource($TCF_SENSOR_HOST) works), the lidar and IMU ports are 7502/7503
+    unless taken, and the CAN bus is the run's own unless --can joins one.
 
     \b
     Faults (the scenario's [faults] section, or --fault KEY=VALUE) are injected on the wire
@@ -291,12 +305,14 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
               show_default=True, help="Playback speed (1 = the original timing).")
 @click.option("--loop", is_flag=True, help="Start over at the end (frame_id, column time "
                                            "stamps and pose time continue) until Ctrl-C.")
-@click.option("--sensor-address", default="127.0.0.1", show_default=True,
-              help="Address the packets come from.")
+@click.option("--sensor-address", default="auto", show_default=True,
+              help="Address the packets come from and the HTTP API answers on; auto: a "
+                   "loopback address of its own (127.0.0.2, ...), the API on port 80.")
 @click.option("--dest", default=None, help="Where packets go (default: the recorded "
                                            "udp_dest).")
 @click.option("--http-port", type=click.IntRange(0, 65535), default=None,
-              help="Serve the HTTP API from the recorded metadata on this port.")
+              help="Port of the HTTP API serving the recorded metadata [default: 80 with "
+                   "--sensor-address auto where it may be bound, else a free one].")
 @click.option("--can", "can_spec", default="auto", show_default=True,
               help="CAN bus for the recorded frames (auto, socketcan:IFACE, "
                    "socketcand:HOST:PORT:CHANNEL).")
@@ -309,25 +325,39 @@ def replay_cmd(run_dir: Path, speed: float, loop: bool, sensor_address: str, des
     from --sensor-address to the recorded ports; your program listens as in the run. To
     score another SIC on this traffic use: tcf-hil run --replay RUN_DIR --sic "COMMAND".
     """
+    from emulators.lidar import Route, SensorApi
     from tcf_hil._io import read_json
+    from tcf_hil.bridge import sensor_url
+    from tcf_hil.endpoints import SensorHost, claim_sensor_host
     from tcf_hil.harvester import open_bus
-    from tcf_hil.replay import Recording, SdoResponder, replay, serve_metadata
+    from tcf_hil.replay import Recording, SdoResponder, replay
 
     rec = Recording.load(run_dir)
     node = dict(read_json(run_dir / "manifest.json").get("can_node") or {})
     stop = threading.Event()
-    api = serve_metadata(rec.meta, sensor_address, http_port) if http_port is not None \
-        else None
+    host = claim_sensor_host(err_console.print) if sensor_address == "auto" else \
+        SensorHost(sensor_address, 80 if http_port is None else http_port)
+    meta = rec.meta if dest is None else rec.meta.with_changes(udp_dest=dest)
+    route = Route(meta.udp_dest, meta.udp_port_lidar, meta.udp_port_imu)
+    try:
+        api = SensorApi(meta, host.address, host.http_port if http_port is None else http_port,
+                        fixed=True, on_redirect=lambda m: route.set(
+                            m.udp_dest, m.udp_port_lidar, m.udp_port_imu)).start()
+    except OSError as err:
+        host.release()
+        raise click.ClickException(f"cannot serve the sensor's HTTP API on {host.address}:"
+                                   f"{http_port}: {err.strerror}") from err
     try:
         with open_bus(can_spec, announce=err_console.print) as spec:
             console.print(f"replaying {run_dir}: {rec.frames} frames, {len(rec.can)} CAN "
-                          f"frames at {speed:g}x to {dest or rec.meta.udp_dest}:"
-                          f"{rec.meta.udp_port_lidar}/{rec.meta.udp_port_imu}, CAN {spec}"
+                          f"frames at {speed:g}x from sensor {host.address} (API "
+                          f"{sensor_url(api)}) to {meta.udp_dest}:"
+                          f"{meta.udp_port_lidar}/{meta.udp_port_imu}, CAN {spec}"
                           + (" (looping; Ctrl-C stops)" if loop else ""))
             sdo = SdoResponder(spec, node)
             try:
-                sent = replay(run_dir, speed=speed, loop=loop, sensor_ip=sensor_address,
-                              dest=dest, spec=spec, stop=stop, rec=rec,
+                sent = replay(run_dir, speed=speed, loop=loop, sensor_ip=host.address,
+                              dest=dest, spec=spec, stop=stop, rec=rec, route=route,
                               node_id=int(node.get("node_id", 10)))
             except KeyboardInterrupt:
                 stop.set()
@@ -335,8 +365,8 @@ def replay_cmd(run_dir: Path, speed: float, loop: bool, sensor_address: str, des
             finally:
                 sdo.close()
     finally:
-        if api is not None:
-            api.close()
+        api.close()
+        host.release()
     console.print(f"sent {sent['udp']} UDP datagrams and {sent['can']} CAN frames")
 
 
@@ -652,8 +682,10 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
 @lidar.command("stream")
 @click.argument("scenario_name", metavar="SCENARIO")
 @_sensor_options
-@click.option("--sensor-address", default="127.0.0.1", show_default=True,
-              help="Address the packets come from (ouster-sdk checks it; any 127.x works).")
+@click.option("--sensor-address", default="auto", show_default=True,
+              help="Address the packets come from (ouster-sdk checks it; any 127.x works); "
+                   "auto: a loopback address of its own (127.0.0.2, ...) with the sensor's "
+                   "HTTP API on port 80, as a real sensor.")
 @click.option("--dest", default="127.0.0.1", show_default=True, help="Where packets go.")
 @click.option("--lidar-port", type=click.IntRange(1, 65535), default=7502, show_default=True)
 @click.option("--imu-port", type=click.IntRange(1, 65535), default=7503, show_default=True)
@@ -666,7 +698,9 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
                    "--http-port, a client's re-initialisation n goes into DIR/reinit-n).")
 @click.option("--http-port", type=click.IntRange(0, 65535), default=None,
               help="Serve the sensor's HTTP API on this port (ouster-sdk and ouster-cli "
-                   "need 80, which needs root); the API stays up until Ctrl-C.")
+                   "need 80, which needs root) [default with --sensor-address auto: 80 where "
+                   "it may be bound, else a free port; otherwise no API]. The API stays up "
+                   "until Ctrl-C.")
 @click.option("--http-address", default=None,
               help="Address of the HTTP API (default: the sensor address).")
 @_fault_option
@@ -677,16 +711,24 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     """Stream the emulated OS0-64 live over UDP until the track ends or Ctrl-C.
 
     \b
-    With --http-port 80 (as root) stock clients connect as to a real sensor:
-      ouster-cli source 127.0.0.1 slice 0:5 save x.pcap
+    The sensor gets a loopback address of its own with its HTTP API on port 80 (as root),
+    and stock clients connect as to a real sensor (the address is printed):
+      ouster-cli source 127.0.0.2 slice 0:5 save x.pcap
     Without the HTTP API, give ouster-sdk the metadata instead (written by --record DIR or
     by `tcf-hil lidar pcap`):
-      sensor.SensorFrameSetSource("127.0.0.1", sensor_info=[core.SensorInfo(json_text)])
+      sensor.SensorFrameSetSource("127.0.0.2", sensor_info=[core.SensorInfo(json_text)])
     """
+    from tcf_hil.endpoints import claim_sensor_host
     from tcf_hil.lidar import RecordResult, serve_sensor, stream_lidar
 
     scn = _scenario_with_faults(scenario_name, faults)
     stop = threading.Event()
+    claims = contextlib.ExitStack()
+    if sensor_address == "auto":
+        host = claims.enter_context(claim_sensor_host(err_console.print))
+        sensor_address = host.address
+        if http_port is None:
+            http_port = host.http_port
 
     def first_ctrl_c(_sig: int, _frame: object) -> None:
         # finish the frame on the wire, then write the recording: a second Ctrl-C aborts
@@ -707,18 +749,19 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     previous_term = signal.signal(signal.SIGTERM, first_ctrl_c)
     try:
         if http_port is not None:
-            host = http_address or sensor_address
-            console.print(f"sensor {scn.name} {mode} {profile}: HTTP API on {host}:"
-                          f"{http_port}, UDP from {sensor_address} (Ctrl-C stops)")
+            host_ip = http_address or sensor_address
+            console.print(f"sensor {scn.name} {mode} {profile}: HTTP API on {host_ip}:"
+                          f"{http_port or 'a free port'}, UDP from {sensor_address} to "
+                          f"{dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
             try:
-                serve_sensor(scn, http_host=host, http_port=http_port,
+                serve_sensor(scn, http_host=host_ip, http_port=http_port,
                              sensor_ip=sensor_address, speed=speed, stop=stop, mode=mode,
                              profile=profile, seed=seed, max_frames=frames, udp_dest=dest,
                              udp_port_lidar=lidar_port, udp_port_imu=imu_port, record=record,
                              on_result=summary)
             except OSError as err:
                 raise click.ClickException(
-                    f"cannot serve {host}:{http_port}: {err.strerror} (port 80 needs root; "
+                    f"cannot serve {host_ip}:{http_port}: {err.strerror} (port 80 needs root; "
                     "or pass the metadata file to the client instead)") from err
             return
         console.print(f"streaming {scn.name} {mode} {profile} from {sensor_address} to "
@@ -733,6 +776,7 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     finally:
         signal.signal(signal.SIGINT, previous)
         signal.signal(signal.SIGTERM, previous_term)
+        claims.close()
 
 
 # ----------------------------------------------------------------------- harvester / CAN
@@ -824,6 +868,8 @@ def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: 
         raise click.BadParameter(str(err), param_hint="--can") from err
     except (OSError, can.CanError) as err:
         raise click.ClickException(f"CAN bus {can_spec}: {err}") from err
+    if r.conflict:  # its poses and the other node's would be mixed: nothing to report
+        raise click.ClickException(f"stopped: {r.conflict}")
     s = r.stats
     console.print(f"{r.sim_seconds:.1f} s simulated: {s['tpdo_frames']} TPDO frames, "
                   f"{s['syncs_sent']} SYNC sent, {s['syncs_received']} received, "
@@ -886,6 +932,7 @@ def soak_cmd(scenario_name: str, minutes: float, mode: str, preset: str, seed: i
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
+    from tcf_hil._logs import library_logs
     from tcf_hil.soak import run_soak
 
     scn = _scenario_with_faults(scenario_name, faults)
@@ -893,9 +940,9 @@ def soak_cmd(scenario_name: str, minutes: float, mode: str, preset: str, seed: i
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda _s, _f: stop.set())
     try:
-        with Progress("[progress.description]{task.description}", BarColumn(),
-                      MofNCompleteColumn(), TimeRemainingColumn(), console=err_console,
-                      transient=True) as prog:
+        with library_logs(out / "bench.log"), Progress(
+                "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
+                TimeRemainingColumn(), console=err_console, transient=True) as prog:
             task = prog.add_task("soak: frames on the wire", total=None)
             r = run_soak(scn, out, minutes=minutes, mode=mode, preset=preset, seed=seed,
                          max_growth_percent=max_growth, announce=err_console.print,
@@ -1031,8 +1078,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(args: list[str]) -> int:
+    from tcf_hil._logs import library_logs
+
     try:
-        cli.main(args=args, prog_name="tcf-hil", standalone_mode=False)
+        with library_logs(None):  # python-can's and canopen's warnings off the terminal
+            cli.main(args=args, prog_name="tcf-hil", standalone_mode=False)
     except click.exceptions.Abort:
         err_console.print("Aborted.")
         return 1

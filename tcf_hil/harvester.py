@@ -110,10 +110,19 @@ class HarvesterModel:
 @contextlib.contextmanager
 def open_bus(spec_text: str, *, announce: Callable[[str], None] = lambda s: None
              ) -> Iterator[BusSpec]:
-    """The bus for a ``--can`` value; ``auto`` picks vcan0, else joins or starts the
-    socketcand server on 127.0.0.1:29536 (stopped again on exit if started here)."""
-    spec = parse_bus_spec(spec_text)
+    """The bus for a ``--can`` value; ``own`` starts a CAN server of its own on a free port
+    of 127.0.0.1 (a run's default: nobody else is on it); ``auto`` picks vcan0, else joins or
+    starts the socketcand server on 127.0.0.1:29536. A server started here stops on exit."""
     server: SocketcandServer | None = None
+    if spec_text.strip() == "own":
+        from emulators.canbus import SocketcandServer
+
+        server = SocketcandServer("127.0.0.1", 0)
+        server.start()
+        spec: BusSpec | None = BusSpec("socketcand", "vcan0", "127.0.0.1", server.port)
+        announce(f"bus: the run's own CAN server at {spec}")
+    else:
+        spec = parse_bus_spec(spec_text)
     if spec is None:
         host, port = "127.0.0.1", DEFAULT_SOCKETCAND_PORT
         if kernel_has_vcan("vcan0"):
@@ -145,6 +154,7 @@ class HarvesterRunResult:
     log_frames: int
     log_path: Path | None
     log_error: str | None = None  # why the CAN log stopped early (e.g. the disk is full)
+    conflict: str | None = None  # a second node with this id was on the bus: stopped
 
 
 def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int = 0,
@@ -155,11 +165,13 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
                   clock: SimClock | None = None, t0_ns: int = 1_000_000_000,
                   on_tick: Callable[[float, float], None] | None = None,
                   faults: CanFaultPlan | None = None,
-                  on_fault: Callable[[FaultEvent], None] | None = None) -> HarvesterRunResult:
+                  on_fault: Callable[[FaultEvent], None] | None = None,
+                  on_conflict: Callable[[str], None] | None = None) -> HarvesterRunResult:
     """Drive the scenario's track in (scaled) real time with the node on ``spec`` until the
     track ends (plus one second standing), ``duration_s`` of simulation time, or ``stop``.
     ``faults``/``on_fault``: injected CAN faults and where their events go (default: the
-    scenario's ``[faults.can]``, events dropped)."""
+    scenario's ``[faults.can]``, events dropped). A second node with the node's id on the
+    bus stops it at once: the result's ``conflict`` says so, and ``on_conflict`` hears it."""
     model = HarvesterModel.from_scenario(scn, terrain, seed, t0_ns)
     clock = clock or SimClock.start(model.trajectory.t0_ns, speed)
     end_ns = (model.trajectory.end_ns + 1_000_000_000 if duration_s is None
@@ -170,19 +182,27 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
     can_log: CanLog | None = None
     if faults is None and faults_active(scn.faults):
         faults = fault_plans(scn.faults, seed, model.trajectory.t0_ns).can
-    node = HarvesterNode(spec, model.bus_pose, clock, cfg, faults=faults, on_fault=on_fault)
+    clash = threading.Event()
+
+    def conflicting(why: str) -> None:
+        clash.set()
+        if on_conflict is not None:
+            on_conflict(why)
+
+    node = HarvesterNode(spec, model.bus_pose, clock, cfg, faults=faults, on_fault=on_fault,
+                         on_conflict=conflicting)
     try:
         if log_path is not None:  # first, so that it sees the boot-up
             can_log = CanLog(log_path, spec).start()
         node.start()
         total = (end_ns - clock.t0_ns) / 1e9
-        while not stop.is_set():
+        while not stop.is_set() and not clash.is_set():
             now = clock.now_ns()
             if on_tick is not None:
                 on_tick((now - clock.t0_ns) / 1e9, total)
             if now >= end_ns:
                 break
-            stop.wait(min(0.2, max(0.0, (end_ns - now) / 1e9 / clock.speed)))
+            clash.wait(min(0.2, max(0.0, (end_ns - now) / 1e9 / clock.speed)))
     finally:
         node.stop()
         if can_log is not None:
@@ -197,7 +217,7 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
     return HarvesterRunResult(str(spec), cfg.node_id,
                               (min(clock.now_ns(), end_ns) - clock.t0_ns) / 1e9, st,
                               can_log.frames if can_log else 0, log_path,
-                              can_log.error if can_log else None)
+                              can_log.error if can_log else None, node.conflict)
 
 
 def heading_error_deg(a: float, b: float) -> float:

@@ -30,6 +30,7 @@ from emulators.lidar import (
     Os0Emulator,
     PacedSender,
     ReturnModel,
+    Route,
     SensorApi,
     carried_range_m,
 )
@@ -224,8 +225,10 @@ class LidarRun:
         write_json_atomic(out / "visibility.json", vis)
         return vis
 
-    def result(self, out: Path | None, **kw: Any) -> RecordResult:
-        return RecordResult(out, self.frames, self.packets, int(self.counts.sum()),
+    def result(self, out: Path | None, frames: int | None = None, **kw: Any) -> RecordResult:
+        """``frames``: those that left (default: every frame of the run)."""
+        return RecordResult(out, self.frames if frames is None else frames, self.packets,
+                            int(self.counts.sum()),
                             int(np.count_nonzero(self.counts[1:])), self.backend, **kw)
 
 
@@ -393,7 +396,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                  clock: Any = None, pcap_in_place: bool = False,
                  forked: threading.Event | None = None,
                  on_fault: Callable[[FaultEvent], None] | None = None, pcap: bool = True,
-                 **run_kw: Any) -> RecordResult:
+                 route: Route | None = None, **run_kw: Any) -> RecordResult:
     """Send the run live over UDP from ``sensor_ip`` to ``dest``, paced from the simulation
     clock (``speed`` 1.0 = real time, 0 = as fast as possible).
 
@@ -411,6 +414,10 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     ``on_fault`` gets each injected fault event (the scenario's ``[faults]``) just before the
     frame it struck is sent; a re-initialisation's event carries the new ``init_id``.
     ``pcap``: with ``record``, also write ``lidar.pcap`` (off: the sidecar files only).
+    ``route``: where the datagrams go now (the sensor's HTTP API moves it when a client
+    sets ``udp_dest`` or the ports); the pcap keeps the destination the run was made with.
+    The result's ``frames`` counts the frames that left with lidar packets (a
+    re-initialisation's silence and dropped frames are not sent).
     """
     from multiprocessing.shared_memory import SharedMemory
 
@@ -433,6 +440,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     dgs: list[Datagram] = []
     frozen = False
     done = 0
+    on_wire = 0  # frames that left with lidar packets
     error: str | None = None
     try:
         with outputs:  # the pcap is renamed into place only if all below succeeds
@@ -476,7 +484,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
             gc.freeze()
             frozen = True
             with PacedSender(sensor_ip, dest, speed=speed, realtime=realtime,
-                             clock=clock) as sender:
+                             clock=clock, route=route) as sender:
                 while not stop.is_set():
                     item = ready.popleft() if ready else receive(1.0)
                     if item is None:
@@ -501,6 +509,8 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                            zip(meta.tolist(), starts, ends, strict=True)]
                     del view
                     sender.send(dgs)
+                    on_wire += bool(len(meta)) and bool(
+                        (meta[:, 1] == run.meta.udp_port_lidar).any())
                     sent.value = done + 1  # before the slot goes back
                     _release(dgs)
                     dgs = []
@@ -551,7 +561,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     if out is not None:
         run.frames = done
         run.write_sidecars(out)
-    return run.result(out, pacing_us=stats.pacing_us(), refused=stats.refused,
+    return run.result(out, frames=on_wire, pacing_us=stats.pacing_us(), refused=stats.refused,
                       realtime=stats.realtime,
                       sender_cpu_share=stats.cpu_s / stats.wall_s if stats.wall_s else 0.0)
 

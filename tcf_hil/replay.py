@@ -24,7 +24,7 @@ import can
 import numpy as np
 
 from emulators.harvester import BusSpec
-from emulators.lidar import SensorApi
+from emulators.lidar import Route, SensorApi
 from protocols.harvester import HARVESTER_OD, POSE, decode_pdo, encode_pdo
 from protocols.harvester._codec import TIME_WRAP_US
 from protocols.ouster import IMU_PACKET_BYTES, SensorMetadata, crc64_xz_rows
@@ -155,8 +155,9 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
            spec: BusSpec | None = None, node_id: int = 10,
            stop: threading.Event | None = None,
            on_progress: Callable[[int, int], None] | None = None,
-           rec: Recording | None = None) -> dict[str, int]:
-    """Send the recording until it ends (or forever with ``loop``) or ``stop``."""
+           rec: Recording | None = None, route: Route | None = None) -> dict[str, int]:
+    """Send the recording until it ends (or forever with ``loop``) or ``stop``. ``route``:
+    where datagrams go now (a client of the sensor's HTTP API may move them)."""
     rec = rec or Recording.load(run_dir)
     stop = stop or threading.Event()
     dest = dest or rec.meta.udp_dest
@@ -182,7 +183,8 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
             if kind == "udp":
                 port, payload = item
                 try:
-                    sock.sendto(payload, (dest, port))
+                    sock.sendto(payload, route.address(port) if route is not None
+                                else (dest, port))
                     sent["udp"] += 1
                 except OSError:
                     sent["refused"] += 1
@@ -234,34 +236,18 @@ def copy_recording(src: Path, out: Path) -> None:
             shutil.copyfile(src / name, out / name)
 
 
-def serve_metadata(meta: SensorMetadata, host: str = "127.0.0.1", port: int = 0) -> SensorApi:
-    return SensorApi(meta, host, port).start()
-
-
 def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: bool = False,
-               can_spec: str = "auto", grace_s: float = 30.0, lead_s: float = 3.0,
-               sensor_ip: str = "127.0.0.1", stop: threading.Event | None = None,
+               can_spec: str = "own", grace_s: float = 30.0, lead_s: float = 3.0,
+               sensor_ip: str | None = None, stop: threading.Event | None = None,
                announce: Callable[[str], None] = lambda s: None,
                eval_cfg: Any = None) -> Any:
     """``tcf-hil run --replay SRC --sic COMMAND``: another SIC scored on recorded traffic.
     The new run directory holds the same recording (replayable in turn), this SIC's
-    publications and score. ``stop`` ends it early, as for a live run."""
-    import datetime as _dt
-    import shlex
+    publications and score. ``stop`` ends it early, as for a live run. Its endpoints are its
+    own, as a live run's (:func:`tcf_hil.bridge.claim_run_endpoints`)."""
+    import contextlib
 
-    from tcf_hil._io import ensure_dir, write_bytes_atomic, write_json_atomic
-    from tcf_hil.bridge import (
-        _environment,
-        _SicProcess,
-        _versions,
-        conclude,
-        finish_run,
-        free_udp_port,
-        sic_command,
-        write_end_manifest,
-    )
-    from tcf_hil.harvester import open_bus
-    from tcf_hil.recorder import FileWatcher, Inbox, PublishServer
+    from tcf_hil._io import ensure_dir
 
     stop = stop or threading.Event()
     rec = Recording.load(src)
@@ -269,8 +255,41 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
     out = ensure_dir(out)
     ensure_dir(out / "sic")
     copy_recording(src, out)  # metadata.json as recorded: it describes lidar.pcap
-    lidar_port = free_udp_port(sensor_ip, rec.meta.udp_port_lidar)
-    imu_port = free_udp_port(sensor_ip, rec.meta.udp_port_imu)
+    claims = contextlib.ExitStack()
+    try:
+        return _replay_run(src, sic, out, rec, src_man, claims, speed=speed, shell=shell,
+                           can_spec=can_spec, grace_s=grace_s, lead_s=lead_s,
+                           sensor_ip=sensor_ip, stop=stop, announce=announce,
+                           eval_cfg=eval_cfg)
+    finally:
+        claims.close()
+
+
+def _replay_run(src: Path, sic: str, out: Path, rec: Recording, src_man: dict[str, Any],
+                claims: Any, *, speed: float, shell: bool, can_spec: str, grace_s: float,
+                lead_s: float, sensor_ip: str | None, stop: threading.Event,
+                announce: Callable[[str], None], eval_cfg: Any) -> Any:
+    import datetime as _dt
+    import shlex
+
+    from tcf_hil._io import write_bytes_atomic, write_json_atomic
+    from tcf_hil.bridge import (
+        _environment,
+        _SicProcess,
+        _versions,
+        claim_run_endpoints,
+        conclude,
+        finish_run,
+        sic_command,
+        write_end_manifest,
+    )
+    from tcf_hil.harvester import open_bus
+    from tcf_hil.recorder import FileWatcher, Inbox, PublishServer
+
+    host, ports = claim_run_endpoints(
+        claims, sensor_ip, (rec.meta.udp_port_lidar, rec.meta.udp_port_imu), announce)
+    sensor_ip = host.address
+    lidar_port, imu_port = ports.ports
     meta = rec.meta.with_changes(udp_port_lidar=lidar_port, udp_port_imu=imu_port)
     meta_path = out / "metadata.json"
     if meta != rec.meta:  # the recorded ports are taken: the SIC gets the ones used now
@@ -298,9 +317,17 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
     end = threading.Event()
     status, message, rc = "complete", "", None
     sent: dict[str, int] = {}
+    route = Route(meta.udp_dest, lidar_port, imu_port)
+
+    def redirect(new: SensorMetadata) -> None:  # a client's set_config moved the stream
+        route.set(new.udp_dest, new.udp_port_lidar, new.udp_port_imu)
+        announce(f"sensor: a client moved the stream to {new.udp_dest}:"
+                 f"{new.udp_port_lidar}/{new.udp_port_imu}")
+
     try:
         with open_bus(can_spec, announce=announce) as spec, \
-                SensorApi(meta, "127.0.0.1", 0, fixed=True) as api:
+                SensorApi(meta, sensor_ip, host.http_port, fixed=True,
+                          on_redirect=redirect) as api:
             env = _environment(out, meta, spec, api, server.url, sensor_ip, node_id)
             env["TCF_METADATA"] = str(meta_path.resolve())
             manifest["endpoints"] = {k: v for k, v in env.items() if k.startswith("TCF_")}
@@ -318,13 +345,13 @@ def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: boo
 
             def send() -> None:
                 sent.update(replay(src, speed=speed, sensor_ip=sensor_ip, spec=spec,
-                                   node_id=node_id, stop=end, rec=rec))
+                                   node_id=node_id, stop=end, rec=rec, route=route))
 
             if proc is not None and not stop.wait(lead_s):
                 th = threading.Thread(target=send, name="replay", daemon=True)
                 th.start()
-                announce(f"replaying {src} at {speed:g}x to 127.0.0.1:{lidar_port}, "
-                         f"CAN {spec}")
+                announce(f"replaying {src} at {speed:g}x from {sensor_ip} to "
+                         f"{route.dest_ip}:{route.port(lidar_port)}, CAN {spec}")
             while th is not None and th.is_alive():
                 th.join(0.2)
                 if stop.is_set():

@@ -13,7 +13,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _tool(name: str) -> list[str]:
-    exe = shutil.which(name)
+    # the venv's own tools, whether or not the venv is on PATH (CI runs it un-activated)
+    exe = shutil.which(name, path=str(Path(sys.executable).parent)) or shutil.which(name)
     if exe is None:
         pytest.fail(f"{name} is not installed; it is part of the [test] extra")
     return [exe]

@@ -25,3 +25,28 @@ def test_readme_has_exactly_two_setup_commands() -> None:
 def test_ci_runs_the_readme_test_command() -> None:
     ci = (ROOT / ".ci" / "run").read_text().splitlines()
     assert _setup_commands()[1] in [line.strip() for line in ci]
+
+
+def test_every_variable_of_the_sic_contract_is_documented() -> None:
+    """What a SIC finds in its environment (and in {placeholders}) is in the README's table,
+    and nothing the table promises is missing from the environment (TCF_PUBLISH was set
+    but not documented)."""
+    import inspect
+
+    from tcf_hil.bridge import ENV_DOC, _environment
+
+    text = (ROOT / "README.md").read_text()
+    table = text[text.index("### The SIC contract"):text.index("### The run directory")]
+    documented = set(re.findall(r"`(TCF_[A-Z_]+)`", table))
+    names = {k for k, _ in ENV_DOC}
+    assert names == documented, (names - documented, documented - names)
+    # what _environment sets is what ENV_DOC lists
+    assert set(re.findall(r'"(TCF_[A-Z_]+)"', inspect.getsource(_environment))) == names
+    for name in names:  # each with its placeholder
+        assert "{" + name[4:].lower() + "}" in table, name
+
+
+def test_the_readme_says_which_ouster_frame_the_mount_places() -> None:
+    text = (ROOT / "README.md").read_text()
+    can = text[text.index("## The harvester on the CAN bus"):text.index("## Layout")]
+    assert re.search(r"0x2002 holds the lidar mount.{0,80}Ouster's\s+sensor frame", can, re.S)

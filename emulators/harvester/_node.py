@@ -65,6 +65,8 @@ class NodeStats:
     nmt_commands: int = 0
     foreign_frames: int = 0
     malformed_frames: int = 0
+    #: frames on this node's own COB-IDs that it did not send: a second node with its id
+    id_conflict_frames: int = 0
     tx_dropped: int = 0  # frames refused by a full transmit queue (ENOBUFS)
     bus_errors: int = 0  # sends or receives that failed (each leads to a reconnect)
     reconnects: int = 0
@@ -89,6 +91,9 @@ class NodeConfig:
     mount_cdeg: tuple[int, int, int] = (0, 0, 0)  # yaw, pitch, roll in 0.01 deg
     unix_epoch_ns: int | None = None  # wall time (Unix ns) at simulation time t0; None: now
     reconnect_s: float = 0.5
+    #: listen this long before booting: a node with the same id already on the bus shows
+    #: itself (its heartbeat every 100 ms, its TPDOs at 100 Hz) and this one stays silent
+    listen_s: float = 0.5
 
 
 class _ReceiveErrors(can.Listener):
@@ -111,13 +116,21 @@ class HarvesterNode:
     error already applied); ``clock`` is the run's simulation clock. ``faults``: injected
     CAN faults (loss of the node's own frames, late pose TPDOs, bus-off windows, NMT resets
     from a second master), each reported to ``on_fault`` with its simulation time.
+
+    A frame on one of this node's own COB-IDs (EMCY, TPDO1-4, SDO answers, heartbeat) that it
+    did not send means a second node with the same id is on the bus, and a consumer would
+    mix both poses: :attr:`conflict` then names it and ``on_conflict`` is called once (from
+    the bus's receive thread; do not block there). No transport here hands a node its own
+    frames back (python-can's ``receive_own_messages`` is off; the CAN server relays to
+    the others only).
     """
 
     def __init__(self, bus: BusSpec, pose_at: Callable[[int], Pose], clock: SimClock,
                  cfg: NodeConfig = NodeConfig(), *, eds: Path | None = None,
                  on_frame: Callable[[can.Message], None] | None = None,
                  faults: CanFaultPlan | None = None,
-                 on_fault: Callable[[FaultEvent], None] | None = None) -> None:
+                 on_fault: Callable[[FaultEvent], None] | None = None,
+                 on_conflict: Callable[[str], None] | None = None) -> None:
         if not 1 <= cfg.node_id <= 127:
             raise ValueError(f"node id: expected 1..127, got {cfg.node_id}")
         self.spec, self.pose_at, self.clock, self.cfg = bus, pose_at, clock, cfg
@@ -155,6 +168,11 @@ class HarvesterNode:
         self._last_raw: dict[tuple[int, int], int] | None = None
         self._faults = faults
         self._on_fault = on_fault or (lambda ev: None)
+        self._on_conflict = on_conflict
+        self.conflict: str | None = None
+        n = cfg.node_id
+        self._taken_cobs = {0x80 + n, 0x180 + n, 0x280 + n, 0x380 + n, 0x480 + n, 0x580 + n,
+                            HEARTBEAT_BASE + n}
         self._delayed: list[tuple[int, int, bytes]] = []  # (due monotonic ns, cob, data)
         self._bus_off: int | None = None  # index of the bus-off window in effect
         self._next_reset = 0  # index into faults.nmt_reset_at_ns
@@ -179,6 +197,12 @@ class HarvesterNode:
         return self._connected
 
     def start(self) -> HarvesterNode:
+        """Connect, listen ``cfg.listen_s`` for a node with the same id, then boot (unless
+        one was heard: then :attr:`conflict` says so and the node never speaks)."""
+        if self.cfg.listen_s > 0:
+            self._listen_for_twin()
+            if self.conflict is not None:
+                return self
         self._connect()
         self._thread = threading.Thread(target=self._run, name=f"harvester-{self.cfg.node_id}",
                                         daemon=True)
@@ -212,6 +236,21 @@ class HarvesterNode:
         self.network.notifier.add_listener(_ReceiveErrors(self))
         self._connected = True
         log.info("node %d on %s", self.cfg.node_id, self.spec)
+
+    def _listen_for_twin(self) -> None:
+        """A plain python-can client on the bus for ``cfg.listen_s`` before the node's own
+        connection exists (so nothing of this node, not even its SDO server, answers yet)."""
+        self.spec.precheck()
+        bus = can.Bus(**self.spec.kwargs())
+        try:
+            deadline = time.monotonic() + self.cfg.listen_s
+            while self.conflict is None and (left := deadline - time.monotonic()) > 0:
+                msg = bus.recv(timeout=min(left, 0.05))
+                if msg is not None and not msg.is_extended_id \
+                        and msg.arbitration_id in self._taken_cobs:
+                    self._conflicting(msg)
+        finally:
+            bus.shutdown()
 
     def _disconnect(self) -> None:
         self._connected = False
@@ -298,8 +337,21 @@ class HarvesterNode:
             self.stats.malformed_frames += 1
         elif cob == 0x600 + self.cfg.node_id and len(msg.data) != 8:
             self.stats.malformed_frames += 1
+        elif cob in self._taken_cobs:
+            self._conflicting(msg)
         elif cob not in self._own_cobs():
             self.stats.foreign_frames += 1
+
+    def _conflicting(self, msg: can.Message) -> None:
+        self.stats.id_conflict_frames += 1
+        if self.conflict is not None:
+            return
+        self.conflict = (f"a second CANopen node with id {self.cfg.node_id} is on {self.spec}: "
+                         f"it sent 0x{msg.arbitration_id:03X}, one of this node's own COB-IDs "
+                         "(another harvester or bench on the same bus?)")
+        log.info("node %d: %s", self.cfg.node_id, self.conflict)  # the caller says it
+        if self._on_conflict is not None:
+            self._on_conflict(self.conflict)
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) != 2:

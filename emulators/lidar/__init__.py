@@ -11,8 +11,8 @@ from emulators.lidar._os0 import (
     carried_range_m,
     warm_up,
 )
-from emulators.lidar._stream import Datagram, PacedSender, SendStats
+from emulators.lidar._stream import Datagram, PacedSender, Route, SendStats
 
 __all__ = ["Datagram", "FrameResult", "Os0Emulator", "PacedSender", "PoseSource", "RayScene",
-           "ReturnModel", "SendStats", "SensorApi", "carried_range_m",
+           "ReturnModel", "Route", "SendStats", "SensorApi", "carried_range_m",
            "warm_up"]

@@ -9,12 +9,22 @@ Endpoints (FW 3.1 style, shared/research/ouster-wire.md §5.3):
   new init_id, as a real sensor does, and tells the emulator through ``on_reinit``
 * ``GET|PUT|DELETE /api/v1/user/data``; ``GET /api/v1/system/firmware``
 
-Unknown paths answer 404, malformed JSON 400, bodies over 64 KiB 413. No path ever touches
-the filesystem. Binds 127.0.0.1 unless told otherwise.
+A sensor whose configuration is fixed (a scored run's: ``fixed=True``) takes a change of
+where its stream goes (``udp_dest``, ``udp_port_lidar``, ``udp_port_imu``: what ouster-sdk's
+``SensorFrameSetSource(HOST)`` and ouster-ros set) and hands it to ``on_redirect`` without a
+new init_id, so the scored stream goes on; any other change (the mode, the profile, ...) is
+refused. ``udp_dest`` must be a loopback address: this emulator sends nowhere else.
+
+Unknown paths answer 404, malformed JSON 400, bodies over 64 KiB 413; every error body has
+the shape a real sensor's has, ``{"error": {"title": "400 Bad Request", "description":
+"..."}}`` (FW 2.3.1's answer to a refused configuration, quoted in ouster-sdk issue #437;
+FW 3.x's refusal status we could not check, we answer 400). No path ever touches the
+filesystem. Binds 127.0.0.1 unless told otherwise.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import threading
 from collections.abc import Callable
@@ -29,6 +39,8 @@ from protocols.ouster import MetadataError, SensorMetadata
 __all__ = ["SensorApi"]
 
 MAX_BODY = 64 * 1024
+#: what a fixed (run) sensor lets a client change: where its stream goes
+REDIRECT_KEYS = ("udp_dest", "udp_port_lidar", "udp_port_imu")
 _CONFIG_KEYS = {"lidar_mode": "mode", "udp_profile_lidar": "profile",
                 "udp_dest": "udp_dest", "udp_port_lidar": "udp_port_lidar",
                 "udp_port_imu": "udp_port_imu", "columns_per_packet": "columns_per_packet"}
@@ -45,17 +57,22 @@ class SensorApi:
         meta: the active metadata (its init_id must equal the packets').
         host, port: where to listen (port 0 picks a free one; ouster-sdk needs 80).
         on_reinit: called with the new active metadata after ``reinit=true``.
+        fixed: the configuration of a scored run: only the stream's destination may change.
+        on_redirect: (fixed only) called with the metadata of the new destination, same
+            init_id.
     """
 
     def __init__(self, meta: SensorMetadata, host: str = "127.0.0.1", port: int = 80,
                  on_reinit: Callable[[SensorMetadata], None] | None = None, *,
-                 fixed: bool = False) -> None:
+                 fixed: bool = False,
+                 on_redirect: Callable[[SensorMetadata], None] | None = None) -> None:
         self._lock = threading.Lock()
         self.meta = meta
         self.staged: dict[str, Any] = dict(meta.to_json()["config_params"])
         self.user_data: Any = ""
         self.on_reinit = on_reinit
-        self.fixed = fixed  # a run's sensor: a reinit that changes anything is refused
+        self.fixed = fixed  # a run's sensor: a reinit may change only where the stream goes
+        self.on_redirect = on_redirect
         self.requests: list[str] = []
         api = self
 
@@ -105,7 +122,7 @@ class SensorApi:
                                              self._body if method in ("POST", "PUT") else None,
                                              self.client_address[0])
                 except _HttpError as err:
-                    status, body = err.status, {"error": err.message}
+                    status, body = err.status, err.body()
                 self._send(status, body)
 
             def do_GET(self) -> None:
@@ -183,19 +200,15 @@ class SensorApi:
         if change is not None and not isinstance(change, dict):
             raise _HttpError(HTTPStatus.BAD_REQUEST, "config must be a JSON object")
         for k, v in (change or {}).items():
-            self.staged[k] = client_ip if (k == "udp_dest" and v == "@auto") else v
+            if k == "udp_dest":
+                v = client_ip if v == "@auto" else v
+                _check_loopback(v)
+            self.staged[k] = v
         if _truthy(query.get("reinit")):
             kw = {attr: self.staged[key] for key, attr in _CONFIG_KEYS.items()
                   if key in self.staged}
             if self.fixed:
-                now = self.meta.to_json()["config_params"]
-                changed = sorted(k for k in self.staged if now.get(k) != self.staged[k])
-                self.staged = dict(now)
-                if changed:
-                    raise _HttpError(HTTPStatus.CONFLICT,
-                                     f"this sensor's configuration is fixed for the run "
-                                     f"(asked to change {', '.join(changed)})")
-                return 200, {}
+                return self._redirect()
             kw["init_id"] = next_init_id(self.meta.init_id)
             try:
                 new = self.meta.with_changes(**kw)
@@ -208,8 +221,51 @@ class SensorApi:
         return 200, {}
 
 
+    def _redirect(self) -> tuple[int, Any]:
+        """A fixed sensor's reinit: a new destination is taken (same init_id: the scored
+        stream goes on), any other change refused; either way staged = active after it."""
+        now = self.meta.to_json()["config_params"]
+        changed = sorted(k for k in self.staged if now.get(k) != self.staged[k])
+        refused = [k for k in changed if k not in REDIRECT_KEYS]
+        staged, self.staged = self.staged, dict(now)
+        if refused:
+            raise _HttpError(HTTPStatus.BAD_REQUEST,
+                             "this sensor's configuration is fixed for the scored run "
+                             f"(asked to change {', '.join(refused)}); only udp_dest, "
+                             "udp_port_lidar and udp_port_imu may change")
+        if not changed:
+            return 200, {}
+        try:
+            new = self.meta.with_changes(udp_dest=staged["udp_dest"],
+                                         udp_port_lidar=staged["udp_port_lidar"],
+                                         udp_port_imu=staged["udp_port_imu"])
+        except (MetadataError, TypeError, ValueError) as err:
+            raise _HttpError(HTTPStatus.BAD_REQUEST, f"config rejected: {err}") from err
+        self.meta = new
+        self.staged = dict(new.to_json()["config_params"])
+        if self.on_redirect is not None:
+            self.on_redirect(new)
+        return 200, {}
+
+
+def _check_loopback(value: Any) -> None:
+    try:
+        ok = isinstance(value, str) and ipaddress.ip_address(value).is_loopback
+    except ValueError:
+        ok = False
+    if not ok:
+        raise _HttpError(HTTPStatus.BAD_REQUEST,
+                         f"udp_dest {str(value)[:60]!r}: this emulated sensor sends only to a "
+                         "loopback address (127.0.0.0/8 or ::1)")
+
+
 class _HttpError(Exception):
     def __init__(self, status: int, message: str) -> None:
         super().__init__(message)
         self.status = int(status)
         self.message = message
+
+    def body(self) -> dict[str, Any]:
+        """The error as a real sensor writes it."""
+        return {"error": {"title": f"{self.status} {HTTPStatus(self.status).phrase}",
+                          "description": self.message}}

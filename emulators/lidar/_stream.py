@@ -23,7 +23,7 @@ from typing import Protocol
 
 import numpy as np
 
-__all__ = ["Datagram", "PacedSender", "SendStats"]
+__all__ = ["Datagram", "PacedSender", "Route", "SendStats"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,6 +64,34 @@ class SendStats:
         return float(p50 + 1), float(p99 + 1)
 
 
+class Route:
+    """Where a sensor's datagrams go now: its ``udp_dest`` and the ports its configuration
+    names. Datagrams carry the ports the stream was made with; a client's set_config (the
+    sensor's HTTP API) moves them while the stream runs with :meth:`set`."""
+
+    def __init__(self, dest_ip: str, lidar_port: int, imu_port: int) -> None:
+        self.made = (lidar_port, imu_port)
+        self._now: tuple[str, dict[int, int]] = (dest_ip, {})
+        self.changes = 0
+
+    def set(self, dest_ip: str, lidar_port: int, imu_port: int) -> None:
+        ports = {self.made[0]: lidar_port, self.made[1]: imu_port}
+        self._now = (dest_ip, {k: v for k, v in ports.items() if k != v})  # one atomic swap
+        self.changes += 1
+
+    @property
+    def dest_ip(self) -> str:
+        return self._now[0]
+
+    def port(self, made: int) -> int:
+        """Where a datagram made for port ``made`` goes now."""
+        return self._now[1].get(made, made)
+
+    def address(self, made: int) -> tuple[str, int]:
+        dest, ports = self._now
+        return dest, ports.get(made, made)
+
+
 class SimClockLike(Protocol):
     """A shared simulation clock (emulators.harvester.SimClock)."""
 
@@ -83,14 +111,17 @@ class PacedSender:
         spin_us: how long before a due time to stop sleeping and yield instead (default 200
             under SCHED_FIFO, whose wake-ups are punctual, else 300).
         realtime: try SCHED_FIFO for the sending thread while it paces (speed > 0 only).
+        route: where datagrams go now (a client may move the stream while it runs); default:
+            ``dest_ip`` and each datagram's own port.
     """
 
     def __init__(self, sensor_ip: str = "127.0.0.1", dest_ip: str = "127.0.0.1", *,
                  speed: float = 1.0, spin_us: int | None = None, realtime: bool = True,
-                 clock: SimClockLike | None = None) -> None:
+                 clock: SimClockLike | None = None, route: Route | None = None) -> None:
         if speed < 0:
             raise ValueError(f"speed {speed}; expected >= 0")
         self.dest_ip = dest_ip
+        self.route = route
         self.speed = speed
         self._want_rt = realtime and speed > 0
         self._spin_us = spin_us
@@ -166,10 +197,12 @@ class PacedSender:
             self._leave_realtime()
 
     def _send(self, datagrams: Iterable[Datagram]) -> None:
+        route = self.route
         for d in datagrams:
             self._wait(d.t_ns)
             try:
-                self.sock.sendto(d.payload, (self.dest_ip, d.port))
+                self.sock.sendto(d.payload, route.address(d.port) if route is not None
+                                 else (self.dest_ip, d.port))
                 self.stats.sent += 1
             except ConnectionRefusedError:
                 self.stats.refused += 1

@@ -129,6 +129,10 @@ class SensorMetadata:
             raise MetadataError(f"lidar_origin_to_beam_origin_mm "
                                 f"{_short(self.lidar_origin_to_beam_origin_mm)}; expected a "
                                 "finite number")
+        # a float, as the loader makes it (an int of 10**30 would not survive the round trip:
+        # found by hypothesis 6.170)
+        object.__setattr__(self, "lidar_origin_to_beam_origin_mm",
+                           float(self.lidar_origin_to_beam_origin_mm))
         for name, m in (("lidar_to_sensor_transform", self.lidar_to_sensor),
                         ("imu_to_sensor_transform", self.imu_to_sensor)):
             if not isinstance(m, tuple) or len(m) != 16:

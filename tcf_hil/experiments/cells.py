@@ -231,7 +231,6 @@ def _command(cell: Cell, scn: Scenario, row: dict[str, Any], out_dir: str | None
              ) -> dict[str, Any]:
     """Another SIC: a live ``tcf-hil run`` in a subprocess (UDP has no flow control, so a
     program that reads sockets runs paced, at ``cell.speed``), on its own CAN server."""
-    from emulators.canbus import SocketcandServer
 
     if out_dir is None:
         raise ValueError("a SIC command needs the cell's output directory")
@@ -240,19 +239,14 @@ def _command(cell: Cell, scn: Scenario, row: dict[str, Any], out_dir: str | None
     toml = cdir / "scenario.toml"
     toml.write_text(cell.scenario_toml, "utf-8")
     run_dir = cdir / "run"
-    server = SocketcandServer("127.0.0.1", 0)
-    server.start()
-    try:
-        cmd = [sys.executable, "-m", "tcf_hil", "run", str(toml), "--sic", cell.sic,
-               "--mode", cell.mode, "--profile", cell.profile, "--seed", str(cell.seed),
-               "--speed", f"{cell.speed:g}", "--out", str(run_dir),
-               "--can", f"socketcand:127.0.0.1:{server.port}:vcan0"]
-        if cell.max_frames:
-            period = 1.0 / int(cell.mode.split("x")[1])
-            cmd += ["--duration", f"{cell.max_frames * period:g}"]
-        p = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    finally:
-        server.stop()
+    # each run owns its CAN bus, sensor address and UDP ports (tcf_hil.endpoints)
+    cmd = [sys.executable, "-m", "tcf_hil", "run", str(toml), "--sic", cell.sic,
+           "--mode", cell.mode, "--profile", cell.profile, "--seed", str(cell.seed),
+           "--speed", f"{cell.speed:g}", "--out", str(run_dir)]
+    if cell.max_frames:
+        period = 1.0 / int(cell.mode.split("x")[1])
+        cmd += ["--duration", f"{cell.max_frames * period:g}"]
+    p = subprocess.run(cmd, capture_output=True, text=True, check=False)
     (cdir / "run.log").write_text(p.stdout + p.stderr, "utf-8")
     score_path = run_dir / "score.json"
     if not score_path.exists():

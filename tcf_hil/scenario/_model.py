@@ -128,7 +128,8 @@ class TrackConfig:
     start_m: tuple[float, float, float] = _f(
         (0.0, -50.0, 2.0), "sensor start (x, y, height of the lidar above the ground)")
     end_m: tuple[float, float, float] = _f(
-        (0.0, 50.0, 2.0), "sensor end (x, y; the height is start_m's)")
+        (0.0, 50.0, 2.0), "sensor end (x, y, z: three numbers; z is not used, the height "
+        "above the ground is start_m's)")
     speed_m_s: float = _f(1.0, "driving speed", gt=0.0, le=30.0)
     waypoints_m: tuple[tuple[float, float], ...] = _f(
         (), "points (x, y) driven through between start and end, corners rounded by "
@@ -152,9 +153,11 @@ class TrackConfig:
         (4.0, 2.6), "machine length and width over which pitch and roll are taken", gt=0.0,
         le=50.0)
     mount_xy_m: tuple[float, float] = _f(
-        (0.0, 0.0), "lidar position on the machine (x forward, y left of the base point)")
+        (0.0, 0.0), "lidar position on the machine (x forward, y left of the base point; "
+        "it places Ouster's sensor frame, not its lidar frame)")
     mount_rpy_deg: tuple[float, float, float] = _f(
-        (0.0, 0.0, 0.0), "lidar roll, pitch, yaw on the machine (REP-103, degrees)")
+        (0.0, 0.0, 0.0), "lidar roll, pitch, yaw on the machine (REP-103, degrees; of "
+        "Ouster's sensor frame)")
 
 
 @dataclass(frozen=True, slots=True)

@@ -19,6 +19,7 @@ import collections
 import contextlib
 import datetime as _dt
 import json
+import logging
 import math
 import os
 import queue
@@ -201,9 +202,12 @@ class CanPose:
         import canopen
 
         self.track = track
+        kw = cfg.can_kwargs()
+        self.bus_text = ":".join(str(kw[k]) for k in ("interface", "host", "port", "channel")
+                                 if k in kw)
         if network is None:
             network = canopen.Network()
-            network.connect(**cfg.can_kwargs())
+            network.connect(**kw)
         self.net = network
         self.node = self.net.add_node(cfg.node_id, cfg.eds or str(eds_path()))
         self.node.tpdo.read(from_od=True)
@@ -220,19 +224,38 @@ class CanPose:
         self.mount_rot = np.eye(3)
 
     def read_constants(self, timeout_s: float = 10.0) -> None:
-        """Datum and lidar mount by SDO (retried while the node boots)."""
+        """Datum and lidar mount by SDO (retried while the node boots). canopen's own line
+        for a timed-out read ("Transfer aborted by client with code 0x05040000") names
+        neither the node nor the object: it is held back, and one line here says what was
+        read from whom, how often it failed and why."""
         deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                sdo = self.node.sdo
-                self.datum = tuple(float(sdo[DATUM][k].phys) for k in (1, 2, 3))  # type: ignore[assignment]
-                m = [float(sdo[MOUNT][k].phys) for k in range(1, 7)]
-                break
-            except Exception as err:  # canopen raises SdoCommAbortedError/timeouts
-                if time.monotonic() > deadline:
-                    raise SystemExit(f"sic: the harvester node {self.node.id} does not answer "
-                                     f"SDO reads of the datum and mount: {err}") from err
-                time.sleep(0.2)
+        sdo_log = logging.getLogger("canopen.sdo.client")
+        level = sdo_log.level
+        sdo_log.setLevel(logging.CRITICAL)
+        tries = 0
+        what = f"the datum (0x{DATUM:04X}) and lidar mount (0x{MOUNT:04X})"
+        try:
+            while True:
+                try:
+                    tries += 1
+                    sdo = self.node.sdo
+                    self.datum = tuple(float(sdo[DATUM][k].phys) for k in (1, 2, 3))  # type: ignore[assignment]
+                    m = [float(sdo[MOUNT][k].phys) for k in range(1, 7)]
+                    break
+                except Exception as err:  # canopen raises SdoCommAbortedError/timeouts
+                    if time.monotonic() > deadline:
+                        raise SystemExit(
+                            f"sic: the harvester node {self.node.id} does not answer SDO reads "
+                            f"of {what} on {self.bus_text} after {tries} tries in "
+                            f"{timeout_s:g} s: {err}") from err
+                    if tries == 1:
+                        _log(f"SDO read of {what} from node {self.node.id} on {self.bus_text} "
+                             f"failed ({err}); retrying while the node boots")
+                    time.sleep(0.2)
+        finally:
+            sdo_log.setLevel(level)
+        if tries > 1:
+            _log(f"SDO read of {what} from node {self.node.id} answered after {tries} tries")
         self.mount = np.array(m[:3])
         y, p, r = np.radians(m[3:])
         self.mount_rot = rotation_ypr(np.array([y]), np.array([p]), np.array([r]))[0]

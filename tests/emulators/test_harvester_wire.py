@@ -145,8 +145,9 @@ def test_remote_node_decodes_every_pose_and_logs_agree(server: SocketcandServer,
         assert d["Roll"] == pytest.approx(c["Pose.Roll"], abs=1e-12)
     dec1 = [db.decode_message(m.arbitration_id, bytes(m.data)) for m in ours
             if m.arbitration_id == 0x18A]
-    assert [(d["X"], d["Y"]) for d in dec1] == pytest.approx(
-        [(a["Pose.X"], a["Pose.Y"]) for a in got[1]], abs=1e-12)
+    # pytest.approx takes flat sequences only (nested ones are a TypeError since pytest 9)
+    np.testing.assert_allclose([(d["X"], d["Y"]) for d in dec1],
+                               [(a["Pose.X"], a["Pose.Y"]) for a in got[1]], rtol=0, atol=1e-12)
     # python-can's player puts the log back on the bus, frame for frame
     rx = can.Bus(interface="socketcand", host="127.0.0.1", port=server.port, channel="vcan0")
     try:

@@ -80,13 +80,13 @@ def test_bad_requests(api: SensorApi) -> None:
     assert _call(api, "POST", "/api/v1/sensor/config", b"[1, 2]")[0] == 400
     code, body = _call(api, "POST", "/api/v1/sensor/config?reinit=true",
                        b'{"lidar_mode": "999x3"}')
-    assert code == 400 and "lidar_mode" in body["error"]
+    assert code == 400 and "lidar_mode" in body["error"]["description"]
     assert api.meta.mode == "1024x10"
     assert _call(api, "POST", "/api/v1/sensor/config", b" " * (70 * 1024))[0] == 413
     # found by fuzzing: these used to escape the handler and drop the connection unanswered
     code, body = _call(api, "POST", "/api/v1/sensor/config", b'{"udp_port_lidar": 1'
                        + b"0" * 5000 + b"}")
-    assert code == 400 and "malformed JSON" in body["error"]
+    assert code == 400 and "malformed JSON" in body["error"]["description"]
     assert _call(api, "POST", "/api/v1/sensor/config", b"[" * 60_000)[0] == 400
     with socket.create_connection(api.address[:2], timeout=5) as s:
         s.sendall(b"POST /api/v1/sensor/config HTTP/1.1\r\nHost: x\r\n"
@@ -99,37 +99,40 @@ def test_bad_requests(api: SensorApi) -> None:
 
 
 def _port_80_free() -> str | None:
-    try:
-        with socket.socket() as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            s.bind(("127.0.0.1", 80))
-    except OSError as err:
-        return f"cannot bind 127.0.0.1:80 here ({err.strerror}); the stock clients need it"
-    return None
+    from tcf_hil.endpoints import claim_sensor_host
+
+    with claim_sensor_host() as host:
+        return None if host.http_port == 80 else host.note
 
 
 def test_stock_ouster_cli_records_from_the_emulated_sensor(tmp_path: Path) -> None:
     why = _port_80_free()
     if why:
         pytest.skip(why)
-    cli = shutil.which("ouster-cli")
+    # the venv's own, whether or not the venv is on PATH
+    cli = shutil.which("ouster-cli", path=str(Path(sys.executable).parent)) \
+        or shutil.which("ouster-cli")
     if cli is None:
         pytest.skip("ouster-cli is not on PATH")
-    exe = shutil.which("tcf-hil")
-    cmd = [exe] if exe else [sys.executable, "-m", "tcf_hil.cli"]
+    cmd = [sys.executable, "-m", "tcf_hil.cli"]
     rec = tmp_path / "rec"
+    # the default: the sensor is a loopback host of its own, its HTTP API on port 80 there
     sensor = subprocess.Popen([*cmd, "lidar", "stream", "forest-ii", "--mode", "512x10",
-                               "--http-port", "80", "--frames", "400", "--record", str(rec)],
+                               "--frames", "400", "--record", str(rec)],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
+        assert sensor.stdout is not None
+        first = sensor.stdout.readline()
+        host = first.split("HTTP API on ")[1].split(":")[0]
+        assert host.startswith("127.0.0.") and host != "127.0.0.1", first
         for _ in range(100):
             try:
-                urllib.request.urlopen("http://127.0.0.1/api/v1/system/firmware", timeout=1)
+                urllib.request.urlopen(f"http://{host}/api/v1/system/firmware", timeout=1)
                 break
             except OSError:
                 time.sleep(0.2)
         out = tmp_path / "x.pcap"
-        proc = subprocess.run([cli, "source", "127.0.0.1", "slice", "0:5", "save", str(out)],
+        proc = subprocess.run([cli, "source", host, "slice", "0:5", "save", str(out)],
                               cwd=tmp_path, capture_output=True, text=True, timeout=90)
         assert proc.returncode == 0, proc.stdout + proc.stderr
     finally:

@@ -355,6 +355,7 @@ def metadata_changes(draw: st.DrawFn) -> dict[str, Any]:
 @example({"lidar_mode": 5})  # was AttributeError (the sensor's config POST)
 @example({"udp_profile_lidar": []})  # was TypeError
 @example({"udp_port_lidar": "7502"})  # was accepted, and served as a string
+@example({"lidar_origin_to_beam_origin_mm": 10**30})  # an int the JSON round trip changed
 def test_metadata_changes_give_metadata_or_a_metadata_error(change: dict[str, Any]) -> None:
     """``with_changes`` is how the emulated sensor applies a config POST (untrusted JSON)."""
     try:

@@ -325,7 +325,8 @@ def test_ctrl_c_ends_a_live_stream_cleanly_and_keeps_the_recording(tmp_path: Pat
          "--record", str(out), "--lidar-port", str(_free_udp_port()), "--imu-port",
          str(_free_udp_port())], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stdout is not None
-    assert proc.stdout.readline().startswith("streaming forest-ii")
+    # by default the sensor is a host of its own (its HTTP API on port 80 there, as root)
+    assert proc.stdout.readline().startswith(("streaming forest-ii", "sensor forest-ii"))
     time.sleep(2.0)
     proc.send_signal(getattr(signal, sig))
     stdout, stderr = proc.communicate(timeout=60)

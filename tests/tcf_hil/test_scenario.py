@@ -144,3 +144,27 @@ def test_a_file_named_like_a_preset_does_not_hide_it(tmp_path: Path,
     assert load_scenario("forest-v").name == "forest-v"
     assert load_scenario("v").name == "forest-v"
     assert load_scenario("./v").name == "notes"  # a path means the file
+
+
+def test_coordinate_keys_document_as_many_numbers_as_they_take() -> None:
+    """A key documented as "(x, y; ...)" that takes three numbers sends users to an error:
+    every key whose documentation lists its coordinates in brackets lists them all."""
+    import dataclasses
+    import re
+
+    from tcf_hil.scenario import _model
+
+    checked = 0
+    for cls in vars(_model).values():
+        if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+            continue
+        for f in dataclasses.fields(cls):
+            doc = f.metadata.get("doc", "")
+            m = re.search(r"\((x\b[^;)]*)", doc)
+            if m is None or not isinstance(f.default, tuple) or not f.default \
+                    or isinstance(f.default[0], tuple):
+                continue
+            listed = [p for p in m.group(1).split(",") if p.strip()]
+            assert len(listed) == len(f.default), (cls.__name__, f.name, doc)
+            checked += 1
+    assert checked >= 3  # start_m, end_m, mount_xy_m at least

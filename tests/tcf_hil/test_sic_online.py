@@ -11,6 +11,7 @@ import threading
 import urllib.error
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -243,18 +244,36 @@ def test_sic_command_fills_placeholders_without_a_shell() -> None:
         sic_command("  ", env, False)
 
 
-def test_the_run_sensor_api_refuses_a_reinit_that_changes_it() -> None:
+def test_the_run_sensor_api_takes_a_new_destination_and_refuses_other_changes() -> None:
+    """A scored run's sensor: set_config may redirect its stream (what ouster-sdk's
+    SensorFrameSetSource(HOST) does: udp_dest @auto and its ports) without a new init_id;
+    a new mode or profile, or a destination off loopback, is refused in the sensor's shape."""
     from emulators.lidar import SensorApi
+    from emulators.lidar._http import _HttpError
 
     meta = os0_64_metadata("1024x10", "RNG19_RFL8_SIG16_NIR16", init_id=99)
-    api = SensorApi(meta, "127.0.0.1", 0, fixed=True)
+    moved: list[Any] = []
+    api = SensorApi(meta, "127.0.0.1", 0, fixed=True, on_redirect=moved.append)
     try:
         same = api.route("POST", "/api/v1/sensor/config", {"reinit": ["true"]},
                          lambda: {"udp_dest": "@auto"}, "127.0.0.1")
-        assert same[0] == 200 and api.meta.init_id == 99
-        with pytest.raises(Exception, match="fixed for the run"):
+        assert same[0] == 200 and api.meta.init_id == 99 and moved == []
+        ok = api.route("POST", "/api/v1/sensor/config", {"reinit": ["true"]},
+                       lambda: {"udp_dest": "@auto", "udp_port_lidar": 7600,
+                                "udp_port_imu": 7601}, "127.0.0.5")
+        assert ok[0] == 200 and api.meta.init_id == 99
+        assert [(m.udp_dest, m.udp_port_lidar, m.udp_port_imu) for m in moved] == \
+            [("127.0.0.5", 7600, 7601)]
+        with pytest.raises(_HttpError, match="fixed for the scored run") as err:
             api.route("POST", "/api/v1/sensor/config", {"reinit": ["true"]},
                       lambda: {"lidar_mode": "2048x10"}, "127.0.0.1")
+        assert err.value.status == 400
+        assert err.value.body() == {"error": {"title": "400 Bad Request",
+                                              "description": err.value.message}}
+        assert "lidar_mode" in err.value.message
         assert api.meta.mode == "1024x10" and api.meta.init_id == 99
+        with pytest.raises(_HttpError, match="loopback"):
+            api.route("POST", "/api/v1/sensor/config", {}, lambda: {"udp_dest": "@auto"},
+                      "192.0.2.7")
     finally:
         api.server.server_close()
