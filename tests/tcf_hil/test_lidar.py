@@ -339,3 +339,23 @@ def test_ctrl_c_ends_a_live_stream_cleanly_and_keeps_the_recording(tmp_path: Pat
     assert len(frames) == sent
     assert (out / "sensor_poses.csv").exists() and not list(out.glob(".*.part"))
     assert not {n for n in shm() - before if n.startswith("psm_")}  # the ring is unlinked
+
+
+def test_frames_sent_counts_only_the_frames_that_left(tmp_path: Path) -> None:
+    """A re-initialisation keeps the sensor silent for its gap: those frame periods send
+    nothing, and the run's "frames sent" must not count them (it said 500 where 490 left)."""
+    from protocols.ouster import SensorMetadata
+    from protocols.pcap import read_udp
+    from tcf_hil.faults import apply_fault_options
+    from tcf_hil.lidar import stream_lidar
+
+    scn = apply_fault_options(load_scenario("forest-ii"),
+                              ["lidar.reinit_at_s=[1.0]", "lidar.reinit_gap_s=1.0"])
+    lp, ip = _free_udp_port(), _free_udp_port()
+    r = stream_lidar(scn, speed=0, record=tmp_path, mode="512x10", max_frames=40,
+                     udp_port_lidar=lp, udp_port_imu=ip)
+    meta = SensorMetadata.loads((tmp_path / "metadata.json").read_text())
+    lidar = [d for d in read_udp((tmp_path / "lidar.pcap").read_bytes()) if d.dst_port == lp]
+    left = len(lidar) / meta.packet_format.packets_per_frame
+    assert left == int(left) and left < 40  # the gap sent nothing
+    assert r.frames == left

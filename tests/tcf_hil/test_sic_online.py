@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import threading
 import urllib.error
 import urllib.request
@@ -277,3 +278,26 @@ def test_the_run_sensor_api_takes_a_new_destination_and_refuses_other_changes() 
                       "192.0.2.7")
     finally:
         api.server.server_close()
+
+
+def test_sdo_reads_of_a_silent_node_fail_with_context(caplog: pytest.LogCaptureFixture,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """canopen's "Transfer aborted by client with code 0x05040000" named neither node nor
+    object: the SIC's own lines name both, and the bare one is held back."""
+    import logging
+
+    from tcf_hil.sic._online import CanPose, SicConfig
+
+    cfg = SicConfig(can_interface="virtual", can_channel=f"sdo-silent-{os.getpid()}",
+                    node_id=23)
+    pose = CanPose(cfg, PoseTrack())
+    try:
+        with caplog.at_level(logging.INFO), pytest.raises(SystemExit) as err:
+            pose.read_constants(timeout_s=0.5)
+    finally:
+        pose.net.disconnect()
+    said = str(err.value)
+    assert "node 23" in said and "0x2001" in said and "0x2002" in said and "tries" in said
+    assert not [r for r in caplog.records if "Transfer aborted" in r.getMessage()]
+    line = capsys.readouterr().err
+    assert "from node 23" in line and "retrying while the node boots" in line
