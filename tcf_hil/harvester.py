@@ -27,6 +27,7 @@ from emulators.harvester import (
     NodeConfig,
     SimClock,
     kernel_has_vcan,
+    node_id_in_use,
     parse_bus_spec,
     socketcand_answers,
 )
@@ -45,6 +46,9 @@ from tcf_hil.trajectory import PoseError, Trajectory
 
 if TYPE_CHECKING:
     from emulators.canbus import SocketcandServer
+
+
+LISTEN_S = 0.5  # before a run's or `harvester run`'s node boots: see run_harvester
 
 
 @dataclass(frozen=True)
@@ -92,7 +96,7 @@ class HarvesterModel:
 
     def node_config(self, *, node_id: int | None = None, rate_hz: float | None = None,
                     sync_producer: bool = True, autostart: bool = True,
-                    unix_epoch_ns: int | None = None) -> NodeConfig:
+                    unix_epoch_ns: int | None = None, listen_s: float = 0.0) -> NodeConfig:
         h, tr = self.scenario.harvester, self.scenario.track
         origin = self.scenario.plot.origin_m
         return NodeConfig(
@@ -104,7 +108,7 @@ class HarvesterModel:
                       round(tr.start_m[2] * 1000)),
             mount_cdeg=(round(tr.mount_rpy_deg[2] * 100), round(tr.mount_rpy_deg[1] * 100),
                         round(tr.mount_rpy_deg[0] * 100)),
-            unix_epoch_ns=unix_epoch_ns)
+            unix_epoch_ns=unix_epoch_ns, listen_s=listen_s)
 
 
 @contextlib.contextmanager
@@ -173,15 +177,6 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
     scenario's ``[faults.can]``, events dropped). A second node with the node's id on the
     bus stops it at once: the result's ``conflict`` says so, and ``on_conflict`` hears it."""
     model = HarvesterModel.from_scenario(scn, terrain, seed, t0_ns)
-    clock = clock or SimClock.start(model.trajectory.t0_ns, speed)
-    end_ns = (model.trajectory.end_ns + 1_000_000_000 if duration_s is None
-              else clock.t0_ns + round(duration_s * 1e9))
-    stop = stop or threading.Event()
-    cfg = model.node_config(node_id=node_id, rate_hz=rate_hz, sync_producer=sync_producer,
-                            autostart=autostart)
-    can_log: CanLog | None = None
-    if faults is None and faults_active(scn.faults):
-        faults = fault_plans(scn.faults, seed, model.trajectory.t0_ns).can
     clash = threading.Event()
 
     def conflicting(why: str) -> None:
@@ -189,6 +184,25 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
         if on_conflict is not None:
             on_conflict(why)
 
+    # half a second of listening first: a node with this id already on the bus (heartbeat
+    # every 100 ms, TPDOs at 100 Hz) stops this one before it says a word. With a clock of
+    # our own, before that clock starts (no simulated time lost); a caller's clock has its
+    # lead for it
+    cfg = model.node_config(node_id=node_id, rate_hz=rate_hz, sync_producer=sync_producer,
+                            autostart=autostart, listen_s=LISTEN_S if clock else 0.0)
+    if clock is None:
+        twin = node_id_in_use(spec, cfg.node_id, LISTEN_S)
+        if twin is not None:
+            conflicting(twin)
+            return HarvesterRunResult(str(spec), cfg.node_id, 0.0, {}, 0, log_path,
+                                      None, twin)
+    clock = clock or SimClock.start(model.trajectory.t0_ns, speed)
+    end_ns = (model.trajectory.end_ns + 1_000_000_000 if duration_s is None
+              else clock.t0_ns + round(duration_s * 1e9))
+    stop = stop or threading.Event()
+    can_log: CanLog | None = None
+    if faults is None and faults_active(scn.faults):
+        faults = fault_plans(scn.faults, seed, model.trajectory.t0_ns).can
     node = HarvesterNode(spec, model.bus_pose, clock, cfg, faults=faults, on_fault=on_fault,
                          on_conflict=conflicting)
     try:

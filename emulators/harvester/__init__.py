@@ -11,10 +11,17 @@ from emulators.harvester._bus import (
 )
 from emulators.harvester._clock import SimClock
 from emulators.harvester._log import CanLog, check_log_path
-from emulators.harvester._node import HarvesterNode, NodeConfig, NodeStats, describe
+from emulators.harvester._node import (
+    HarvesterNode,
+    NodeConfig,
+    NodeStats,
+    describe,
+    node_id_in_use,
+)
 
 __all__ = [
     "DEFAULT_SOCKETCAND_PORT", "BusSpec", "BusSpecError", "CanLog", "HarvesterNode",
     "NodeConfig", "NodeStats", "SimClock", "check_log_path", "describe", "kernel_has_vcan",
+    "node_id_in_use",
     "parse_bus_spec", "socketcand_answers",
 ]

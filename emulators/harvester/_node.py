@@ -49,6 +49,9 @@ log = logging.getLogger("tcf_hil.harvester")
 PRE_OPERATIONAL, OPERATIONAL, STOPPED, INITIALISING = 127, 5, 4, 0
 _STATE_NAMES = {0: "INITIALISING", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
 _NMT_TARGET = {1: OPERATIONAL, 2: STOPPED, 128: PRE_OPERATIONAL}
+#: transports that hand a client its own frames back (multicast loopback): there a second
+#: node with our id is only seen in the listening before boot
+_ECHOING = frozenset({"udp_multicast"})
 
 
 @dataclass
@@ -93,7 +96,8 @@ class NodeConfig:
     reconnect_s: float = 0.5
     #: listen this long before booting: a node with the same id already on the bus shows
     #: itself (its heartbeat every 100 ms, its TPDOs at 100 Hz) and this one stays silent
-    listen_s: float = 0.5
+    #: (0: boot at once; tcf-hil's runs and `harvester run` listen 0.5 s)
+    listen_s: float = 0.0
 
 
 class _ReceiveErrors(can.Listener):
@@ -122,7 +126,8 @@ class HarvesterNode:
     mix both poses: :attr:`conflict` then names it and ``on_conflict`` is called once (from
     the bus's receive thread; do not block there). No transport here hands a node its own
     frames back (python-can's ``receive_own_messages`` is off; the CAN server relays to
-    the others only).
+    the others only) except udp_multicast, where only the listening before boot
+    (``cfg.listen_s``) can tell.
     """
 
     def __init__(self, bus: BusSpec, pose_at: Callable[[int], Pose], clock: SimClock,
@@ -170,9 +175,7 @@ class HarvesterNode:
         self._on_fault = on_fault or (lambda ev: None)
         self._on_conflict = on_conflict
         self.conflict: str | None = None
-        n = cfg.node_id
-        self._taken_cobs = {0x80 + n, 0x180 + n, 0x280 + n, 0x380 + n, 0x480 + n, 0x580 + n,
-                            HEARTBEAT_BASE + n}
+        self._taken_cobs = _taken(cfg.node_id)
         self._delayed: list[tuple[int, int, bytes]] = []  # (due monotonic ns, cob, data)
         self._bus_off: int | None = None  # index of the bus-off window in effect
         self._next_reset = 0  # index into faults.nmt_reset_at_ns
@@ -238,19 +241,15 @@ class HarvesterNode:
         log.info("node %d on %s", self.cfg.node_id, self.spec)
 
     def _listen_for_twin(self) -> None:
-        """A plain python-can client on the bus for ``cfg.listen_s`` before the node's own
-        connection exists (so nothing of this node, not even its SDO server, answers yet)."""
-        self.spec.precheck()
-        bus = can.Bus(**self.spec.kwargs())
-        try:
-            deadline = time.monotonic() + self.cfg.listen_s
-            while self.conflict is None and (left := deadline - time.monotonic()) > 0:
-                msg = bus.recv(timeout=min(left, 0.05))
-                if msg is not None and not msg.is_extended_id \
-                        and msg.arbitration_id in self._taken_cobs:
-                    self._conflicting(msg)
-        finally:
-            bus.shutdown()
+        """Before the node's own connection exists (so nothing of this node, not even its
+        SDO server, answers yet): :func:`node_id_in_use` for ``cfg.listen_s``."""
+        twin = node_id_in_use(self.spec, self.cfg.node_id, self.cfg.listen_s)
+        if twin is not None:
+            self.stats.id_conflict_frames += 1
+            self.conflict = twin
+            log.info("node %d: %s", self.cfg.node_id, twin)
+            if self._on_conflict is not None:
+                self._on_conflict(twin)
 
     def _disconnect(self) -> None:
         self._connected = False
@@ -338,7 +337,8 @@ class HarvesterNode:
         elif cob == 0x600 + self.cfg.node_id and len(msg.data) != 8:
             self.stats.malformed_frames += 1
         elif cob in self._taken_cobs:
-            self._conflicting(msg)
+            if self.spec.interface not in _ECHOING:  # else it may be our own, looped back
+                self._conflicting(msg)
         elif cob not in self._own_cobs():
             self.stats.foreign_frames += 1
 
@@ -346,9 +346,7 @@ class HarvesterNode:
         self.stats.id_conflict_frames += 1
         if self.conflict is not None:
             return
-        self.conflict = (f"a second CANopen node with id {self.cfg.node_id} is on {self.spec}: "
-                         f"it sent 0x{msg.arbitration_id:03X}, one of this node's own COB-IDs "
-                         "(another harvester or bench on the same bus?)")
+        self.conflict = _twin_text(self.spec, self.cfg.node_id, msg.arbitration_id)
         log.info("node %d: %s", self.cfg.node_id, self.conflict)  # the caller says it
         if self._on_conflict is not None:
             self._on_conflict(self.conflict)
@@ -565,6 +563,40 @@ class HarvesterNode:
 
     def __repr__(self) -> str:
         return f"HarvesterNode(id={self.cfg.node_id}, {self.spec}, {self.state})"
+
+
+def _taken(node_id: int) -> set[int]:
+    """The COB-IDs only node ``node_id`` sends: EMCY, TPDO1-4, SDO answers, heartbeat."""
+    n = node_id
+    return {0x80 + n, 0x180 + n, 0x280 + n, 0x380 + n, 0x480 + n, 0x580 + n,
+            HEARTBEAT_BASE + n}
+
+
+def _twin_text(spec: BusSpec, node_id: int, cob: int) -> str:
+    return (f"a second CANopen node with id {node_id} is on {spec}: it sent 0x{cob:03X}, one "
+            "of this node's own COB-IDs (another harvester or bench on the same bus?)")
+
+
+def node_id_in_use(spec: BusSpec, node_id: int, listen_s: float) -> str | None:
+    """Listen on ``spec`` for ``listen_s`` with a plain python-can client: what says that a
+    node with ``node_id`` is already there (a frame on one of its own COB-IDs), or None.
+
+    Raises:
+        can.CanInitializationError: the bus cannot be opened.
+    """
+    if listen_s <= 0:
+        return None
+    bus = spec.open()
+    taken = _taken(node_id)
+    try:
+        deadline = time.monotonic() + listen_s
+        while (left := deadline - time.monotonic()) > 0:
+            msg = bus.recv(timeout=min(left, 0.05))
+            if msg is not None and not msg.is_extended_id and msg.arbitration_id in taken:
+                return _twin_text(spec, node_id, msg.arbitration_id)
+    finally:
+        bus.shutdown()
+    return None
 
 
 def describe(node: HarvesterNode) -> dict[str, Any]:
