@@ -117,20 +117,6 @@ class _LateClock:
         return self._clock.monotonic_at(t_sim_ns)
 
 
-def free_udp_port(host: str, preferred: int) -> int:
-    """``preferred`` if nobody listens there, else an ephemeral port."""
-    for port in (preferred, 0):
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            s.bind((host, port))
-            return int(s.getsockname()[1])
-        except OSError:
-            continue
-        finally:
-            s.close()
-    raise OSError(f"no free UDP port on {host}")
-
-
 _PLACEHOLDER = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
 

@@ -153,7 +153,16 @@ SDK_SIC = textwrap.dedent("""
     import numpy as np
     from ouster.sdk import sensor
 
-    src = sensor.SensorFrameSetSource(os.environ["TCF_SENSOR_HOST"], timeout=20)
+    kw = {}
+    if sys.argv[2] == "own-ports":  # as ouster-ros with lidar_port/imu_port set: set_config
+        import socket
+        socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        kw = dict(lidar_port=socks[0].getsockname()[1], imu_port=socks[1].getsockname()[1])
+        for s in socks:
+            s.close()
+    src = sensor.SensorFrameSetSource(os.environ["TCF_SENSOR_HOST"], timeout=20, **kw)
     info = src.sensor_info[0]
     whole = ids = 0
     seen = []
@@ -169,13 +178,18 @@ SDK_SIC = textwrap.dedent("""
     src.close()
     with open(sys.argv[1], "w") as fh:
         json.dump({"whole": whole, "frame_ids": seen, "mode": str(info.config.lidar_mode),
-                   "init_id": info.init_id}, fh)
+                   "init_id": info.init_id, "ports": kw}, fh)
     print(json.dumps({"objects": []}), flush=True)
     signal.pause()  # until the bench's SIGTERM after the stream
 """)
 
 
-def test_a_sic_that_opens_the_sensor_by_host_name_gets_whole_frames(tmp_path: Path) -> None:
+@pytest.mark.parametrize("ports", ["sensor-ports", "own-ports"])
+def test_a_sic_that_opens_the_sensor_by_host_name_gets_whole_frames(tmp_path: Path,
+                                                                    ports: str) -> None:
+    """``SensorFrameSetSource(TCF_SENSOR_HOST)`` as onboard programs call it; with ports of
+    its own (as ouster-ros with lidar_port/imu_port) it sets them by set_config and
+    re-initialises, and the run's stream follows without a new init_id."""
     pytest.importorskip("ouster.sdk")
     with claim_sensor_host() as host:
         if host.http_port != 80:
@@ -185,46 +199,54 @@ def test_a_sic_that_opens_the_sensor_by_host_name_gets_whole_frames(tmp_path: Pa
     report = tmp_path / "report.json"
     code, _out, err = _finish(_start(
         ["run", "forest-ii", "--mode", "512x10", "--duration", "6", "--grace", "2",
-         "--sic", f"{{python}} {sic} {report}", "--out", str(tmp_path / "run")]))
+         "--sic", f"{{python}} {sic} {report} {ports}", "--out", str(tmp_path / "run")]))
     assert report.exists(), err + (tmp_path / "run" / "sic" / "stderr.log").read_text()
     got = json.loads(report.read_text())
     meta = SensorMetadata.loads((tmp_path / "run" / "metadata.json").read_text())
     assert got["whole"] >= 35, got  # 40 frames asked; the first may be partial
     assert got["init_id"] == meta.init_id
+    man = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    if ports == "own-ports":  # the stream went where the SIC asked, and the manifest says so
+        last = man["sensor_redirects"][-1]
+        assert (last["udp_port_lidar"], last["udp_port_imu"]) == (got["ports"]["lidar_port"],
+                                                                  got["ports"]["imu_port"])
+        # metadata.json describes lidar.pcap, recorded with the ports the run was made with
+        assert meta.udp_port_lidar == int(man["endpoints"]["TCF_LIDAR_PORT"])
+    else:
+        assert "sensor_redirects" not in man
     ids = got["frame_ids"]
     assert ids == sorted(ids) and len(set(ids)) == len(ids)
     assert code == 0, err
 
 
 def test_the_fallback_without_port_80_says_why_once(tmp_path: Path) -> None:
-    """As an unprivileged user (really: setuid to nobody) the sensor still gets its own
-    address, its API goes to a free port, and the reason is said once."""
-    if os.geteuid() != 0:
-        with claim_sensor_host() as host:
-            assert host.http_port in (0, 80)
-        pytest.skip("needs root to become another user for this check")
-    code = textwrap.dedent("""
+    """Without the privilege to bind port 80 (really: CAP_NET_BIND_SERVICE taken away with
+    util-linux's setpriv) a run still gets a sensor address of its own, its API goes to a
+    free port there, the reason is said once, and the run scores."""
+    import shutil
+
+    setpriv = shutil.which("setpriv")
+    if setpriv is None or os.geteuid() != 0:
+        pytest.skip("needs root and util-linux's setpriv to take the capability away")
+    drop = [setpriv, "--bounding-set", "-net_bind_service"]
+    probe = subprocess.run([*drop, sys.executable, "-c", textwrap.dedent("""
         from tcf_hil.endpoints import claim_sensor_host
         said = []
         a = claim_sensor_host(said.append)
         b = claim_sensor_host(said.append)
         print(a.address, a.http_port, b.address, b.http_port, len(said))
-        print(said[0] if said else "")
-    """)
-    env = dict(ENV, TCF_HIL_LOCK_DIR=str(tmp_path / "locks"))
-    (tmp_path / "locks").mkdir()
-    os.chmod(tmp_path / "locks", 0o1777)
-    os.chmod(tmp_path, 0o755)
-    try:
-        p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                           timeout=60, env=env, user=65534, group=65534)
-    except (OSError, subprocess.SubprocessError) as err:
-        pytest.skip(f"cannot run as nobody here: {err}")
-    if p.returncode != 0 and ("Permission denied" in p.stderr or "No module" in p.stderr):
-        pytest.skip(f"the venv is not readable as nobody: {p.stderr.splitlines()[-1]}")
+    """)], capture_output=True, text=True, timeout=60, env=ENV)
+    if probe.returncode != 0 and "setpriv" in probe.stderr:
+        pytest.skip(f"setpriv refused here: {probe.stderr.strip()}")
+    assert probe.returncode == 0, probe.stderr
+    a_addr, a_port, b_addr, b_port, said = probe.stdout.split()
+    assert (a_port, b_port, said) == ("0", "0", "1") and a_addr != b_addr
+    p = subprocess.run([*drop, *TCF, "run", "forest-ii", "--mode", "512x10", "--speed", "2",
+                        "--duration", "6", "--grace", "20", "--out", str(tmp_path / "run")],
+                       capture_output=True, text=True, timeout=300, env=ENV)
     assert p.returncode == 0, p.stderr
-    first, reason = p.stdout.splitlines()
-    a_addr, a_port, b_addr, b_port, said = first.split()
-    assert (a_port, b_port, said) == ("0", "0", "1")
-    assert a_addr != b_addr
-    assert "CAP_NET_BIND_SERVICE" in reason and "TCF_METADATA" in reason
+    assert p.stderr.count("cannot bind port 80") == 1, p.stderr
+    assert "CAP_NET_BIND_SERVICE" in p.stderr and "TCF_METADATA" in p.stderr
+    man = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    url = man["endpoints"]["TCF_SENSOR_URL"]
+    assert url.startswith(f"http://{man['endpoints']['TCF_SENSOR_HOST']}:"), url
