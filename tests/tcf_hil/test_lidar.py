@@ -150,12 +150,16 @@ def test_lidar_pcap_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert info.prod_line == "OS-0-64"
 
 
-def _free_udp_port() -> int:
-    import socket
+_CLAIMS: list[object] = []  # held for the session: a tcf-hil run beside us will not take them
 
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+
+def _free_udp_port() -> int:
+    """A free UDP port, claimed as tcf-hil's runs claim theirs (tcf_hil.endpoints)."""
+    from tcf_hil.endpoints import reserve_udp_ports
+
+    claim = reserve_udp_ports("127.0.0.1", [0])
+    _CLAIMS.append(claim)
+    return claim.ports[0]
 
 
 LIVE_CASES = [("RNG19_RFL8_SIG16_NIR16", m) for m in ("512x10", "1024x10", "2048x10",
