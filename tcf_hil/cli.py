@@ -699,8 +699,9 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
 @click.option("--http-port", type=click.IntRange(0, 65535), default=None,
               help="Serve the sensor's HTTP API on this port (ouster-sdk and ouster-cli "
                    "need 80, which needs root) [default with --sensor-address auto: 80 where "
-                   "it may be bound, else a free port; otherwise no API]. The API stays up "
-                   "until Ctrl-C.")
+                   "it may be bound, else a free port; otherwise no API]. Given here, the API "
+                   "stays up after the track until Ctrl-C; by default the command ends with "
+                   "the track.")
 @click.option("--http-address", default=None,
               help="Address of the HTTP API (default: the sensor address).")
 @_fault_option
@@ -724,6 +725,7 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     scn = _scenario_with_faults(scenario_name, faults)
     stop = threading.Event()
     claims = contextlib.ExitStack()
+    linger = http_port is not None  # an API asked for stays up after the track until Ctrl-C
     if sensor_address == "auto":
         host = claims.enter_context(claim_sensor_host(err_console.print))
         sensor_address = host.address
@@ -758,7 +760,7 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
                              sensor_ip=sensor_address, speed=speed, stop=stop, mode=mode,
                              profile=profile, seed=seed, max_frames=frames, udp_dest=dest,
                              udp_port_lidar=lidar_port, udp_port_imu=imu_port, record=record,
-                             on_result=summary)
+                             on_result=summary, linger=linger)
             except OSError as err:
                 raise click.ClickException(
                     f"cannot serve {host_ip}:{http_port}: {err.strerror} (port 80 needs root; "

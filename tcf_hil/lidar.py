@@ -570,14 +570,16 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
                  sensor_ip: str = "127.0.0.1", speed: float = 1.0,
                  stop: threading.Event | None = None, ready: threading.Event | None = None,
                  on_result: Callable[[RecordResult], None] | None = None,
-                 record: str | Path | None = None, **run_kw: Any) -> SensorApi:
+                 record: str | Path | None = None, linger: bool = True,
+                 **run_kw: Any) -> SensorApi:
     """The emulated sensor as a client meets a real one: the HTTP API on ``http_host``
     (port 80 for ouster-sdk and ouster-cli) and the UDP stream to the configured
     ``udp_dest``. A configuration change with ``reinit`` restarts the stream with the new
     metadata (new init_id, frame_id from 0), as the real sensor does. Runs until the track
     ends and ``stop`` is set; returns the (closed) API object for inspection. ``record``:
     what was sent goes there (:func:`stream_lidar`); after the n-th re-initialisation, into
-    its ``reinit-n`` folder (the metadata changed)."""
+    its ``reinit-n`` folder (the metadata changed). ``linger`` False: return when the track
+    ends instead of answering HTTP until ``stop``."""
     stop = stop or threading.Event()
     meta_kw = {k: run_kw[k] for k in ("mode", "profile", "seed", "udp_dest", "udp_port_lidar",
                                       "udp_port_imu") if k in run_kw}
@@ -620,6 +622,8 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
             if on_result is not None:
                 on_result(r)
             if not reinit.is_set():
+                if not linger:
+                    break
                 stop.wait()  # the track ended: keep answering HTTP until told to stop
     finally:
         api.close()

@@ -329,8 +329,14 @@ def test_ctrl_c_ends_a_live_stream_cleanly_and_keeps_the_recording(tmp_path: Pat
          "--record", str(out), "--lidar-port", str(_free_udp_port()), "--imu-port",
          str(_free_udp_port())], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stdout is not None
-    # by default the sensor is a host of its own (its HTTP API on port 80 there, as root)
-    assert proc.stdout.readline().startswith(("streaming forest-ii", "sensor forest-ii"))
+    try:
+        # by default the sensor is a host of its own (its HTTP API on port 80 there, as root)
+        first = proc.stdout.readline()
+        assert first.startswith(("streaming forest-ii", "sensor forest-ii")), first
+    except BaseException:
+        proc.kill()  # never leave a stream behind
+        proc.communicate()
+        raise
     time.sleep(2.0)
     proc.send_signal(getattr(signal, sig))
     stdout, stderr = proc.communicate(timeout=60)
