@@ -24,10 +24,16 @@ _FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 @contextlib.contextmanager
 def library_logs(path: Path | None) -> Iterator[None]:
-    """python-can's and canopen's records (INFO and up) to ``path`` while in the block; with
-    ``path`` None, their errors only, to stderr. Restored on exit."""
+    """python-can's and canopen's records (INFO and up) to ``path`` while in the block, and
+    nowhere else (an outer block's handlers are set aside); with ``path`` None, their errors
+    only, to stderr. Restored on exit. A directory that cannot be made: as with None (the
+    command itself then says what is wrong with it)."""
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            path = None
+    if path is not None:
         handler: logging.Handler = logging.FileHandler(path, encoding="utf-8", delay=True)
         handler.setFormatter(logging.Formatter(_FORMAT))
         level = logging.INFO
@@ -39,7 +45,9 @@ def library_logs(path: Path | None) -> Iterator[None]:
     saved = []
     for name in LIBRARY_LOGGERS:
         lg = logging.getLogger(name)
-        saved.append((lg, lg.propagate, lg.level))
+        saved.append((lg, lg.propagate, lg.level, list(lg.handlers)))
+        for h in list(lg.handlers):
+            lg.removeHandler(h)
         lg.addHandler(handler)
         lg.propagate = False
         if lg.level == logging.NOTSET or lg.level > level:
@@ -47,8 +55,10 @@ def library_logs(path: Path | None) -> Iterator[None]:
     try:
         yield
     finally:
-        for lg, propagate, lvl in saved:
+        for lg, propagate, lvl, handlers in saved:
             lg.removeHandler(handler)
+            for h in handlers:
+                lg.addHandler(h)
             lg.propagate = propagate
             lg.setLevel(lvl)
         handler.close()

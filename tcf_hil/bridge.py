@@ -298,8 +298,8 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
     started = _dt.datetime.now(_dt.UTC)
     t_mono0 = time.monotonic()
     claims = contextlib.ExitStack()
-    host, ports = claim_run_endpoints(claims, sensor_ip, (7502, 7503), announce)
     try:
+        host, ports = claim_run_endpoints(claims, sensor_ip, (7502, 7503), announce)
         return _run_bridge(scn, sic, out, host, ports, mode=mode, profile=profile, seed=seed,
                            speed=speed, can=can, shell=shell, lead_s=lead_s, grace_s=grace_s,
                            duration_s=duration_s, backend=backend, eval_cfg=eval_cfg,
@@ -389,11 +389,11 @@ def _run_bridge(scn: Scenario, sic: str, out: Path, host: SensorHost, ports: Udp
     redirects: list[dict[str, Any]] = []
 
     def redirect(new: Any) -> None:  # a client's set_config moved the stream (HTTP thread)
+        # metadata.json stays as made: it describes lidar.pcap, recorded with the made ports
         route.set(new.udp_dest, new.udp_port_lidar, new.udp_port_imu)
         redirects.append({"udp_dest": new.udp_dest, "udp_port_lidar": new.udp_port_lidar,
                           "udp_port_imu": new.udp_port_imu,
                           "at_s": round(time.monotonic() - t_mono0, 3)})
-        write_bytes_atomic(out / "metadata.json", new.dumps().encode())
         announce(f"sensor: a client moved the stream to {new.udp_dest}:"
                  f"{new.udp_port_lidar}/{new.udp_port_imu}")
 
@@ -423,9 +423,10 @@ def _run_bridge(scn: Scenario, sic: str, out: Path, host: SensorHost, ports: Udp
                 assert flog is not None
                 flog.log(ev)
                 if ev["kind"] == "lidar_reinit":  # the sensor serves its new identity
-                    new = api.meta.with_changes(init_id=ev["init_id"])  # and destination
-                    api.set_metadata(new)
-                    write_bytes_atomic(out / "metadata.json", new.dumps().encode())
+                    api.update(lambda m: m.with_changes(init_id=ev["init_id"]))
+                    # the file describes lidar.pcap: the stream's own metadata (made ports;
+                    # the sender set the new init_id before this call)
+                    write_bytes_atomic(out / "metadata.json", run.meta.dumps().encode())
 
             def lidar() -> None:
                 nonlocal lidar_result
@@ -529,6 +530,8 @@ def _run_bridge(scn: Scenario, sic: str, out: Path, host: SensorHost, ports: Udp
         if flog is not None:
             flog.close()
             manifest["faults"]["injected"] = flog.summary()
+        if conflict and status == "complete":  # it came while the SIC finished
+            status, message = "can-conflict", conflict[0]
         if redirects:
             manifest["sensor_redirects"] = redirects
         if lidar_result is not None:

@@ -335,23 +335,27 @@ def replay_cmd(run_dir: Path, speed: float, loop: bool, sensor_address: str, des
     rec = Recording.load(run_dir)
     node = dict(read_json(run_dir / "manifest.json").get("can_node") or {})
     stop = threading.Event()
+    # auto: a host of its own, its API on port 80 (or a free one); an address given: the API
+    # only with --http-port, as before
     host = claim_sensor_host(err_console.print) if sensor_address == "auto" else \
-        SensorHost(sensor_address, 80 if http_port is None else http_port)
+        SensorHost(sensor_address, -1 if http_port is None else http_port)
+    port = host.http_port if http_port is None else http_port
     meta = rec.meta if dest is None else rec.meta.with_changes(udp_dest=dest)
     route = Route(meta.udp_dest, meta.udp_port_lidar, meta.udp_port_imu)
+    api: SensorApi | None = None
     try:
-        api = SensorApi(meta, host.address, host.http_port if http_port is None else http_port,
-                        fixed=True, on_redirect=lambda m: route.set(
-                            m.udp_dest, m.udp_port_lidar, m.udp_port_imu)).start()
+        if port >= 0:
+            api = SensorApi(meta, host.address, port, fixed=True, on_redirect=lambda m: route.set(
+                m.udp_dest, m.udp_port_lidar, m.udp_port_imu)).start()
     except OSError as err:
         host.release()
         raise click.ClickException(f"cannot serve the sensor's HTTP API on {host.address}:"
-                                   f"{http_port}: {err.strerror}") from err
+                                   f"{port}: {err.strerror}") from err
     try:
         with open_bus(can_spec, announce=err_console.print) as spec:
             console.print(f"replaying {run_dir}: {rec.frames} frames, {len(rec.can)} CAN "
                           f"frames at {speed:g}x from sensor {host.address} (API "
-                          f"{sensor_url(api)}) to {meta.udp_dest}:"
+                          f"{sensor_url(api) if api else 'off'}) to {meta.udp_dest}:"
                           f"{meta.udp_port_lidar}/{meta.udp_port_imu}, CAN {spec}"
                           + (" (looping; Ctrl-C stops)" if loop else ""))
             sdo = SdoResponder(spec, node)
@@ -365,7 +369,8 @@ def replay_cmd(run_dir: Path, speed: float, loop: bool, sensor_address: str, des
             finally:
                 sdo.close()
     finally:
-        api.close()
+        if api is not None:
+            api.close()
         host.release()
     console.print(f"sent {sent['udp']} UDP datagrams and {sent['can']} CAN frames")
 
@@ -752,11 +757,14 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     try:
         if http_port is not None:
             host_ip = http_address or sensor_address
-            console.print(f"sensor {scn.name} {mode} {profile}: HTTP API on {host_ip}:"
-                          f"{http_port or 'a free port'}, UDP from {sensor_address} to "
-                          f"{dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
+
+            def listening(api: Any) -> None:
+                console.print(f"sensor {scn.name} {mode} {profile}: HTTP API on "
+                              f"{api.address[0]}:{api.address[1]}, UDP from {sensor_address} "
+                              f"to {dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
+
             try:
-                serve_sensor(scn, http_host=host_ip, http_port=http_port,
+                serve_sensor(scn, http_host=host_ip, http_port=http_port, on_api=listening,
                              sensor_ip=sensor_address, speed=speed, stop=stop, mode=mode,
                              profile=profile, seed=seed, max_frames=frames, udp_dest=dest,
                              udp_port_lidar=lidar_port, udp_port_imu=imu_port, record=record,

@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
+from tcf_hil.errors import EndpointError
+
 __all__ = ["SensorHost", "UdpPorts", "claim_sensor_host", "lock_dir", "reserve_udp_ports"]
 
 _FIRST_HOST, _LAST_HOST = 2, 254  # 127.0.0.2 ... 127.0.0.254
@@ -47,8 +49,23 @@ def lock_dir() -> Path:
 
 
 def _try_lock(name: str) -> IO[bytes] | None:
-    """The lock file ``name`` held by this process, or None if another process holds it."""
-    fh = open(lock_dir() / name, "a+b")  # held for the claim's life
+    """The lock file ``name`` held by this process, or None if another process holds it
+    (or another user's file cannot be opened: then it counts as held). Files are made
+    readable and writable by all and never removed (unlinking a lock file races with its
+    next user); flock works on a read-only descriptor too."""
+    path = lock_dir() / name
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+            with contextlib.suppress(OSError):
+                os.fchmod(fd, 0o666)
+        except PermissionError:
+            return None
+    except PermissionError:
+        return None
+    fh = os.fdopen(fd, "rb")  # held for the claim's life
     try:
         fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as err:
@@ -103,15 +120,23 @@ def claim_sensor_host(announce: Callable[[str], None] | None = None) -> SensorHo
     Without the privilege to bind port 80 the first free address is taken with
     ``http_port`` 0 and a ``note``; ``announce`` (a callable) gets that note once per process.
 
+    Where port 80 is served on every address (a web server on 0.0.0.0:80) the first address
+    no tcf-hil process holds is taken with ``http_port`` 0, and the note says why.
+
     Raises:
-        OSError: every address 127.0.0.2-254 is taken.
+        EndpointError: every address 127.0.0.2-254 is held by other tcf-hil processes.
     """
+    busy: SensorHost | None = None  # the first unclaimed address, if port 80 is taken on all
+    served = 0  # addresses whose port 80 another program serves
     for n in range(_FIRST_HOST, _LAST_HOST + 1):
         addr = f"127.0.0.{n}"
         lock = _try_lock(f"sensor-{addr}")
         if lock is None:
             continue
         err = _bind_error(socket.AF_INET, socket.SOCK_STREAM, (addr, 80))
+        if err is None or err.errno in (errno.EACCES, errno.EPERM):
+            if busy is not None:
+                busy.release()
         if err is None:
             return SensorHost(addr, 80, None, lock)
         if err.errno in (errno.EACCES, errno.EPERM):
@@ -125,8 +150,24 @@ def claim_sensor_host(announce: Callable[[str], None] | None = None) -> SensorHo
                 _SAID.add(note)
                 announce(note)
             return SensorHost(addr, 0, note, lock)
-        lock.close()  # a foreign server holds port 80 there: the next address
-    raise OSError(errno.EADDRINUSE, "every loopback sensor address 127.0.0.2-254 is taken")
+        if busy is None:  # a foreign server holds port 80 there: keep it, try the next
+            busy = SensorHost(addr, 0, None, lock)
+        else:
+            lock.close()
+        served += 1
+        if served == 8:  # eight addresses: port 80 is taken on all (a server on 0.0.0.0)
+            break
+    if busy is not None:
+        note = ("port 80 is served by another program on every loopback address tried, so "
+                "the sensor's HTTP API is on a free port; clients that take a host name "
+                "cannot reach it, give them the metadata file (TCF_METADATA) instead")
+        busy.note = note
+        if announce is not None and note not in _SAID:
+            _SAID.add(note)
+            announce(note)
+        return busy
+    raise EndpointError(errno.EADDRINUSE, "every loopback sensor address 127.0.0.2-254 is held "
+                        f"by other tcf-hil processes (claims in {lock_dir()})")
 
 
 @dataclass
@@ -154,7 +195,7 @@ def reserve_udp_ports(host: str, preferred: list[int]) -> UdpPorts:
     tcf-hil process holds it, else a free ephemeral port; all distinct and claimed.
 
     Raises:
-        OSError: no free UDP port could be found.
+        EndpointError: no free UDP port could be found.
     """
     got = UdpPorts(host, [])
     try:
@@ -180,7 +221,7 @@ def reserve_udp_ports(host: str, preferred: list[int]) -> UdpPorts:
                 got._locks.append(lock)
                 break
             else:
-                raise OSError(errno.EADDRINUSE, f"no free UDP port on {host}")
+                raise EndpointError(errno.EADDRINUSE, f"no free UDP port on {host}")
     except BaseException:
         got.release()
         raise

@@ -13,11 +13,15 @@ from __future__ import annotations
 
 from protocols._text import short_repr
 
-__all__ = ["ConfigError", "InputError", "TcfHilError", "short_repr"]
+__all__ = ["ConfigError", "EndpointError", "InputError", "TcfHilError", "short_repr"]
 
 
 class TcfHilError(Exception):
     """Root of every error tcf-hil raises on purpose."""
+
+
+class EndpointError(TcfHilError, OSError):
+    """A run cannot get an endpoint of its own (every sensor address or UDP port taken)."""
 
 
 class ConfigError(TcfHilError, ValueError):

@@ -571,6 +571,7 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
                  stop: threading.Event | None = None, ready: threading.Event | None = None,
                  on_result: Callable[[RecordResult], None] | None = None,
                  record: str | Path | None = None, linger: bool = True,
+                 on_api: Callable[[SensorApi], None] | None = None,
                  **run_kw: Any) -> SensorApi:
     """The emulated sensor as a client meets a real one: the HTTP API on ``http_host``
     (port 80 for ouster-sdk and ouster-cli) and the UDP stream to the configured
@@ -579,7 +580,8 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
     ends and ``stop`` is set; returns the (closed) API object for inspection. ``record``:
     what was sent goes there (:func:`stream_lidar`); after the n-th re-initialisation, into
     its ``reinit-n`` folder (the metadata changed). ``linger`` False: return when the track
-    ends instead of answering HTTP until ``stop``."""
+    ends instead of answering HTTP until ``stop``. ``on_api`` gets the API once it listens
+    (its ``address`` is where: port 0 was a free port)."""
     stop = stop or threading.Event()
     meta_kw = {k: run_kw[k] for k in ("mode", "profile", "seed", "udp_dest", "udp_port_lidar",
                                       "udp_port_imu") if k in run_kw}
@@ -597,9 +599,14 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
     warm_up_kernels(first, run_kw.get("model"))
     warm_up_poses()
     api = SensorApi(first, http_host, http_port, on_reinit=on_reinit).start()
+    if on_api is not None:
+        on_api(api)
+    done = threading.Event()
 
     def relay() -> None:
-        stop.wait()
+        while not stop.wait(0.2):
+            if done.is_set():
+                return
         inner[0].set()
 
     threading.Thread(target=relay, name="sensor-stop", daemon=True).start()
@@ -626,5 +633,6 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
                     break
                 stop.wait()  # the track ended: keep answering HTTP until told to stop
     finally:
+        done.set()
         api.close()
     return api

@@ -592,7 +592,9 @@ def node_id_in_use(spec: BusSpec, node_id: int, listen_s: float) -> str | None:
         deadline = time.monotonic() + listen_s
         while (left := deadline - time.monotonic()) > 0:
             msg = bus.recv(timeout=min(left, 0.05))
-            if msg is not None and not msg.is_extended_id and msg.arbitration_id in taken:
+            if msg is not None and not (msg.is_extended_id or msg.is_remote_frame
+                                        or msg.is_error_frame) \
+                    and msg.arbitration_id in taken:  # a master's RTR (guarding) is no twin
                 return _twin_text(spec, node_id, msg.arbitration_id)
     finally:
         bus.shutdown()

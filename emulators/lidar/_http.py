@@ -123,6 +123,8 @@ class SensorApi:
                                              self.client_address[0])
                 except _HttpError as err:
                     status, body = err.status, err.body()
+                except Exception as err:  # a callback failed (e.g. the disk is full)
+                    status, body = 500, _HttpError(500, f"{type(err).__name__}: {err}").body()
                 self._send(status, body)
 
             def do_GET(self) -> None:
@@ -160,9 +162,15 @@ class SensorApi:
 
     def set_metadata(self, meta: SensorMetadata) -> None:
         """The sensor re-initialised on its own (an injected fault): serve ``meta`` now."""
+        self.update(lambda _m: meta)
+
+    def update(self, change: Callable[[SensorMetadata], SensorMetadata]) -> SensorMetadata:
+        """Serve ``change(active metadata)`` from now on, applied under the API's lock (so a
+        client's redirect on the HTTP thread is not lost); returns it."""
         with self._lock:
-            self.meta = meta
-            self.staged = dict(meta.to_json()["config_params"])
+            self.meta = change(self.meta)
+            self.staged = dict(self.meta.to_json()["config_params"])
+            return self.meta
 
     # The routing is plain data in, data out (tested without sockets too).
     def route(self, method: str, path: str, query: dict[str, list[str]],
@@ -199,11 +207,12 @@ class SensorApi:
                      client_ip: str) -> tuple[int, Any]:
         if change is not None and not isinstance(change, dict):
             raise _HttpError(HTTPStatus.BAD_REQUEST, "config must be a JSON object")
-        for k, v in (change or {}).items():
-            if k == "udp_dest":
-                v = client_ip if v == "@auto" else v
-                _check_loopback(v)
-            self.staged[k] = v
+        change = dict(change or {})
+        if "udp_dest" in change:  # checked before anything is staged
+            if change["udp_dest"] == "@auto":
+                change["udp_dest"] = client_ip
+            _check_loopback(change["udp_dest"])
+        self.staged.update(change)
         if _truthy(query.get("reinit")):
             kw = {attr: self.staged[key] for key, attr in _CONFIG_KEYS.items()
                   if key in self.staged}
@@ -235,6 +244,11 @@ class SensorApi:
                              "udp_port_lidar and udp_port_imu may change")
         if not changed:
             return 200, {}
+        for key in ("udp_port_lidar", "udp_port_imu"):
+            port = staged[key]
+            if not (isinstance(port, int) and not isinstance(port, bool) and 0 < port < 65536):
+                raise _HttpError(HTTPStatus.BAD_REQUEST,
+                                 f"{key} {str(port)[:20]}: expected a port 1 .. 65535")
         try:
             new = self.meta.with_changes(udp_dest=staged["udp_dest"],
                                          udp_port_lidar=staged["udp_port_lidar"],
@@ -249,14 +263,15 @@ class SensorApi:
 
 
 def _check_loopback(value: Any) -> None:
+    """An IPv4 loopback address (the sender is IPv4; nothing leaves the machine)."""
     try:
-        ok = isinstance(value, str) and ipaddress.ip_address(value).is_loopback
+        ok = isinstance(value, str) and ipaddress.IPv4Address(value).is_loopback
     except ValueError:
         ok = False
     if not ok:
         raise _HttpError(HTTPStatus.BAD_REQUEST,
-                         f"udp_dest {str(value)[:60]!r}: this emulated sensor sends only to a "
-                         "loopback address (127.0.0.0/8 or ::1)")
+                         f"udp_dest {str(value)[:60]!r}: this emulated sensor sends only to an "
+                         "IPv4 loopback address (127.0.0.0/8)")
 
 
 class _HttpError(Exception):

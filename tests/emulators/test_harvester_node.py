@@ -5,6 +5,8 @@ remapping by SDO, and foreign or malformed frames counted and ignored."""
 from __future__ import annotations
 
 import itertools
+import os
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -241,3 +243,38 @@ def test_a_log_that_cannot_be_written_stops_with_the_reason(bus_name: str,
     lg.stop()  # no exception: the reason is kept
     assert lg.error is not None and "No space left" in lg.error
     assert lg.frames == 0
+
+
+def test_a_node_with_the_same_id_is_heard_before_boot_and_a_masters_rtr_is_not() -> None:
+    """node_id_in_use: a frame on the node's own COB-IDs from someone else is a twin; a
+    master's node-guarding RTR on 0x700+id, or an extended frame, is not."""
+    from emulators.harvester import node_id_in_use
+
+    name = f"twin-{os.getpid()}"
+    spec = BusSpec("virtual", name, extra={"receive_own_messages": False})
+    other = can.Bus(interface="virtual", channel=name)
+    stop = threading.Event()
+
+    def talk(frames: list[can.Message]) -> None:
+        while not stop.wait(0.02):
+            for m in frames:
+                other.send(m)
+
+    try:
+        rtr = [can.Message(arbitration_id=0x70A, is_remote_frame=True, is_extended_id=False),
+               can.Message(arbitration_id=0x18A, data=b"x", is_extended_id=True)]
+        t = threading.Thread(target=talk, args=(rtr,), daemon=True)
+        t.start()
+        assert node_id_in_use(spec, 10, 0.3) is None
+        stop.set()
+        t.join()
+        stop.clear()
+        hb = [can.Message(arbitration_id=0x70A, data=b"\x05", is_extended_id=False)]
+        t = threading.Thread(target=talk, args=(hb,), daemon=True)
+        t.start()
+        said = node_id_in_use(spec, 10, 0.3)
+        assert said is not None and "id 10" in said and "0x70A" in said
+        assert node_id_in_use(spec, 11, 0.2) is None  # another id: no conflict
+    finally:
+        stop.set()
+        other.shutdown()

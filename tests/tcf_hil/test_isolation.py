@@ -210,8 +210,12 @@ def test_a_sic_that_opens_the_sensor_by_host_name_gets_whole_frames(tmp_path: Pa
         last = man["sensor_redirects"][-1]
         assert (last["udp_port_lidar"], last["udp_port_imu"]) == (got["ports"]["lidar_port"],
                                                                   got["ports"]["imu_port"])
-        # metadata.json describes lidar.pcap, recorded with the ports the run was made with
+        # metadata.json describes lidar.pcap, recorded with the ports the run was made with,
+        # so the run replays
         assert meta.udp_port_lidar == int(man["endpoints"]["TCF_LIDAR_PORT"])
+        from tcf_hil.replay import Recording
+
+        assert len(Recording.load(tmp_path / "run").lidar) >= 40 * 32
     else:
         assert "sensor_redirects" not in man
     ids = got["frame_ids"]

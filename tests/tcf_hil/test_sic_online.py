@@ -276,6 +276,12 @@ def test_the_run_sensor_api_takes_a_new_destination_and_refuses_other_changes() 
         with pytest.raises(_HttpError, match="loopback"):
             api.route("POST", "/api/v1/sensor/config", {}, lambda: {"udp_dest": "@auto"},
                       "192.0.2.7")
+        with pytest.raises(_HttpError, match="loopback"):  # the sender is IPv4
+            api.route("POST", "/api/v1/sensor/config", {}, lambda: {"udp_dest": "::1"}, "::1")
+        with pytest.raises(_HttpError, match=r"port 1 \.\. 65535"):  # sendto(port 0): EINVAL
+            api.route("POST", "/api/v1/sensor/config", {"reinit": ["true"]},
+                      lambda: {"udp_port_imu": 0}, "127.0.0.1")
+        assert api.meta.udp_port_imu == 7601 and len(moved) == 1  # unchanged by the refusal
     finally:
         api.server.server_close()
 
