@@ -219,16 +219,22 @@ class SensorApi:
             if self.fixed:
                 return self._redirect()
             kw["init_id"] = next_init_id(self.meta.init_id)
-            try:
-                new = self.meta.with_changes(**kw)
-            except (MetadataError, TypeError, ValueError) as err:
-                raise _HttpError(HTTPStatus.BAD_REQUEST, f"config rejected: {err}") from err
-            self.meta = new
-            self.staged = dict(new.to_json()["config_params"])
-            if self.on_reinit is not None:
-                self.on_reinit(new)
+            return self._activate(kw, self.on_reinit)
         return 200, {}
 
+    def _activate(self, kw: dict[str, Any],
+                  tell: Callable[[SensorMetadata], None] | None) -> tuple[int, Any]:
+        """Make the active metadata with ``kw`` changed the sensor's (400 where that is no
+        valid metadata), staged = active, and ``tell`` about it."""
+        try:
+            new = self.meta.with_changes(**kw)
+        except (MetadataError, TypeError, ValueError) as err:
+            raise _HttpError(HTTPStatus.BAD_REQUEST, f"config rejected: {err}") from err
+        self.meta = new
+        self.staged = dict(new.to_json()["config_params"])
+        if tell is not None:
+            tell(new)
+        return 200, {}
 
     def _redirect(self) -> tuple[int, Any]:
         """A fixed sensor's reinit: a new destination is taken (same init_id: the scored
@@ -249,17 +255,7 @@ class SensorApi:
             if not (isinstance(port, int) and not isinstance(port, bool) and 0 < port < 65536):
                 raise _HttpError(HTTPStatus.BAD_REQUEST,
                                  f"{key} {str(port)[:20]}: expected a port 1 .. 65535")
-        try:
-            new = self.meta.with_changes(udp_dest=staged["udp_dest"],
-                                         udp_port_lidar=staged["udp_port_lidar"],
-                                         udp_port_imu=staged["udp_port_imu"])
-        except (MetadataError, TypeError, ValueError) as err:
-            raise _HttpError(HTTPStatus.BAD_REQUEST, f"config rejected: {err}") from err
-        self.meta = new
-        self.staged = dict(new.to_json()["config_params"])
-        if self.on_redirect is not None:
-            self.on_redirect(new)
-        return 200, {}
+        return self._activate({k: staged[k] for k in REDIRECT_KEYS}, self.on_redirect)
 
 
 def _check_loopback(value: Any) -> None:
