@@ -323,6 +323,23 @@ def claim_run_endpoints(claims: contextlib.ExitStack, sensor_ip: str | None,
     return host, ports
 
 
+def follow_redirects(route: Route, log: list[dict[str, Any]], t_mono0: float,
+                     announce: Callable[[str], None]) -> Callable[[Any], None]:
+    """The sensor API's ``on_redirect`` for a run: a client's set_config (on the HTTP
+    thread) moves ``route``, is logged for the manifest and said. metadata.json stays as
+    made: it describes lidar.pcap, recorded with the made ports."""
+
+    def redirect(new: Any) -> None:
+        route.set(new.udp_dest, new.udp_port_lidar, new.udp_port_imu)
+        log.append({"udp_dest": new.udp_dest, "udp_port_lidar": new.udp_port_lidar,
+                    "udp_port_imu": new.udp_port_imu,
+                    "at_s": round(time.monotonic() - t_mono0, 3)})
+        announce(f"sensor: a client moved the stream to {new.udp_dest}:"
+                 f"{new.udp_port_lidar}/{new.udp_port_imu}")
+
+    return redirect
+
+
 def sensor_url(api: SensorApi) -> str:
     """The API's base URL (no port when it is 80, as for a real sensor)."""
     h, p = cast(tuple[str, int], api.address[:2])
@@ -388,15 +405,7 @@ def _run_bridge(scn: Scenario, sic: str, out: Path, host: SensorHost, ports: Udp
     route = Route(run.meta.udp_dest, lidar_port, imu_port)
     redirects: list[dict[str, Any]] = []
 
-    def redirect(new: Any) -> None:  # a client's set_config moved the stream (HTTP thread)
-        # metadata.json stays as made: it describes lidar.pcap, recorded with the made ports
-        route.set(new.udp_dest, new.udp_port_lidar, new.udp_port_imu)
-        redirects.append({"udp_dest": new.udp_dest, "udp_port_lidar": new.udp_port_lidar,
-                          "udp_port_imu": new.udp_port_imu,
-                          "at_s": round(time.monotonic() - t_mono0, 3)})
-        announce(f"sensor: a client moved the stream to {new.udp_dest}:"
-                 f"{new.udp_port_lidar}/{new.udp_port_imu}")
-
+    redirect = follow_redirects(route, redirects, t_mono0, announce)
     try:
         with open_bus(can, announce=announce) as spec, SensorApi(
                 run.meta, sensor_ip, host.http_port, fixed=True, on_redirect=redirect) as api:

@@ -280,6 +280,7 @@ def _replay_run(src: Path, sic: str, out: Path, rec: Recording, src_man: dict[st
         claim_run_endpoints,
         conclude,
         finish_run,
+        follow_redirects,
         sic_command,
         write_end_manifest,
     )
@@ -318,12 +319,8 @@ def _replay_run(src: Path, sic: str, out: Path, rec: Recording, src_man: dict[st
     status, message, rc = "complete", "", None
     sent: dict[str, int] = {}
     route = Route(meta.udp_dest, lidar_port, imu_port)
-
-    def redirect(new: SensorMetadata) -> None:  # a client's set_config moved the stream
-        route.set(new.udp_dest, new.udp_port_lidar, new.udp_port_imu)
-        announce(f"sensor: a client moved the stream to {new.udp_dest}:"
-                 f"{new.udp_port_lidar}/{new.udp_port_imu}")
-
+    redirects: list[dict[str, Any]] = []
+    redirect = follow_redirects(route, redirects, time.monotonic(), announce)
     try:
         with open_bus(can_spec, announce=announce) as spec, \
                 SensorApi(meta, sensor_ip, host.http_port, fixed=True,
@@ -389,6 +386,8 @@ def _replay_run(src: Path, sic: str, out: Path, rec: Recording, src_man: dict[st
         server.close()
         inbox.close()
         manifest["replay_sent"] = sent
+        if redirects:
+            manifest["sensor_redirects"] = redirects
         write_end_manifest(out, manifest, status, message, rc, proc, inbox)
     status, message = conclude(status, message, rc, proc, grace_s, inbox, out)
     return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)
