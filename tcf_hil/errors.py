@@ -4,16 +4,21 @@
 
     TcfHilError
      ├── ConfigError      a scenario or option is invalid (names key, value, what is allowed)
-     └── InputError       an input file is unreadable or breaks its schema (names file and field)
+     ├── InputError       an input file is unreadable or breaks its schema (names file and field)
+     ├── EndpointError    a run cannot get an endpoint of its own (also an OSError)
+     └── SicError         the reference onboard SIC cannot start (no metadata, a silent node)
 
-The CLI maps every ``TcfHilError`` to exit status 1 and a one-line ``Error: ...`` message.
+The CLI maps every ``TcfHilError`` to exit status 1 and a one-line ``Error: ...`` message;
+the SIC's own command (``python -m tcf_hil.sic``, ``tcf-hil sic``) ends with a SicError's
+message alone, as exit status 1.
 """
 
 from __future__ import annotations
 
 from protocols._text import short_repr
 
-__all__ = ["ConfigError", "EndpointError", "InputError", "TcfHilError", "short_repr"]
+__all__ = ["ConfigError", "EndpointError", "InputError", "SicError", "TcfHilError",
+           "short_repr"]
 
 
 class TcfHilError(Exception):
@@ -58,3 +63,10 @@ class InputError(TcfHilError, ValueError):
         self.problem = problem
         at = f" at {field}" if field else ""
         super().__init__(f"{path}{at}: {problem}")
+
+
+class SicError(TcfHilError):
+    """The reference onboard SIC cannot start or go on: no metadata to be had (neither file
+    nor sensor), or a harvester node that does not answer its SDO reads. The message names
+    what and why, starting ``sic:`` as every line the SIC writes; its command prints it and
+    exits with status 1."""

@@ -23,11 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from emulators.faults import FaultEvent, next_init_id
+from emulators.faults import FaultEvent
 from emulators.lidar import (
+    IMU_PERIOD_NS,
     Datagram,
     FrameResult,
     Os0Emulator,
+    Os0Sensor,
     PacedSender,
     ReturnModel,
     Route,
@@ -37,10 +39,7 @@ from emulators.lidar import (
 from emulators.lidar import warm_up as warm_up_kernels
 from protocols.ouster import (
     IMU_PACKET_BYTES,
-    ImuPacket,
     SensorMetadata,
-    encode_imu_packet,
-    finish_lidar_packets,
     os0_64_metadata,
 )
 from protocols.pcap import PcapWriter, UdpDatagram
@@ -53,8 +52,6 @@ from tcf_hil.scenario import Scenario
 from tcf_hil.scene import Scene
 from tcf_hil.trajectory import Trajectory, quaternions
 from tcf_hil.trajectory import warm_up as warm_up_poses
-
-IMU_PERIOD_NS = 10_000_000  # 100 Hz
 
 
 @dataclass(frozen=True)
@@ -133,72 +130,53 @@ class LidarRun:
         self.last_events: list[FaultEvent] = []
 
     def datagrams(self) -> Iterator[tuple[FrameResult, list[Datagram]]]:
-        fmt = self.meta.packet_format
-        crc = fast_crc_rows()
-        cpp = fmt.columns_per_packet
-        next_imu = self.track.t0_ns
-        lp, ip = self.meta.udp_port_lidar, self.meta.udp_port_imu
-        fid_base: int | None = -self.first_frame_id  # frame_id counts from here (a
-        # re-initialisation restarts it at 0)
+        """Each frame with the datagrams that leave the sensor for it (the sensor's per-frame
+        behaviour is :class:`emulators.lidar.Os0Sensor`'s); the returns each stem got and the
+        column poses are kept for the sidecar files."""
+        sensor = Os0Sensor(self.emu, self.meta, self.track, lidar_faults=self.lidar_faults,
+                           udp_faults=self.udp_faults, crc_rows=fast_crc_rows(),
+                           first_frame_id=self.first_frame_id, first_imu_ns=self.track.t0_ns)
         for k in range(self.frames):
-            fr = self.emu.frame(k)
-            action, event = "send", None
-            if self.lidar_faults is not None:
-                action, event = self.lidar_faults.frame(
-                    k, self.emu.start_ns + k * self.emu.period_ns, self.emu.period_ns)
-            events = [event] if event is not None else []
-            if action == "reinit":
-                old = self.meta.init_id
-                self.meta = self.meta.with_changes(init_id=next_init_id(old))
-                events[0].update(init_id_old=old, init_id=self.meta.init_id)
-                fid_base = None
-            elif fid_base is None and action != "silent":
-                fid_base = k
-            arr = fr.packets
-            finish_lidar_packets(fmt, arr, frame_id=(k - (fid_base or 0)) & 0xFFFF,
-                                 init_id=self.meta.init_id, prod_sn=self.meta.prod_sn,
-                                 crc_rows=crc)
-            out = []
-            sends = fr.timestamps_ns[cpp - 1::cpp].tolist()
-            imu_t = np.arange(next_imu, sends[-1] + 1, IMU_PERIOD_NS, dtype=np.int64)
-            acc, gyro = self.track.imu(imu_t) if len(imu_t) else (np.zeros((0, 3)),) * 2
-            j = 0
-            for i, t_send in enumerate(sends):
-                while j < len(imu_t) and imu_t[j] <= t_send:
-                    t = int(imu_t[j])
-                    out.append(Datagram(t, ip, encode_imu_packet(ImuPacket(
-                        t, t, t, tuple(acc[j].tolist()), tuple(gyro[j].tolist())))))
-                    j += 1
-                out.append(Datagram(t_send, lp, arr[i].tobytes()))
-            if len(imu_t):
-                next_imu = int(imu_t[-1]) + IMU_PERIOD_NS
-            if action in ("reinit", "silent"):
-                out = []  # re-initialising: nothing at all leaves the sensor
-            elif action == "drop":
-                out = [d for d in out if d.port != lp]  # the frame is missing; IMU goes on
-            if self.udp_faults is not None:
-                out, more = self.udp_faults.apply(out, k)
-                events += more
-            self.last_events = events
-            if action != "send":
-                yield fr, out
-                continue
-            self.packets += arr.shape[0]
-            hit = fr.stem_id[fr.stem_id >= 0]
-            if fr.stem_id2 is not None:  # the DUAL profile's second returns count too
-                hit = np.concatenate([hit, fr.stem_id2[fr.stem_id2 >= 0]])
-            self.counts += np.bincount(hit, minlength=len(self.counts))[: len(self.counts)]
-            if not self.keep_poses:
-                yield fr, out
-                continue
-            q = quaternions(fr.rotations)
-            p = fr.positions + self.forest.origin
-            self._pw.writerows(
-                [int(t), f"{a:.6f}", f"{b:.6f}", f"{c:.6f}", f"{w:.9f}", f"{x:.9f}",
-                 f"{y:.9f}", f"{z:.9f}"]
-                for t, (a, b, c), (w, x, y, z) in zip(fr.timestamps_ns.tolist(), p.tolist(),
-                                                      q.tolist(), strict=True))
-            yield fr, out
+            sf = sensor.frame(k)
+            self.meta = sensor.meta
+            self.last_events = sf.events
+            fr = sf.result
+            if sf.sent:
+                self._count(fr)
+            yield fr, sf.datagrams
+
+    def _count(self, fr: FrameResult) -> None:
+        self.packets += fr.packets.shape[0]
+        hit = fr.stem_id[fr.stem_id >= 0]
+        if fr.stem_id2 is not None:  # the DUAL profile's second returns count too
+            hit = np.concatenate([hit, fr.stem_id2[fr.stem_id2 >= 0]])
+        self.counts += np.bincount(hit, minlength=len(self.counts))[: len(self.counts)]
+        if not self.keep_poses:
+            return
+        q = quaternions(fr.rotations)
+        p = fr.positions + self.forest.origin
+        self._pw.writerows(
+            [int(t), f"{a:.6f}", f"{b:.6f}", f"{c:.6f}", f"{w:.9f}", f"{x:.9f}",
+             f"{y:.9f}", f"{z:.9f}"]
+            for t, (a, b, c), (w, x, y, z) in zip(fr.timestamps_ns.tolist(), p.tolist(),
+                                                  q.tolist(), strict=True))
+
+    def mark(self) -> tuple[np.ndarray, int, int]:
+        """The bookkeeping so far (returns per stem, length of the poses CSV, packets), for
+        :meth:`restore`."""
+        return self.counts.copy(), self._poses.tell(), self.packets
+
+    def poses_csv(self, upto: int | None = None) -> str:
+        """``sensor_poses.csv`` so far (up to a :meth:`mark`'s length)."""
+        text = self._poses.getvalue()
+        return text if upto is None else text[:upto]
+
+    def restore(self, counts: np.ndarray, poses_csv: str, packets: int) -> None:
+        """The bookkeeping as of exactly the frames that were sent (a producer ran ahead)."""
+        self.counts, self.packets = counts, packets
+        self._poses = io.StringIO(poses_csv)
+        self._poses.seek(0, io.SEEK_END)
+        self._pw = csv.writer(self._poses, lineterminator="\n")
 
     def ground_truth(self) -> dict[str, Any]:
         """The forest's ground truth with the lidar returns each stem got so far."""
@@ -324,8 +302,8 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
     pending: collections.deque[bytes] = collections.deque()
     written = 0
     # bookkeeping after each produced frame, back as far as the sender can be behind
-    marks: collections.deque[tuple[int, np.ndarray, int, int]] = collections.deque(
-        [(0, run.counts.copy(), run._poses.tell(), run.packets)], maxlen=_SLOTS + 2)
+    marks: collections.deque[tuple[int, tuple[np.ndarray, int, int]]] = collections.deque(
+        [(0, run.mark())], maxlen=_SLOTS + 2)
 
     def flush() -> None:
         nonlocal written
@@ -362,7 +340,7 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
             if rec is not None:  # exactly what goes out, at its simulation time
                 pending.append(_pcap_records(writer, dgs, rec.sensor_ip, rec.dest))
             produced += 1
-            marks.append((produced, run.counts.copy(), run._poses.tell(), run.packets))
+            marks.append((produced, run.mark()))
             slot = (slot + 1) % _SLOTS
         else:
             conn.send(("done", None))
@@ -372,8 +350,8 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
                 break
         flush()
         n_sent = int(sent.value)
-        mark = next((m for m in marks if m[0] == n_sent), marks[-1])
-        conn.send(("final", (mark[1], run._poses.getvalue()[:mark[2]], mark[3])))
+        counts, length, packets = next((m for n, m in marks if n == n_sent), marks[-1][1])
+        conn.send(("final", (counts, run.poses_csv(length), packets)))
     except BaseException as err:  # reported by the sending side
         with contextlib.suppress(Exception):
             conn.send(("error", f"{type(err).__name__}: {err}"))
@@ -530,9 +508,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                 if item[0] == "error":
                     error = item[1]
                 elif item[0] == "final":
-                    run.counts, poses, run.packets = item[1]
-                    run._poses = io.StringIO(poses)
-                    run._poses.seek(0, io.SEEK_END)
+                    run.restore(*item[1])
                     break
             else:
                 error = error or "the frame producer did not answer"

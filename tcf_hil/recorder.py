@@ -1,7 +1,6 @@
 """The recorder's side of a run: the SIC's publications (stdout NDJSON, a file it rewrites,
 HTTP POST), each kept as it arrived in ``sic/NNNN.json`` with a line in ``sic/index.ndjson``;
-scoring of a forest against all ground-truth trees and the trees the sensor saw; the run
-manifest."""
+scoring of a forest against all ground-truth trees and the trees the sensor saw."""
 
 from __future__ import annotations
 
@@ -14,7 +13,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import IO, Any
 
-from tcf_hil._io import ensure_dir, loads_json, write_bytes_atomic, write_json_atomic
+from tcf_hil._io import ensure_dir, loads_json, write_bytes_atomic
 from tcf_hil.errors import InputError
 from tcf_hil.evaluation import EvalConfig, Evaluation, evaluate
 from tcf_hil.stems_json import StemTable, stem_table
@@ -223,7 +222,3 @@ def score_forest(gt_doc: dict[str, Any], obs: StemTable, cfg: EvalConfig | None 
 
 def empty_forest() -> StemTable:
     return stem_table({"objects": []}, "<no publication>", "observed")
-
-
-def write_manifest(path: Path, doc: dict[str, Any]) -> None:
-    write_json_atomic(path, doc)

@@ -1,5 +1,7 @@
-"""Replay a recorded run: its pcap (lidar and IMU) and CAN log go back on the wire with their
-original relative timing (scaled by ``speed``), the HTTP API serves the recorded metadata.
+"""A recorded run's traffic: its pcap (lidar and IMU) and CAN log read onto one time line and
+sent back on the wire with their original relative timing (scaled by ``speed``), and the
+harvester node's SDO answers. The session that serves it (the HTTP API with the recorded
+metadata, the SIC, the score) is :class:`tcf_hil.run.ReplayTraffic`'s.
 
 Both recordings are put on one time line: pcap records carry simulation time; the CAN log's
 wall-clock time stamps are mapped onto it through the run manifest's clock
@@ -11,7 +13,6 @@ the pose time on CAN by the recording's length, so that a consumer sees one cont
 from __future__ import annotations
 
 import contextlib
-import shutil
 import socket
 import threading
 import time
@@ -24,10 +25,9 @@ import can
 import numpy as np
 
 from emulators.harvester import BusSpec
-from emulators.lidar import Route, SensorApi
-from protocols.harvester import HARVESTER_OD, POSE, decode_pdo, encode_pdo
-from protocols.harvester._codec import TIME_WRAP_US
-from protocols.ouster import IMU_PACKET_BYTES, SensorMetadata, crc64_xz_rows
+from emulators.lidar import Route
+from protocols.harvester import HARVESTER_OD, POSE, TIME_WRAP_US, decode_pdo, encode_pdo
+from protocols.ouster import IMU_PACKET_BYTES, SensorMetadata, shift_lidar_packet
 from protocols.pcap import read_udp
 from tcf_hil._io import read_json
 from tcf_hil.errors import InputError
@@ -83,24 +83,6 @@ class Recording:
         return min(lt) if lt else 0
 
 
-def _shift_lidar(meta: SensorMetadata, payload: bytes, dframe: int, dt_ns: int) -> bytes:
-    fmt = meta.packet_format
-    if len(payload) != fmt.packet_bytes or (dframe == 0 and dt_ns == 0):
-        return payload
-    arr = np.frombuffer(payload, np.uint8).copy().reshape(1, -1)
-    cols = fmt._columns(arr)
-    ts = cols[..., 0:8].view("<u8")
-    ts += np.uint64(dt_ns)
-    if fmt.profile.legacy:
-        fid = cols[..., 10:12].view("<u2")
-        fid[...] = (fid.astype(np.int64) + dframe) % 65536
-    else:
-        fid = arr[:, 2:4].view("<u2")
-        fid[...] = (fid.astype(np.int64) + dframe) % 65536
-        arr[:, -8:].view("<u8")[:, 0] = crc64_xz_rows(arr[:, :-8])
-    return arr.tobytes()
-
-
 def _shift_imu(payload: bytes, dt_ns: int) -> bytes:
     if dt_ns == 0 or len(payload) != IMU_PACKET_BYTES:
         return payload
@@ -136,7 +118,7 @@ def events(rec: Recording, loop: bool, node_id: int) -> Iterator[tuple[int, str,
             if kind == 0:
                 _t, port, payload = rec.lidar[i]
                 if port == rec.meta.udp_port_lidar:
-                    payload = _shift_lidar(rec.meta, payload, dframe, dt)
+                    payload = shift_lidar_packet(rec.meta.packet_format, payload, dframe, dt)
                 else:
                     payload = _shift_imu(payload, dt)
                 yield t + dt, "udp", (port, payload)
@@ -225,169 +207,3 @@ class SdoResponder:
     def close(self) -> None:
         with contextlib.suppress(Exception):
             self.network.disconnect()
-
-
-def copy_recording(src: Path, out: Path) -> None:
-    """The replayed run's inputs beside its new SIC output (what was sent is what was
-    recorded: the same bytes)."""
-    for name in ("lidar.pcap", "can.log", "metadata.json", "ground_truth.json",
-                 "visibility.json", "sensor_poses.csv"):
-        if (src / name).exists():
-            shutil.copyfile(src / name, out / name)
-
-
-def replay_run(src: Path, sic: str, out: Path, *, speed: float = 1.0, shell: bool = False,
-               can_spec: str = "own", grace_s: float = 30.0, lead_s: float = 3.0,
-               sensor_ip: str | None = None, stop: threading.Event | None = None,
-               announce: Callable[[str], None] = lambda s: None,
-               eval_cfg: Any = None) -> Any:
-    """``tcf-hil run --replay SRC --sic COMMAND``: another SIC scored on recorded traffic.
-    The new run directory holds the same recording (replayable in turn), this SIC's
-    publications and score. ``stop`` ends it early, as for a live run. Its endpoints are its
-    own, as a live run's (:func:`tcf_hil.bridge.claim_run_endpoints`)."""
-    import contextlib
-
-    from tcf_hil._io import ensure_dir
-
-    stop = stop or threading.Event()
-    rec = Recording.load(src)
-    src_man = read_json(src / "manifest.json")
-    out = ensure_dir(out)
-    ensure_dir(out / "sic")
-    copy_recording(src, out)  # metadata.json as recorded: it describes lidar.pcap
-    claims = contextlib.ExitStack()
-    try:
-        return _replay_run(src, sic, out, rec, src_man, claims, speed=speed, shell=shell,
-                           can_spec=can_spec, grace_s=grace_s, lead_s=lead_s,
-                           sensor_ip=sensor_ip, stop=stop, announce=announce,
-                           eval_cfg=eval_cfg)
-    finally:
-        claims.close()
-
-
-def _replay_run(src: Path, sic: str, out: Path, rec: Recording, src_man: dict[str, Any],
-                claims: Any, *, speed: float, shell: bool, can_spec: str, grace_s: float,
-                lead_s: float, sensor_ip: str | None, stop: threading.Event,
-                announce: Callable[[str], None], eval_cfg: Any) -> Any:
-    import datetime as _dt
-    import shlex
-
-    from tcf_hil._io import write_bytes_atomic, write_json_atomic
-    from tcf_hil.bridge import (
-        _environment,
-        _SicProcess,
-        _versions,
-        claim_run_endpoints,
-        conclude,
-        finish_run,
-        follow_redirects,
-        sic_command,
-        write_end_manifest,
-    )
-    from tcf_hil.harvester import open_bus
-    from tcf_hil.recorder import FileWatcher, Inbox, PublishServer
-
-    host, ports = claim_run_endpoints(
-        claims, sensor_ip, (rec.meta.udp_port_lidar, rec.meta.udp_port_imu), announce)
-    sensor_ip = host.address
-    lidar_port, imu_port = ports.ports
-    meta = rec.meta.with_changes(udp_port_lidar=lidar_port, udp_port_imu=imu_port)
-    meta_path = out / "metadata.json"
-    if meta != rec.meta:  # the recorded ports are taken: the SIC gets the ones used now
-        meta_path = out / "replay_metadata.json"
-        write_bytes_atomic(meta_path, meta.dumps().encode())
-    node = dict(src_man.get("can_node") or {})
-    node_id = int(node.get("node_id", 10))
-    port_map = {rec.meta.udp_port_lidar: lidar_port, rec.meta.udp_port_imu: imu_port}
-    rec.lidar = [(t, port_map.get(p, p), b) for t, p, b in rec.lidar]
-    rec.meta = meta
-    manifest: dict[str, Any] = {
-        "tcf_hil_run": 1, "status": "running", "versions": _versions(),
-        "replay_of": str(src.resolve()), "scenario": src_man.get("scenario"),
-        "seed": src_man.get("seed"), "mode": src_man.get("mode"),
-        "profile": src_man.get("profile"), "speed": speed, "clock": src_man.get("clock"),
-        "can_node": src_man.get("can_node"), "sic": {"command": sic, "shell": shell},
-        "started": _dt.datetime.now(_dt.UTC).isoformat(), "stopped": None,
-    }
-    inbox = Inbox(out / "sic")
-    server = PublishServer(inbox).start()
-    watcher: FileWatcher | None = None
-    proc: _SicProcess | None = None
-    sdo: SdoResponder | None = None
-    th: threading.Thread | None = None
-    end = threading.Event()
-    status, message, rc = "complete", "", None
-    sent: dict[str, int] = {}
-    route = Route(meta.udp_dest, lidar_port, imu_port)
-    redirects: list[dict[str, Any]] = []
-    redirect = follow_redirects(route, redirects, time.monotonic(), announce)
-    try:
-        with open_bus(can_spec, announce=announce) as spec, \
-                SensorApi(meta, sensor_ip, host.http_port, fixed=True,
-                          on_redirect=redirect) as api:
-            env = _environment(out, meta, spec, api, server.url, sensor_ip, node_id)
-            env["TCF_METADATA"] = str(meta_path.resolve())
-            manifest["endpoints"] = {k: v for k, v in env.items() if k.startswith("TCF_")}
-            write_json_atomic(out / "manifest.json", manifest)
-            watcher = FileWatcher(inbox, Path(env["TCF_PUBLISH_FILE"]))
-            watcher.start()
-            argv = sic_command(sic, env, shell)
-            sdo = SdoResponder(spec, {**node, "node_id": node_id})
-            announce(f"SIC: {argv if isinstance(argv, str) else shlex.join(argv)}")
-            try:
-                proc = _SicProcess(argv, env, out, inbox, shell)
-                manifest["sic"]["pid"] = proc.proc.pid
-            except OSError as err:
-                status, message = "sic-failed", f"cannot start the SIC: {err}"
-
-            def send() -> None:
-                sent.update(replay(src, speed=speed, sensor_ip=sensor_ip, spec=spec,
-                                   node_id=node_id, stop=end, rec=rec, route=route))
-
-            if proc is not None and not stop.wait(lead_s):
-                th = threading.Thread(target=send, name="replay", daemon=True)
-                th.start()
-                announce(f"replaying {src} at {speed:g}x from {sensor_ip} to "
-                         f"{route.dest_ip}:{route.port(lidar_port)}, CAN {spec}")
-            while th is not None and th.is_alive():
-                th.join(0.2)
-                if stop.is_set():
-                    break
-                if proc is not None and proc.poll() is not None:
-                    rc = proc.poll()
-                    status = "sic-exited"
-                    message = f"the SIC exited with code {rc} before the replay ended"
-                    break
-            end.set()
-            if th is not None:
-                th.join()
-            if stop.is_set() and status == "complete":
-                status, message = "interrupted", "stopped by the user"
-            if proc is not None:
-                rc = proc.end(grace_s if status == "complete" else 0.0, stop)
-                if stop.is_set() and status == "complete":
-                    status, message = "interrupted", "stopped by the user"
-    except BaseException as err:
-        status = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
-        message = message or f"{type(err).__name__}: {err}"
-        if status == "failed":
-            raise
-    finally:
-        end.set()
-        if th is not None:
-            th.join(timeout=30.0)
-        if proc is not None:
-            proc.close()
-            rc = proc.proc.returncode
-        if sdo is not None:
-            sdo.close()
-        if watcher is not None:
-            watcher.close()
-        server.close()
-        inbox.close()
-        manifest["replay_sent"] = sent
-        if redirects:
-            manifest["sensor_redirects"] = redirects
-        write_end_manifest(out, manifest, status, message, rc, proc, inbox)
-    status, message = conclude(status, message, rc, proc, grace_s, inbox, out)
-    return finish_run(out, manifest, inbox, status, message, rc, eval_cfg)

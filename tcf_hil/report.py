@@ -16,7 +16,7 @@ from tcf_hil.evaluation._report import ROWS
 from tcf_hil.plots import _pyplot, em_heatmap, figure_png, matched_positions
 
 if TYPE_CHECKING:
-    from tcf_hil.bridge import RunResult
+    from tcf_hil.run import RunResult
 
 
 def _img(png: bytes, alt: str) -> str:
@@ -58,8 +58,8 @@ def _em_table(em: Any) -> str:
 
 def write_report(path: Path, result: RunResult) -> None:
     sc = result.scores
-    assert sc is not None
-    m = result.manifest
+    assert sc is not None and result.out is not None
+    m = result.manifest.to_dict()
     all_m, seen_m = sc.all.metrics, sc.seen.metrics
     figs = [
         _img(em_heatmap(sc.all.em, LABELS, f"EM, all trees: wc = "
@@ -139,6 +139,7 @@ def _latest_obs(result: RunResult) -> Any:
     from tcf_hil._io import read_json
     from tcf_hil.stems_json import stem_table
 
+    assert result.out is not None
     n = json.loads((result.out / "score.json").read_text()).get("scored_publication")
     if n is None:
         return np.zeros((0, 2))

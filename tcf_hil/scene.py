@@ -1,9 +1,18 @@
 """The scene the lidar sees: terrain and stem meshes in local coordinates, and ray backends.
 
 Backends by name (python-can style registry, imported lazily): ``embree`` (embreex, robust
-mode; the default) and ``open3d`` (``RaycastingScene``). Both compute in float32, so the scene
-stays in local plot coordinates (metres from the plot centre) and callers add the geographic
-origin back in float64.
+mode), ``open3d`` (``RaycastingScene``) and ``trimesh`` (trimesh's ray-triangle tests in
+numpy: slow, for where neither of the others can be had); ``auto`` (the default) is the first
+of those three that imports here (:func:`resolve_backend`). Each computes in float32 (trimesh
+in float64, answering in float32), so the scene stays in local plot coordinates (metres from
+the plot centre) and callers add the geographic origin back in float64.
+
+Every caster declares what it offers beyond a cast (:class:`Caster`), with a value for "not
+here": a cast on the calling thread (``cast1``; the plain cast where the backend spreads its
+casts by itself, ``threads_itself``), the threads it splits a large cast over (``threads``,
+None where it does not split casts itself) and an Embree scene bound for compiled kernels
+(``direct_scene``, None but for Embree's). :class:`Scene` passes them on to the lidar
+emulator as its :class:`emulators.lidar._os0.FastRayScene`.
 """
 
 from __future__ import annotations
@@ -11,10 +20,11 @@ from __future__ import annotations
 import importlib
 import itertools
 import os
+import platform
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,24 +32,87 @@ from numpy.typing import NDArray
 from tcf_hil.errors import ConfigError
 from tcf_hil.forest import Forest, stem_mesh, terrain_mesh
 
+if TYPE_CHECKING:
+    from emulators._embree import DirectScene
+    from emulators.lidar._os0 import FastRayScene
+
 FloatArray = NDArray[np.float64]
 
 BACKENDS: dict[str, tuple[str, str]] = {
     "embree": ("tcf_hil.scene", "EmbreeCaster"),
     "open3d": ("tcf_hil.scene", "Open3dCaster"),
+    "trimesh": ("tcf_hil.scene", "TrimeshCaster"),
+}
+AUTO = "auto"
+AUTO_ORDER = ("embree", "open3d", "trimesh")
+"""What ``auto`` takes: the first of these whose modules (:data:`BACKEND_MODULES`) import."""
+BACKEND_MODULES: dict[str, tuple[str, ...]] = {
+    "embree": ("embreex", "embreex.rtcore_scene", "embreex.mesh_construction"),
+    "open3d": ("open3d",),
+    "trimesh": ("trimesh", "trimesh.ray.ray_triangle"),
 }
 MATERIAL_GROUND, MATERIAL_BARK = 0, 1
 
 
 class Caster(Protocol):
-    """Casts rays against one triangle mesh."""
+    """Casts rays against one triangle mesh. Every member is required; a backend without a
+    capability declares its "not here" value (see the module doc)."""
 
-    name: str
+    name: str  # its name in BACKENDS
+    threads_itself: bool  # a cast spreads over the CPUs by itself: callers cast from one thread
+    threads: int | None  # threads a large cast is split over here; None: not split here
+    direct_scene: DirectScene | None  # an Embree scene bound for compiled kernels, or None
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float32], NDArray[np.integer]]:
         """Hit distance along each unit direction (inf on a miss) and triangle id (-1)."""
         ...
+
+    def cast1(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
+              ) -> tuple[NDArray[np.float32], NDArray[np.integer]]:
+        """:meth:`cast` on the calling thread, for callers that spread their rays over
+        threads themselves; the plain :meth:`cast` where the backend spreads a cast by
+        itself (``threads_itself``)."""
+        ...
+
+
+def _unavailable(backend: str) -> str | None:
+    """Why a backend cannot be had here (its modules do not import), or None."""
+    for module in BACKEND_MODULES[backend]:
+        try:
+            importlib.import_module(module)
+        except Exception as err:  # not installed, or its shared libraries are missing
+            top = module.split(".")[0]
+            if isinstance(err, ModuleNotFoundError) and (err.name or "").split(".")[0] == top:
+                why = f"{top} is not installed here"
+                machine = platform.machine()
+                if backend == "embree" and machine.lower() not in ("x86_64", "amd64"):
+                    why += f": Embree has no wheel for {machine}"
+                return why
+            return f"{top} does not import here ({type(err).__name__}: {err})"
+    return None
+
+
+def resolve_backend(name: str) -> tuple[str, str | None]:
+    """The concrete backend for ``name`` and, where ``auto`` did not get Embree, a line to
+    say once at start, e.g. ``ray backend: open3d (embreex is not installed here: Embree has
+    no wheel for aarch64)``. A named backend is returned as it is (:func:`make_caster` then
+    imports it, a ConfigError where it is missing); ``auto`` takes the first of
+    :data:`AUTO_ORDER` that imports here (trimesh, a dependency, always does)."""
+    if name != AUTO:
+        if name not in BACKENDS:
+            raise ConfigError("ray backend", name, ", ".join([AUTO, *BACKENDS]))
+        return name, None
+    why: list[str] = []
+    for backend in AUTO_ORDER:
+        reason = _unavailable(backend)
+        if reason is None:
+            if not why:
+                return backend, None
+            slow = ", pure numpy and slow" if backend == "trimesh" else ""
+            return backend, f"ray backend: {backend}{slow} ({'; '.join(why)})"
+        why.append(reason)
+    raise ConfigError("ray backend", name, "an installed backend: " + "; ".join(why))
 
 
 def default_threads() -> int:
@@ -61,13 +134,14 @@ class EmbreeCaster:
     2 cores)."""
 
     name = "embree"
+    threads_itself = False
     MIN_RAYS_PER_THREAD = 16384
 
     def __init__(self, vertices: FloatArray, faces: NDArray[np.int64],
                  threads: int | None = None, direct: bool = True) -> None:
         from emulators._jit import jit_enabled
 
-        self.direct_scene: Any = None
+        self.direct_scene: DirectScene | None = None
         if direct and jit_enabled():
             from emulators._embree import direct_scene
 
@@ -79,7 +153,7 @@ class EmbreeCaster:
             self._scene = rtcore_scene.EmbreeScene(robust=True)
             TriangleMesh(scene=self._scene, vertices=vertices.astype(np.float32),
                          indices=faces.astype(np.int32))
-        self.threads = threads or default_threads()
+        self.threads: int | None = threads or default_threads()
         self._pool: ThreadPoolExecutor | None = None
         self._pool_pid = 0
         self._pool_lock = threading.Lock()
@@ -118,13 +192,14 @@ class EmbreeCaster:
         n = len(o)
         t = np.empty(n, np.float32)
         prim = np.empty(n, np.int32)
-        parts = min(self.threads, n // self.MIN_RAYS_PER_THREAD)
+        threads = self.threads or 1
+        parts = min(threads, n // self.MIN_RAYS_PER_THREAD)
         if parts <= 1:
             self._run(o, d, t, prim)
         else:
             with self._pool_lock:  # casts may come from several threads (column chunks)
                 if self._pool is None or self._pool_pid != os.getpid():  # threads die in a fork
-                    self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="embree")
+                    self._pool = ThreadPoolExecutor(threads, thread_name_prefix="embree")
                     self._pool_pid = os.getpid()
             cuts = np.linspace(0, n, parts + 1).astype(int)
             jobs = [self._pool.submit(self._run, o[a:b], d[a:b], t[a:b], prim[a:b])
@@ -135,7 +210,12 @@ class EmbreeCaster:
 
 
 class Open3dCaster:
+    """open3d's ``RaycastingScene``: a cast spreads over the CPUs by itself."""
+
     name = "open3d"
+    threads_itself = True
+    threads: int | None = None
+    direct_scene: DirectScene | None = None
 
     def __init__(self, vertices: FloatArray, faces: NDArray[np.int64]) -> None:
         o3d: Any = importlib.import_module("open3d")  # untyped for mypy: its stubs lag
@@ -155,11 +235,117 @@ class Open3dCaster:
         t[miss] = np.inf
         return t, prim
 
+    def cast1(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
+              ) -> tuple[NDArray[np.float32], NDArray[np.integer]]:
+        """:meth:`cast`: open3d spreads every cast over the CPUs itself."""
+        return self.cast(origins, directions)
+
+
+class _BoxGrid:
+    """The r-tree trimesh's ray path asks for (``bounds``, ``intersection(box)``: the
+    triangles whose boxes meet a box), in numpy: each triangle listed under the cell of an xy
+    grid that holds its box's low corner (about eight a cell); a query reaches back by the
+    widest box."""
+
+    def __init__(self, lo: FloatArray, hi: FloatArray) -> None:
+        n = len(lo)
+        self._lo, self._hi = lo, hi
+        self.bounds = np.concatenate([lo.min(axis=0), hi.max(axis=0)]) if n else np.zeros(6)
+        self._origin = self.bounds[:2]
+        extent = np.maximum(self.bounds[3:5] - self._origin, 1e-9)
+        self._cell = max(float(np.sqrt(extent.prod() / max(1, n // 8))), 1e-3)
+        self._shape = np.floor(extent / self._cell).astype(np.int64) + 1
+        widest = (hi[:, :2] - lo[:, :2]).max(axis=0) if n else np.zeros(2)
+        self._reach = np.ceil(widest / self._cell).astype(np.int64)
+        ij = self._cells(lo[:, :2])
+        cell = ij[:, 0] * self._shape[1] + ij[:, 1]
+        self._tri = np.argsort(cell, kind="stable")
+        self._start = np.searchsorted(cell[self._tri], np.arange(self._shape.prod() + 1))
+
+    def _cells(self, xy: FloatArray) -> NDArray[np.int64]:
+        ij = np.floor((xy - self._origin) / self._cell).astype(np.int64)
+        return np.clip(ij, 0, self._shape - 1)
+
+    def intersection(self, query: NDArray[np.floating]) -> NDArray[np.int64]:
+        box = np.asarray(query, np.float64)  # min xyz, max xyz
+        if np.any(box[:3] > self.bounds[3:]) or np.any(box[3:] < self.bounds[:3]):
+            return np.zeros(0, np.int64)
+        x0, y0 = np.maximum(self._cells(box[None, :2])[0] - self._reach, 0).tolist()
+        x1, y1 = self._cells(box[None, 3:5])[0].tolist()
+        ny, start = int(self._shape[1]), self._start
+        cand = np.concatenate([self._tri[start[x * ny + y0]:start[x * ny + y1 + 1]]
+                               for x in range(x0, x1 + 1)])  # a row's cells are contiguous
+        meets = np.all(self._lo[cand] <= box[3:], axis=1) & np.all(self._hi[cand] >= box[:3],
+                                                                    axis=1)
+        found: NDArray[np.int64] = cand[meets]
+        return found
+
+
+class TrimeshCaster:
+    """trimesh's ray-triangle tests (:func:`trimesh.ray.ray_triangle.ray_triangle_id`, numpy in
+    float64), for where neither Embree nor open3d can be had: the same answers as theirs
+    (float32 distance, inf on a miss; triangle id, -1), the nearest hit at a distance of at
+    least 0 (equally near ones: the lowest triangle id), and orders of magnitude slower.
+    trimesh's broad phase wants an r-tree (rtree, which tcf-hil does not depend on):
+    :class:`_BoxGrid` stands in for it. Rays go in batches of ``RAYS_PER_BATCH``, which bounds
+    the candidate triangles held at once; a ray within about 1e-5 rad of a triangle's plane
+    does not hit it (trimesh's test)."""
+
+    name = "trimesh"
+    threads_itself = False
+    threads: int | None = None
+    direct_scene: DirectScene | None = None
+    RAYS_PER_BATCH = 64
+
+    def __init__(self, vertices: FloatArray, faces: NDArray[np.int64]) -> None:
+        from trimesh.ray import ray_triangle
+
+        self._ray_triangle_id = ray_triangle.ray_triangle_id
+        tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)]  # (n, 3, 3)
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        norm = np.linalg.norm(normal, axis=1)
+        ok = norm > 0.0  # a degenerate triangle keeps a zero normal: never hit
+        normal[ok] /= norm[ok, None]
+        self._triangles, self._normals = tri, normal
+        self._tree = _BoxGrid(tri.min(axis=1), tri.max(axis=1))
+
+    def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
+             ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+        o = np.asarray(origins, np.float64).reshape(-1, 3)
+        d = np.asarray(directions, np.float64).reshape(-1, 3)
+        n = len(o)
+        t = np.full(n, np.inf)
+        prim = np.full(n, -1, np.int32)
+        if n == 0 or len(self._triangles) == 0:
+            return t.astype(np.float32), prim
+        for a in range(0, n, self.RAYS_PER_BATCH):
+            b = min(n, a + self.RAYS_PER_BATCH)
+            tri, ray, loc = self._ray_triangle_id(
+                self._triangles, o[a:b], d[a:b], triangles_normal=self._normals,
+                tree=self._tree, multiple_hits=True)
+            if not len(tri):
+                continue
+            ray = np.asarray(ray, np.int64) + a
+            dist = np.einsum("ij,ij->i", loc - o[ray], d[ray]) / np.einsum(
+                "ij,ij->i", d[ray], d[ray])  # along the direction, in its lengths
+            ahead = dist >= 0.0
+            tri, ray, dist = np.asarray(tri)[ahead], ray[ahead], dist[ahead]
+            order = np.lexsort((tri, dist, ray))  # by ray, nearest first, then lowest id
+            first = order[np.unique(ray[order], return_index=True)[1]]
+            t[ray[first]] = dist[first]
+            prim[ray[first]] = tri[first]
+        return t.astype(np.float32), prim
+
+    def cast1(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
+              ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+        """:meth:`cast`, which runs on the calling thread."""
+        return self.cast(origins, directions)
+
 
 def make_caster(name: str, vertices: FloatArray, faces: NDArray[np.int64]) -> Caster:
-    """Build the named backend (imports it only now)."""
-    if name not in BACKENDS:
-        raise ConfigError("ray backend", name, ", ".join(BACKENDS))
+    """Build the named backend, or ``auto``'s (:func:`resolve_backend`; imports it only
+    now). A named backend that cannot be imported is a ConfigError."""
+    name = resolve_backend(name)[0]
     module, cls = BACKENDS[name]
     try:
         factory = getattr(importlib.import_module(module), cls)
@@ -181,7 +367,7 @@ class Scene:
         default=None, init=False, repr=False, compare=False)
 
     @classmethod
-    def from_forest(cls, forest: Forest, backend: str = "embree",
+    def from_forest(cls, forest: Forest, backend: str = AUTO,
                     stem_tolerance_m: float | None = None,
                     terrain_tolerance_m: float | None = None,
                     margin_m: float | None = None) -> Scene:
@@ -204,25 +390,40 @@ class Scene:
         return t.astype(np.float64), self._stem_ids(prim)
 
     @property
+    def backend(self) -> str:
+        """The ray backend casting here (``auto`` resolved: embree, open3d or trimesh)."""
+        return self.caster.name
+
+    @property
+    def threads(self) -> int | None:
+        """Threads the caster splits a large cast over (Embree's), or None where it does not
+        split casts itself (open3d spreads them over the CPUs by itself; trimesh casts on
+        the calling thread). Settable (a value set where it is None has no effect)."""
+        return self.caster.threads
+
+    @threads.setter
+    def threads(self, n: int | None) -> None:
+        self.caster.threads = n
+
+    @property
     def threads_itself(self) -> bool:
         """Whether a cast spreads over the CPUs by itself (open3d): callers then cast from
         one thread. Embree's :meth:`cast32` runs on the calling thread."""
-        return not hasattr(self.caster, "cast1")
+        return self.caster.threads_itself
 
     def cast32(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
                ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
         """:meth:`cast` for float32 rays with the distance in float32 (the casters' own
         precision), on the calling thread where the backend allows it (Embree): the lidar
         emulator spreads a frame's column chunks over its own threads."""
-        one = getattr(self.caster, "cast1", None)
-        t, prim = (one or self.caster.cast)(origins, directions)
+        t, prim = self.caster.cast1(origins, directions)
         return t, self._stem_ids(prim)
 
     def direct(self) -> tuple[int, int, NDArray[np.int32]] | None:
         """For compiled kernels that cast themselves (the lidar emulator's): ``(address of
         rtcIntersect1, the RTCScene, stem id by triangle with -1 last)``, or None where the
         backend has no directly bound Embree scene (:class:`EmbreeCaster`)."""
-        ds = getattr(self.caster, "direct_scene", None)
+        ds = self.caster.direct_scene
         if ds is None:
             return None
         return ds.intersect, ds.handle, self._stem_table()
@@ -237,3 +438,9 @@ class Scene:
     def _stem_ids(self, prim: NDArray[np.integer]) -> NDArray[np.int32]:
         sid: NDArray[np.int32] = self._stem_table()[prim]
         return sid
+
+
+if TYPE_CHECKING:  # every caster is a Caster, and a Scene the lidar emulator's FastRayScene
+    def _declared(e: EmbreeCaster, o: Open3dCaster, t: TrimeshCaster, s: Scene
+                  ) -> tuple[Caster, Caster, Caster, FastRayScene]:
+        return e, o, t, s

@@ -21,10 +21,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tcf_hil._io import ensure_dir, read_json, write_bytes_atomic, write_json_atomic
 from tcf_hil.scenario import Scenario
+
+if TYPE_CHECKING:
+    from tcf_hil.run import Manifest
 
 __all__ = ["SoakResult", "process_rss_kb", "run_soak", "soak_scenario"]
 
@@ -166,7 +169,7 @@ def run_soak(scn: Scenario, out: Path, *, minutes: float = 10.0, mode: str = "20
     """Run the soak (see the module docstring) into ``out``; writes ``soak.json`` and
     ``soak.md`` beside the run's files. ``ok``: the run completed with no frame lost at the
     receiver and every process's memory growth under ``max_growth_percent``."""
-    from tcf_hil.bridge import run_bridge, sic_reference_command
+    from tcf_hil.run import run_bridge, sic_reference_command
 
     seconds = minutes * 60.0
     soak, warmup_s = soak_scenario(scn, seconds)
@@ -176,9 +179,9 @@ def run_soak(scn: Scenario, out: Path, *, minutes: float = 10.0, mode: str = "20
     sampler.start()
     stream_end: list[float] = []
 
-    def on_start(manifest: dict[str, Any]) -> None:
-        sampler.sic_pid = manifest.get("sic", {}).get("pid")
-        sampler.t0 = time.monotonic() + float(manifest.get("clock", {}).get("lead_s", 0.0))
+    def on_start(manifest: Manifest) -> None:
+        sampler.sic_pid = manifest.sic.pid if manifest.sic is not None else None
+        sampler.t0 = time.monotonic() + float((manifest.clock or {}).get("lead_s", 0.0))
 
     def step(done: int, total: int) -> None:
         if done >= total and not stream_end:
@@ -197,8 +200,7 @@ def run_soak(scn: Scenario, out: Path, *, minutes: float = 10.0, mode: str = "20
     finally:
         sampler.stop.set()
         sampler.join(timeout=5.0)
-    man = r.manifest
-    lid = man.get("lidar", {})
+    lid = r.manifest.lidar or {}
     sic = _last_sic_section(out)
     map_points = _map_points(out, warmup_s * soak_frequency(mode))
     mem = sampler.trace.growth(warmup_s)

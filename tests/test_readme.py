@@ -33,15 +33,15 @@ def test_every_variable_of_the_sic_contract_is_documented() -> None:
     but not documented)."""
     import inspect
 
-    from tcf_hil.bridge import ENV_DOC, _environment
+    from tcf_hil.run import ENV_DOC, sic_environment
 
     text = (ROOT / "README.md").read_text()
     table = text[text.index("### The SIC contract"):text.index("### The run directory")]
     documented = set(re.findall(r"`(TCF_[A-Z_]+)`", table))
     names = {k for k, _ in ENV_DOC}
     assert names == documented, (names - documented, documented - names)
-    # what _environment sets is what ENV_DOC lists
-    assert set(re.findall(r'"(TCF_[A-Z_]+)"', inspect.getsource(_environment))) == names
+    # what sic_environment sets is what ENV_DOC lists
+    assert set(re.findall(r'"(TCF_[A-Z_]+)"', inspect.getsource(sic_environment))) == names
     for name in names:  # each with its placeholder
         assert "{" + name[4:].lower() + "}" in table, name
 

@@ -1,17 +1,17 @@
 """A shared CAN bus without kernel CAN: an embedded server speaking the socketcand protocol
 (raw mode) on 127.0.0.1, so python-can programs in separate processes join one bus with
-``can.Bus(interface="socketcand", host="127.0.0.1", port=P, channel="vcan0")``; and a pure
-parser/formatter for the protocol's messages."""
+``can.Bus(interface="socketcand", host="127.0.0.1", port=P, channel="vcan0")``.
 
-from emulators.canbus._socketcand import (
-    DEFAULT_PORT,
+The protocol's pure parser/formatter lives in :mod:`protocols.socketcand`; its names are
+re-exported here for compatibility (import them from ``protocols.socketcand``)."""
+
+from emulators.canbus._socketcand import DEFAULT_PORT, ServerStats, SocketcandServer
+from protocols.socketcand import (
     MAX_MESSAGE_BYTES,
     CanFrame,
     Command,
     MessageReader,
-    ServerStats,
     SocketcandProtocolError,
-    SocketcandServer,
     format_frame,
     format_send,
     parse_command,

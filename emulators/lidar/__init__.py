@@ -1,5 +1,6 @@
 """The emulated Ouster OS0-64: per-column poses, ray casting through an injected scene, the
-return model, and paced UDP sending of frames encoded with :mod:`protocols.ouster`."""
+return model, what the sensor emits per frame (finished headers, IMU interleaved, faults),
+and paced UDP sending of frames encoded with :mod:`protocols.ouster`."""
 
 from emulators.lidar._http import SensorApi
 from emulators.lidar._os0 import (
@@ -11,8 +12,24 @@ from emulators.lidar._os0 import (
     carried_range_m,
     warm_up,
 )
+from emulators.lidar._sensor import IMU_PERIOD_NS, ImuSource, Os0Sensor, SensorFrame
 from emulators.lidar._stream import Datagram, PacedSender, Route, SendStats
 
-__all__ = ["Datagram", "FrameResult", "Os0Emulator", "PacedSender", "PoseSource", "RayScene",
-           "ReturnModel", "Route", "SendStats", "SensorApi", "carried_range_m",
-           "warm_up"]
+__all__ = [
+    "IMU_PERIOD_NS",
+    "Datagram",
+    "FrameResult",
+    "ImuSource",
+    "Os0Emulator",
+    "Os0Sensor",
+    "PacedSender",
+    "PoseSource",
+    "RayScene",
+    "ReturnModel",
+    "Route",
+    "SendStats",
+    "SensorApi",
+    "SensorFrame",
+    "carried_range_m",
+    "warm_up",
+]

@@ -3,6 +3,12 @@
 The scene and the trajectory are injected (``RayScene``, ``PoseSource``): the emulator knows
 the sensor, not the forest. Coordinates are the scene's local frame (metres, float64); the
 caller adds any geographic origin.
+
+What the emulator can use beyond a cast and a pose is declared as protocols, not probed
+for: a scene that is a :class:`FastRayScene` (every member; each has a value for "not
+here") is cast through as it declares, any other :class:`RayScene` as a plain cast
+(:func:`fast_scene`); a pose source that is a :class:`DensePoseSource` gives its poses in
+pieces for many frames at once, any other :class:`PoseSource` one frame at a time.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,24 +39,111 @@ from protocols.ouster import (
 FloatArray = NDArray[np.float64]
 
 
+DirectCast = tuple[int, int, NDArray[np.int32]]
+"""An Embree scene the emulator's compiled kernel casts through itself
+(:mod:`emulators._embree`): rtcIntersect1's address, an RTCScene handle, and the stem id by
+triangle with -1 last."""
+
+
 class RayScene(Protocol):
+    """The least a scene offers: a cast."""
+
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.floating], NDArray[np.int32]]:
         """(distance along each unit ray, inf on a miss; stem id: 0 terrain, -1 nothing),
-        for rays in float64 or float32 (what the emulator passes).
-
-        A scene may also offer ``cast32(o, d)`` (float32 rays, float32 distances, on the
-        calling thread), ``threads_itself`` (True: a cast spreads over the CPUs by itself,
-        so the emulator casts from one thread) and ``direct()``: ``(rtcIntersect1's
-        address, an RTCScene handle, stem id by triangle with -1 last)`` or None, an Embree
-        scene the emulator's compiled kernel casts through itself
-        (:mod:`emulators._embree`)."""
+        for rays in float64 or float32 (what the emulator passes)."""
         ...
 
 
+@runtime_checkable
+class FastRayScene(RayScene, Protocol):
+    """A scene that declares the emulator's faster ways to cast through it, each member
+    with an answer for "not here" (as :class:`tcf_hil.scene.Scene` does)."""
+
+    @property
+    def threads_itself(self) -> bool:
+        """True where a cast spreads over the CPUs by itself (the emulator then casts from
+        one thread), else False (it spreads its column chunks over its own threads)."""
+        ...
+
+    def cast32(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
+               ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+        """:meth:`cast` for float32 rays with float32 distances, on the calling thread
+        unless ``threads_itself`` (else the plain cast)."""
+        ...
+
+    def direct(self) -> DirectCast | None:
+        """The Embree scene the compiled kernel casts through itself, or None."""
+        ...
+
+
+class _CastOnly:
+    """A :class:`RayScene` that declares nothing more, as a :class:`FastRayScene`: cast
+    from the emulator's threads, no Embree scene of its own."""
+
+    threads_itself = False
+
+    def __init__(self, scene: RayScene) -> None:
+        self._scene = scene
+
+    def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
+             ) -> tuple[NDArray[np.floating], NDArray[np.int32]]:
+        return self._scene.cast(origins, directions)
+
+    def cast32(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
+               ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+        t, sid = self._scene.cast(origins, directions)
+        return np.asarray(t, np.float32), np.asarray(sid, np.int32)
+
+    def direct(self) -> DirectCast | None:
+        return None
+
+
+def fast_scene(scene: RayScene) -> FastRayScene:
+    """``scene`` where it is a :class:`FastRayScene` (it has every member), else the same
+    casts with nothing more declared. Checked once, when an emulator is made."""
+    return scene if isinstance(scene, FastRayScene) else _CastOnly(scene)
+
+
 class PoseSource(Protocol):
+    """The least a pose source offers: the sensor pose at any times."""
+
     def sensor_pose(self, t_ns: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
         """Sensor frame in the scene at times t: (positions (n, 3), rotations (n, 3, 3))."""
+        ...
+
+
+class PosePieces(Protocol):
+    """A stretch of the sensor pose, cheap to evaluate (:meth:`DensePoseSource.dense_poses`)."""
+
+    def at(self, t_ns: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
+        """Positions (n, 3) and rotations (n, 3, 3) at times within the stretch."""
+        ...
+
+
+@runtime_checkable
+class DensePoseSource(PoseSource, Protocol):
+    """A pose source that also gives many close, ascending times' poses fast, from pieces
+    it builds for a stretch of time (as :class:`tcf_hil.trajectory.Trajectory` does): the
+    emulator builds them for two seconds of frames at a time while frames are read in
+    order."""
+
+    def sensor_pose_dense(self, t_ns: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
+        """:meth:`sensor_pose` at a frame's column times, fast."""
+        ...
+
+    def dense_knot_ns(self) -> int:
+        """The pieces' grid spacing, ns: a stretch starts and ends on it."""
+        ...
+
+    def dense_poses(self, lo_ns: int, hi_ns: int, knot_ns: int | None = None) -> PosePieces:
+        """The pieces for times in [lo_ns, hi_ns)."""
+        ...
+
+    def dense_pieces(self, t_ns: NDArray[np.int64], knot_ns: int | None = None,
+                     pieces: Any = None) -> PosePieces | None:
+        """The pieces :meth:`sensor_pose_dense` evaluates at these times (``pieces`` where
+        they cover them), or None where it takes the exact poses."""
         ...
 
 
@@ -109,6 +202,8 @@ class _Nothing:
     """A scene with nothing in it; with ``embree``, an Embree scene of one triangle far away
     that it hands over (``direct``), as :class:`tcf_hil.scene.Scene` does."""
 
+    threads_itself = False
+
     def __init__(self, embree: bool = False) -> None:
         self._embree: Any = None
         if embree and jit_enabled():
@@ -121,7 +216,11 @@ class _Nothing:
              ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
         return np.full(len(origins), np.inf, np.float32), np.full(len(origins), -1, np.int32)
 
-    def direct(self) -> tuple[int, int, NDArray[np.int32]] | None:
+    def cast32(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
+               ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+        return self.cast(origins, directions)
+
+    def direct(self) -> DirectCast | None:
         e = self._embree
         return None if e is None else (e.intersect, e.handle, np.array([0, -1], np.int32))
 
@@ -177,10 +276,10 @@ class Os0Emulator:
     and two sums in float32 (as the casters take rays), ``M_c`` made once per column.
 
     Column poses come from pieces the pose source builds for two seconds of frames at once
-    while frames are read in order (``dense_poses``/``sensor_pose_dense`` where the source has
-    them, e.g. :class:`tcf_hil.trajectory.Trajectory`; else ``sensor_pose`` per frame); a
-    frame's poses and ``M_c`` are made first. Then, where the scene hands over an Embree
-    scene (``direct()``) and numba is here, one compiled call per thread (this one and
+    while frames are read in order (where it is a :class:`DensePoseSource`, e.g.
+    :class:`tcf_hil.trajectory.Trajectory`; else ``sensor_pose`` per frame); a frame's poses
+    and ``M_c`` are made first. Then, where the scene hands over an Embree scene
+    (:meth:`FastRayScene.direct`) and numba is here, one compiled call per thread (this one and
     ``threads - 1`` more) takes blocks of columns in turn and, without the GIL, encodes
     their packets' columns, makes their rays, casts them and answers each into its pixel
     (:func:`emulators.lidar._fused.cast_answer_blocks`). Otherwise chunks of columns are
@@ -201,8 +300,10 @@ class Os0Emulator:
         self.meta = meta
         self.scene = scene
         self.poses = poses
-        self._pose_at = getattr(poses, "sensor_pose_dense", None) or poses.sensor_pose
-        self._cast32 = getattr(scene, "cast32", None) or scene.cast
+        self._scene = fast_scene(scene)
+        self._dense = poses if isinstance(poses, DensePoseSource) else None
+        self._pose_at = (self._dense.sensor_pose_dense if self._dense is not None
+                         else poses.sensor_pose)
         self.model = model or ReturnModel()
         self.rng = np.random.default_rng([seed, 0x0500])
         self.start_ns = start_ns
@@ -244,9 +345,9 @@ class Os0Emulator:
                                           else (os.cpu_count() or 1)))
         self._pool: ThreadPoolExecutor | None = None
         self._pool_pid = 0
-        self._pose_block: tuple[int, int, Any] | None = None
+        self._pose_block: tuple[int, int, PosePieces] | None = None
         self.jit = True  # the compiled per-ray kernel (numba), where it can be had
-        self._direct: tuple[int, int, NDArray[np.int32]] | None = None
+        self._direct: DirectCast | None = None
         self._direct_asked = False
         self._template: NDArray[np.uint8] | None = None
         self._view_geometry: list[tuple[Any, ...]] | None = None
@@ -306,26 +407,26 @@ class Os0Emulator:
         pos, rot = pieces.at(ts)
         return pos, rot
 
-    def _pose_pieces(self, k: int) -> tuple[Any, NDArray[np.int64]]:
+    def _pose_pieces(self, k: int) -> tuple[PosePieces | None, NDArray[np.int64]]:
         """How frame k's column poses are had: (pieces to evaluate at the column times, or
         None for the pose source's own ``sensor_pose``/``sensor_pose_dense``), the times.
 
-        A pose source with ``dense_poses(lo_ns, hi_ns)`` (a
-        :class:`tcf_hil.trajectory.Trajectory`) builds its pieces for two seconds of frames at
-        a time while frames are read in order: the same knots as one frame at a time, so the
-        same poses up to the last bits of the exact poses at the knots (numpy's vector maths
-        may round differently in a longer batch)."""
+        A :class:`DensePoseSource` (a :class:`tcf_hil.trajectory.Trajectory`) builds its
+        pieces for two seconds of frames at a time while frames are read in order: the same
+        knots as one frame at a time, so the same poses up to the last bits of the exact
+        poses at the knots (numpy's vector maths may round differently in a longer batch)."""
         ts = self.column_times(k)
-        dense = getattr(self.poses, "dense_poses", None)
+        dense = self._dense
         if dense is None:
             return None, ts
         blk = self._pose_block
         if blk is None or not blk[0] <= k < blk[1]:
             nf = 2 * self.meta.frequency_hz if blk is not None and k == blk[1] else 1
             lo, hi = int(ts[0]), int(self.column_times(k + nf - 1)[-1])
-            h = self.poses.dense_knot_ns()  # type: ignore[attr-defined]
-            blk = self._pose_block = (k, k + nf, dense(lo // h * h, (hi // h + 1) * h, h))
-        return self.poses.dense_pieces(ts, pieces=blk[2]), ts  # type: ignore[attr-defined]
+            h = dense.dense_knot_ns()
+            blk = self._pose_block = (k, k + nf,
+                                      dense.dense_poses(lo // h * h, (hi // h + 1) * h, h))
+        return dense.dense_pieces(ts, pieces=blk[2]), ts
 
     def _column_rays(self, pos: FloatArray, rot: FloatArray,
                      out: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None
@@ -372,14 +473,13 @@ class Os0Emulator:
         d += b[:, :, 2] * mt[2, cols][:, None, :]
         o[...] = oc[cols, None, :]
 
-    def _direct_scene(self) -> tuple[int, int, NDArray[np.int32]] | None:
+    def _direct_scene(self) -> DirectCast | None:
         """What the fused kernel casts through (``rtcIntersect1``, the RTCScene, stem id by
         triangle), where the scene offers it (``direct()``) and compiled kernels are on."""
         if not self.jit:
             return None
         if not self._direct_asked:
-            direct = getattr(self.scene, "direct", None)
-            self._direct = direct() if direct is not None else None
+            self._direct = self._scene.direct()
             self._direct_asked = True
         return self._direct
 
@@ -447,7 +547,7 @@ class Os0Emulator:
         else:
             pos, rot = self._poses(job, pieces)
             chunks = [(job, a, b) for a, b in self._chunks()]
-            if getattr(self.scene, "threads_itself", False):  # one cast at a time (open3d)
+            if self._scene.threads_itself:  # one cast at a time (open3d)
                 for c in chunks:
                     self._chunk(*c)
             else:
@@ -462,7 +562,7 @@ class Os0Emulator:
         return FrameResult(k, ts.astype(np.uint64), sid_out.T, sid2, pos, rot, arr, fmt,
                            self._field_names)
 
-    def _poses(self, job: _FrameJob, pieces: Any) -> tuple[FloatArray, FloatArray]:
+    def _poses(self, job: _FrameJob, pieces: PosePieces | None) -> tuple[FloatArray, FloatArray]:
         """The frame's column poses (from ``pieces``, or exact), and from them its ray
         factors into ``job.mt``/``job.oc``."""
         pos, rot = pieces.at(job.ts) if pieces is not None else self._pose_at(job.ts)
@@ -498,8 +598,8 @@ class Os0Emulator:
             f.result()
 
     def _fused_frame(self, fused: Callable[..., None],
-                     direct: tuple[int, int, NDArray[np.int32]],
-                     job: _FrameJob, pieces: Any) -> tuple[FloatArray, FloatArray]:
+                     direct: DirectCast,
+                     job: _FrameJob, pieces: PosePieces | None) -> tuple[FloatArray, FloatArray]:
         """The frame through :func:`emulators.lidar._fused.cast_answer_blocks`: one call per
         thread, each taking the next block of columns until none is left, so the threads
         finish together. The helper threads' calls start first and wait (spinning, without
@@ -546,7 +646,7 @@ class Os0Emulator:
             o = np.empty((n, H, 3), np.float32)
             d = np.empty_like(o)
         self._make_rays(job.mt, job.oc, a, o, d)
-        t32, sid_cm = self._cast32(o.reshape(-1, 3), d.reshape(-1, 3))
+        t32, sid_cm = self._scene.cast32(o.reshape(-1, 3), d.reshape(-1, 3))
         t = np.asarray(t32, np.float32).reshape(n, H)  # column-major, as cast
         sid = np.asarray(sid_cm, np.int32).reshape(n, H)
         kernel = answer_kernel() if self.jit else None

@@ -8,6 +8,7 @@ from importlib import resources
 from pathlib import Path
 
 from protocols.harvester._codec import (
+    TIME_WRAP_US,
     CanProtocolError,
     PdoLengthError,
     Pose,
@@ -63,7 +64,8 @@ def dbc_path() -> Path:
 __all__ = [
     "DATUM", "HARVESTER_OD", "HEARTBEAT_BASE", "MOUNT", "NMT_COMMANDS", "NMT_STATES", "POSE",
     "STATUS_MOVING", "STATUS_PASS_SHIFT", "STATUS_POSE_ERROR", "STATUS_REVERSE", "STATUS_VALID",
-    "SYNC_COB", "TIME_COB", "CanProtocolError", "DataType", "Mapping", "ObjectDictionary",
+    "SYNC_COB", "TIME_COB", "TIME_WRAP_US", "CanProtocolError", "DataType", "Mapping",
+    "ObjectDictionary",
     "PdoLengthError", "Pose", "PoseAssembler", "PoseRangeError", "Record", "Variable",
     "dbc_path", "decode_pdo", "decode_time", "eds_path", "encode_pdo", "encode_pose",
     "encode_time", "pose_to_raw", "raw_to_pose", "render_dbc", "render_eds", "unwrap_time_us",

@@ -15,6 +15,7 @@ from protocols.ouster._errors import (
 from protocols.ouster._imu import IMU_PACKET_BYTES, ImuPacket, decode_imu_packet, encode_imu_packet
 from protocols.ouster._metadata import (
     MODES,
+    OS0_64_MODES,
     SensorMetadata,
     beam_rays,
     os0_64_metadata,
@@ -33,12 +34,14 @@ from protocols.ouster._packets import (
     encode_pixel_fields,
     finish_lidar_packets,
     frame_from_packets,
+    shift_lidar_packet,
 )
 from protocols.ouster._profiles import PROFILES, Field, Profile
 
 __all__ = [
     "IMU_PACKET_BYTES",
     "MODES",
+    "OS0_64_MODES",
     "PROFILES",
     "CrcError",
     "DecodedFrame",
@@ -70,5 +73,6 @@ __all__ = [
     "frame_from_packets",
     "os0_64_metadata",
     "parse_mode",
+    "shift_lidar_packet",
     "xyz_from_range",
 ]

@@ -18,9 +18,13 @@ from protocols.ouster._errors import MetadataError
 from protocols.ouster._packets import PacketFormat
 from protocols.ouster._profiles import PROFILES
 
-__all__ = ["MODES", "SensorMetadata", "beam_rays", "os0_64_metadata", "xyz_from_range"]
+__all__ = ["MODES", "OS0_64_MODES", "SensorMetadata", "beam_rays", "os0_64_metadata",
+           "xyz_from_range"]
 
 MODES: tuple[str, ...] = ("512x10", "1024x10", "2048x10", "512x20", "1024x20", "4096x5")
+# the modes tcf-hil's OS0-64 emulation offers (4096x5 metadata, which other Ouster sensors
+# write, is read but not emulated)
+OS0_64_MODES: tuple[str, ...] = MODES[:5]
 SECTIONS: tuple[str, ...] = ("sensor_info", "config_params", "lidar_data_format",
                              "beam_intrinsics", "lidar_intrinsics", "imu_intrinsics",
                              "calibration_status")

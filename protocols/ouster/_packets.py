@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +27,8 @@ from protocols.ouster._profiles import PROFILES, Field, Profile
 
 __all__ = ["LidarPacket", "PacketBatch", "PacketFormat", "decode_lidar_packet",
            "decode_lidar_packets", "encode_lidar_columns", "encode_lidar_frame",
-           "encode_pixel_fields", "finish_lidar_packets", "frame_from_packets"]
+           "encode_pixel_fields", "finish_lidar_packets", "frame_from_packets",
+           "shift_lidar_packet"]
 
 CrcRows = Callable[[NDArray[np.uint8]], NDArray[np.uint64]]
 LEGACY_ENCODER_TICKS = 90112  # encoder counts per revolution (legacy column header)
@@ -270,6 +272,26 @@ def finish_lidar_packets(fmt: PacketFormat, frame: NDArray[np.uint8], *, frame_i
     crc = (crc_rows or crc64_xz_rows)(arr[:, :-8])
     arr[:, -8:].view("<u8")[:, 0] = crc
     return arr
+
+
+def shift_lidar_packet(fmt: PacketFormat, payload: bytes, frames: int, dt_ns: int) -> bytes:
+    """``payload`` as the same sensor sends it ``frames`` frames and ``dt_ns`` later: the
+    frame_id advanced (16 bits, wrapping), every column time stamp shifted and the CRC
+    footer rewritten (a replay that loops). A payload of another size is returned as is."""
+    if len(payload) != fmt.packet_bytes or (frames == 0 and dt_ns == 0):
+        return payload
+    arr = np.frombuffer(payload, np.uint8).copy().reshape(1, -1)
+    cols = fmt._columns(arr)
+    ts = cast(NDArray[np.uint64], _word_view(cols, 0, "<u8"))
+    ts += np.uint64(dt_ns % (1 << 64))
+    if fmt.profile.legacy:
+        fid = _word_view(cols, 10, "<u2")
+        fid[...] = (fid.astype(np.int64) + frames) % 65536
+        return arr.tobytes()
+    fid = arr[:, 2:4].view("<u2")
+    fid[...] = (fid.astype(np.int64) + frames) % 65536
+    arr[:, -8:].view("<u8")[:, 0] = crc64_xz_rows(arr[:, :-8])
+    return arr.tobytes()
 
 
 @dataclass(frozen=True)

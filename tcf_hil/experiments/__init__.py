@@ -1,8 +1,8 @@
 """The paper's experiments: Experiment 1 (no lidar), and sweeps of cells on the wire (Dask),
 the tables, multi-pass scanning and the speed-against-error bench.
 
-Nothing heavy is imported here: the CLI registers the sweep commands from
-``tcf_hil.experiments._cli`` on every start.
+Nothing heavy is imported here: the command line (:mod:`tcf_hil.cli.experiment`) imports
+what a command needs when it runs.
 """
 
 from __future__ import annotations

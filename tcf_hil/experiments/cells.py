@@ -276,3 +276,12 @@ def _command(cell: Cell, scn: Scenario, row: dict[str, Any], out_dir: str | None
                sim_s=round(frames / int(cell.mode.split("x")[1]), 3))
     return {"score.json": {k: score[k] for k in ("all_trees", "seen_trees") if k in score},
             "em_all": a["em"], "em_seen": s["em"], "manifest": {"status": man.get("status")}}
+
+
+def with_passes(scn: Scenario, n: int, offset: float | None, roads: int) -> Scenario:
+    """``n`` passes over a forest cut by ``roads`` strip roads (the same for every n)."""
+    off = scn.track.pass_offset_m if offset is None else offset
+    tr = replace(scn.track, passes=n, pass_offset_m=off)
+    roads = max(roads, scn.distribution.strip_roads) if off > 0 else 1
+    dist = replace(scn.distribution, strip_roads=roads)
+    return replace(scn, track=tr, distribution=dist)

@@ -23,14 +23,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from protocols.harvester._codec import encode_pose
+from protocols.harvester import encode_pose
 from tcf_hil._crc import fast_crc_rows
-from tcf_hil.bridge import RUN_T0_NS  # as a live run: CAN time never goes negative
 from tcf_hil.evaluation import EvalConfig
 from tcf_hil.forest import Forest
 from tcf_hil.harvester import HarvesterModel
 from tcf_hil.lidar import LidarRun
 from tcf_hil.recorder import Scores, score_forest
+from tcf_hil.run import RUN_T0_NS  # as a live run: CAN time never goes negative
 from tcf_hil.scenario import Scenario
 from tcf_hil.sic._map import StemMap
 from tcf_hil.sic._online import CanPose, LidarStats, OnboardSic, PoseTrack, SicConfig

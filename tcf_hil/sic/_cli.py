@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import click
 
+from tcf_hil.errors import SicError
 from tcf_hil.sic._online import SicConfig, main_with
 from tcf_hil.sic._stems import PRESETS
 
@@ -53,4 +54,8 @@ def sic_command(**kw: object) -> None:
     `tcf-hil run` starts it with every endpoint in the environment.
     """
     cfg = SicConfig(**kw)  # type: ignore[arg-type]
-    raise SystemExit(main_with(cfg))
+    try:
+        code = main_with(cfg)
+    except SicError as err:  # its message alone on stderr, exit status 1
+        raise SystemExit(str(err)) from err
+    raise SystemExit(code)

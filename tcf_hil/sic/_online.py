@@ -46,6 +46,7 @@ from protocols.ouster import (
     decode_lidar_packets,
 )
 from tcf_hil._crc import fast_crc_rows
+from tcf_hil.errors import SicError
 from tcf_hil.sic._map import StemMap
 from tcf_hil.sic._stems import StemParams, stem_params
 from tcf_hil.trajectory import rotation_ypr
@@ -113,12 +114,13 @@ class SicConfig:
 
 
 def load_metadata(cfg: SicConfig, timeout_s: float = 10.0) -> SensorMetadata:
-    """From the file, else from the sensor's HTTP API (retrying until ``timeout_s``)."""
+    """From the file, else from the sensor's HTTP API (retrying until ``timeout_s``); a
+    SicError where neither is given or the sensor does not answer in time."""
     if cfg.metadata:
         return SensorMetadata.loads(Path(cfg.metadata).read_text(encoding="utf-8"))
     if not cfg.sensor_url:
-        raise SystemExit("sic: no metadata: set TCF_METADATA or TCF_SENSOR_URL "
-                         "(--metadata / --sensor-url)")
+        raise SicError("sic: no metadata: set TCF_METADATA or TCF_SENSOR_URL "
+                       "(--metadata / --sensor-url)")
     url = cfg.sensor_url.rstrip("/") + "/api/v1/sensor/metadata"
     deadline = time.monotonic() + timeout_s
     while True:
@@ -127,7 +129,7 @@ def load_metadata(cfg: SicConfig, timeout_s: float = 10.0) -> SensorMetadata:
                 return SensorMetadata.loads(r.read().decode())
         except OSError as err:
             if time.monotonic() > deadline:
-                raise SystemExit(f"sic: cannot read the metadata from {url}: {err}") from err
+                raise SicError(f"sic: cannot read the metadata from {url}: {err}") from err
             time.sleep(0.2)
 
 
@@ -227,7 +229,8 @@ class CanPose:
         """Datum and lidar mount by SDO (retried while the node boots). canopen's own line
         for a timed-out read ("Transfer aborted by client with code 0x05040000") names
         neither the node nor the object: it is held back, and one line here says what was
-        read from whom, how often it failed and why."""
+        read from whom, how often it failed and why (a SicError once ``timeout_s`` is
+        over)."""
         deadline = time.monotonic() + timeout_s
         sdo_log = logging.getLogger("canopen.sdo.client")
         level = sdo_log.level
@@ -244,7 +247,7 @@ class CanPose:
                     break
                 except Exception as err:  # canopen raises SdoCommAbortedError/timeouts
                     if time.monotonic() > deadline:
-                        raise SystemExit(
+                        raise SicError(
                             f"sic: the harvester node {self.node.id} does not answer SDO reads "
                             f"of {what} on {self.bus_text} after {tries} tries in "
                             f"{timeout_s:g} s: {err}") from err
@@ -668,7 +671,7 @@ class OnboardSic:
         self._last_reload = now
         try:
             new = load_metadata(self.cfg, timeout_s=1.0)
-        except (SystemExit, OSError, ProtocolError) as err:
+        except (SicError, OSError, ProtocolError) as err:
             _log(f"packets with a new init_id, and the metadata cannot be read again: {err}")
             return None
         if new.init_id == meta.init_id:

@@ -232,12 +232,12 @@ def test_bench_quick(tmp_path: Path) -> None:
 
 
 def test_strip_road_forest_does_not_depend_on_the_pass_count() -> None:
-    from tcf_hil.experiments._cli import _with_passes
+    from tcf_hil.experiments.cells import with_passes
     from tcf_hil.forest import generate_forest
     from tcf_hil.forest.placement import region_for
 
     scn = load_scenario("strip-road")
-    bases = [generate_forest(_with_passes(scn, n, None, 3)).stems.base for n in (1, 2, 3)]
+    bases = [generate_forest(with_passes(scn, n, None, 3)).stems.base for n in (1, 2, 3)]
     assert all(np.array_equal(bases[0], b) for b in bases[1:])
     cuts = region_for(scn).cuts
     assert [round((a + b) / 2, 6) for a, b in cuts] == [-20.0, 0.0, 20.0]

@@ -15,8 +15,8 @@ import pytest
 from emulators.canbus import SocketcandServer
 from emulators.lidar import SensorApi
 from protocols.ouster import os0_64_metadata
-from tcf_hil.bridge import _SicProcess, sic_command
 from tcf_hil.recorder import MAX_PUBLICATION_BYTES, FileWatcher, Inbox, PublishServer
+from tcf_hil.run import SicProcess, sic_command
 
 DOC = {"timestamp": "20250213_035113", "total_objects_count": 1, "objects": [
     {"id": 1, "name": "tree_1", "cp": [1.0, 2.0, 0.0], "d": 2.24, "height": 15.0,
@@ -96,7 +96,7 @@ def test_a_runaway_sic_line_is_bounded_and_the_next_forest_still_counts(tmp_path
     script = ("import sys, json; w = sys.stdout.buffer.write; "
               f"w(b'{{' + b'x' * {MAX_PUBLICATION_BYTES + 5_000_000} + b'\\n'); "
               f"w(json.dumps({DOC!r}).encode() + b'\\n'); sys.stdout.flush()")
-    proc = _SicProcess([sys.executable, "-c", script], {}, tmp_path, inbox, False)
+    proc = SicProcess([sys.executable, "-c", script], {}, tmp_path, inbox, False)
     assert proc.proc.wait(60) == 0
     proc.reader.join(60)
     proc.close()

@@ -1,8 +1,8 @@
-"""``tcf-hil experiment paper`` and ``tcf-hil experiment passes`` (registered by tcf_hil.cli)."""
+"""``tcf-hil experiment`` and ``tcf-hil bench``: the paper's experiments, sweeps over
+forests, modes and seeds (Dask), and speed against error."""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 from collections.abc import Sequence
@@ -10,16 +10,69 @@ from pathlib import Path
 from typing import Any
 
 import click
-from rich.console import Console
 from rich.table import Table
 
-from tcf_hil.scenario import PRESET_NAMES, Scenario, load_scenario, preset_name
+from tcf_hil.cli._shared import (
+    MODES,
+    SIC_PRESETS,
+    Group,
+    Progress,
+    console,
+    err_console,
+    mode_option,
+    preset_option,
+)
+from tcf_hil.scenario import PRESET_NAMES, load_scenario, preset_name
 
-console = Console(highlight=False)
-err_console = Console(stderr=True, highlight=False)
+
+@click.group(cls=Group)
+def experiment() -> None:
+    """The paper's experiments."""
+
+
+def _experiment1(out: Path, seed: int | None, presets: Sequence[str], write_pcd: bool) -> None:
+    from tcf_hil.experiments import run_experiment1
+
+    with Progress("experiment 1", 2 * (2 + len(presets)), spinner=True) as prog:
+
+        def step(msg: str) -> None:
+            prog.update(description=msg, advance=1)
+
+        rows = run_experiment1(out, presets=presets, seed=seed, write_pcd=write_pcd,
+                               progress=step)
+    t = Table(title="Experiment 1 (paper Table 6): surface-sampled stems, no lidar; "
+                    "ours (paper)")
+    t.add_column("forest", no_wrap=True)
+    for col in ("SIC", "stems", "found", "acc. %", "miscl. %", "missed %", "pos RMSE", "SIC s"):
+        t.add_column(col, justify="right")
+
+    def p(v: float, ref: float | None) -> str:
+        return f"{v:.1f}" if ref is None else f"{v:.1f} ({ref:.1f})"
+
+    for r in rows:
+        t.add_row(r.forest, r.preset, str(r.stems), str(r.observed),
+                  p(r.accuracy_percent, r.paper_accuracy_percent),
+                  p(r.misclassified_percent, r.paper_misclassified_percent),
+                  p(r.missed_of_total_percent, r.paper_missed_percent),
+                  f"{r.position_rmse_m:.3f} m", f"{r.sic_seconds:.1f}")
+    console.print(t)
+    console.print(f"Results, plots and clouds: [bold]{out}[/] "
+                  f"(summary: {out / 'experiment1.json'})")
+
+
+@experiment.command("1")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("experiment1"), show_default=True, help="Output directory.")
+@click.option("--seed", type=click.IntRange(min=0), default=None,
+              help="Override the presets' seeds.")
+@preset_option("SIC preset(s) to run (default: both).", multiple=True)
+@click.option("--no-pcd", is_flag=True, help="Do not write the sampled clouds.")
+def experiment_1(out: Path, seed: int | None, presets: tuple[str, ...], no_pcd: bool) -> None:
+    """Experiment 1: Forests V and VI surface-sampled, stem algorithm, paper Table 6 beside ours."""
+    _experiment1(out, seed, presets or SIC_PRESETS, write_pcd=not no_pcd)
+
 
 _ROMAN = ["I", "II", "III", "IV", "V", "VI", "VII", "VIII", "IX", "X"]
-_LIDAR_MODES = ("512x10", "1024x10", "2048x10", "512x20", "1024x20")
 
 
 def parse_forests(text: str) -> list[str]:
@@ -50,42 +103,31 @@ def parse_modes(text: str) -> list[str]:
     from tcf_hil.experiments.cells import SAMPLED
 
     modes = [m.strip() for m in text.split(",") if m.strip()]
-    bad = [m for m in modes if m not in (*_LIDAR_MODES, SAMPLED)]
+    bad = [m for m in modes if m not in (*MODES, SAMPLED)]
     if bad or not modes:
         raise click.BadParameter(f"{','.join(bad) or text!r}: allowed modes are "
-                                 f"{', '.join(_LIDAR_MODES)} and {SAMPLED} (no lidar, Table 9)",
+                                 f"{', '.join(MODES)} and {SAMPLED} (no lidar, Table 9)",
                                  param_hint="--modes")
     return list(dict.fromkeys(modes))
 
 
 def _progress_sweep(cells: Sequence[Any], out: Path, executor: str, workers: int | None
                     ) -> Any:
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
     from tcf_hil.experiments.sweep import run_sweep
 
     failures = 0
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TextColumn("failed {task.fields[failed]}"), TimeElapsedColumn(),
-                  TextColumn("ETA"), TimeRemainingColumn(), console=err_console) as prog:
-        task = prog.add_task("cells", total=len(cells), failed=0)
+    with Progress("cells", len(cells), extra=("failed {task.fields[failed]}",), keep=True,
+                  failed=0) as prog:
 
         def on_event(kind: str, cell: Any, row: dict[str, Any] | None) -> None:
             nonlocal failures
             if kind == "failed":
                 failures += 1
-                prog.console.print(f"[red]failed[/] {cell.id}: {row and row.get('error')}")
+                prog.print(f"[red]failed[/] {cell.id}: {row and row.get('error')}")
             elif kind == "done" and row is not None:
-                prog.console.print(f"done {cell.id}: wc {row['all_wc']:.1f} % all, "
+                prog.print(f"done {cell.id}: wc {row['all_wc']:.1f} % all, "
                                    f"{row['seen_wc']:.1f} % seen ({row['cell_s']:.0f} s)")
-            prog.update(task, advance=1, failed=failures,
+            prog.update(advance=1, failed=failures,
                         description="cells (skipped: done before)" if kind == "skipped"
                         else "cells")
 
@@ -114,13 +156,13 @@ def _print_summary(outcome: Any, out: Path, paths: dict[str, Path]) -> None:
 
 
 def _sweep_options(f: Any) -> Any:
-    for opt in reversed([
+    opts: list[Any] = [
         click.option("--sic", default="reference", show_default=True,
                      help="'reference' (the reference SIC, unpaced and in process on the "
                      "same packet and CAN bytes) or a command run by `tcf-hil run` for every "
                      "cell, live at --speed (see `tcf-hil run --help` for placeholders)."),
-        click.option("--preset", "presets", type=click.Choice(["tuned", "paper"]), multiple=True,
-                     help="Reference SIC preset(s) (default: tuned). Repeat for both."),
+        preset_option("Reference SIC preset(s) (default: tuned). Repeat for both.",
+                      multiple=True),
         click.option("--executor", default="local", show_default=True,
                      help="local (a Dask LocalCluster on this machine), dask://HOST:PORT (a "
                      "running scheduler; workers need tcf-hil installed), or inline (this "
@@ -137,7 +179,8 @@ def _sweep_options(f: Any) -> Any:
                      help="Only the first N lidar frames of each track (quick looks)."),
         click.option("--out", type=click.Path(file_okay=False, path_type=Path),
                      required=True, help="Output directory; a rerun skips finished cells."),
-    ]):
+    ]
+    for opt in reversed(opts):
         f = opt(f)
     return f
 
@@ -154,7 +197,7 @@ def _finish(outcome: Any, out: Path) -> None:
         raise click.exceptions.Exit(1)
 
 
-@click.command("paper")
+@experiment.command("paper")
 @click.option("--forests", default="I-X", show_default=True,
               help="Forests: roman ranges and lists (I-X, V,VI), preset names or .toml files.")
 @click.option("--modes", default="512x10,1024x10,2048x10", show_default=True,
@@ -207,7 +250,7 @@ def paper_cmd(forests: str, modes: str, seeds: int, sic: str, presets: tuple[str
     _finish(outcome, out)
 
 
-@click.command("passes")
+@experiment.command("passes")
 @click.option("--forest", "forest_name", default="V", show_default=True,
               help="The forest (roman numeral, preset or .toml).")
 @click.option("--passes", "pass_list", default="1,2,3", show_default=True,
@@ -216,7 +259,7 @@ def paper_cmd(forests: str, modes: str, seeds: int, sic: str, presets: tuple[str
               help="Distance between the strip roads, each further pass one road to the left "
               "(m; 0: the same road back in reverse). Default: the scenario's "
               "track.pass_offset_m (strip-road: 20).")
-@click.option("--mode", type=click.Choice(_LIDAR_MODES), default="1024x10", show_default=True)
+@mode_option()
 @click.option("--seeds", type=click.IntRange(min=1, max=1000), default=1, show_default=True)
 @_sweep_options
 def passes_cmd(forest_name: str, pass_list: str, offset: float | None, mode: str, seeds: int,
@@ -234,7 +277,7 @@ def passes_cmd(forest_name: str, pass_list: str, offset: float | None, mode: str
     Example:
       tcf-hil experiment passes --forest strip-road --passes 1,2,3 --out passes
     """
-    from tcf_hil.experiments.cells import make_cell
+    from tcf_hil.experiments.cells import make_cell, with_passes
 
     try:
         counts = sorted({int(p) for p in pass_list.split(",") if p.strip()})
@@ -250,7 +293,7 @@ def passes_cmd(forest_name: str, pass_list: str, offset: float | None, mode: str
     for k in range(seeds):
         scn = load_scenario(name, seed=base.seed + k)
         for n in counts:
-            multi = _with_passes(scn, n, offset, counts[-1])
+            multi = with_passes(scn, n, offset, counts[-1])
             for preset in (presets or ("tuned",)) if sic == "reference" else ("tuned",):
                 cells.append(make_cell(multi, mode, sic=sic, preset=preset, speed=speed,
                                        max_frames=frames, tag=f"p{n}", keep_pcap=keep_pcap))
@@ -286,16 +329,7 @@ def passes_cmd(forest_name: str, pass_list: str, offset: float | None, mode: str
         raise click.exceptions.Exit(1)
 
 
-def _with_passes(scn: Scenario, n: int, offset: float | None, roads: int) -> Scenario:
-    """``n`` passes over a forest cut by ``roads`` strip roads (the same for every n)."""
-    off = scn.track.pass_offset_m if offset is None else offset
-    tr = dataclasses.replace(scn.track, passes=n, pass_offset_m=off)
-    roads = max(roads, scn.distribution.strip_roads) if off > 0 else 1
-    dist = dataclasses.replace(scn.distribution, strip_roads=roads)
-    return dataclasses.replace(scn, track=tr, distribution=dist)
-
-
-@click.command("columns")
+@experiment.command("columns")
 def columns_cmd() -> None:
     """What every column of results.csv means (a stable contract: columns are appended,
     never reordered)."""
@@ -351,8 +385,6 @@ def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerance
       tcf-hil bench --quick --out bench-quick
       tcf-hil bench --modes 1024x10,2048x10 --tolerances 1,2,5,20 --out bench
     """
-    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
-
     from tcf_hil.experiments.bench import FULL, QUICK, BenchGrid, run_bench, write_bench
 
     g = QUICK if quick else FULL
@@ -370,11 +402,8 @@ def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerance
         raise click.BadParameter(f"{', '.join(bad) or 'sampled'}: backends are embree, open3d; "
                                  "presets tuned, paper; modes lidar modes")
     t0 = time.perf_counter()
-    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
-                  console=err_console, transient=True) as prog:
-        task = prog.add_task("bench")
-        rows, notes = run_bench(grid, seed=seed,
-                                say=lambda s: prog.update(task, description=s))
+    with Progress("bench", spinner=True) as prog:
+        rows, notes = run_bench(grid, seed=seed, say=lambda s: prog.update(description=s))
     paths = write_bench(rows, notes, grid, out, time.perf_counter() - t0)
     t = Table(title=f"Speed against error, {grid.forest} "
                     f"({'whole track' if grid.frames is None else f'{grid.frames} frames'})")

@@ -1,0 +1,177 @@
+"""``tcf-hil lidar``: the emulated OS0-64 offline (pcap) or live on the wire."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from tcf_hil.cli._shared import (
+    Group,
+    Progress,
+    blame,
+    console,
+    err_console,
+    fault_option,
+    graceful_stop,
+    mode_option,
+    profile_option,
+    scenario_with_faults,
+    seed_option,
+)
+
+
+@click.group(cls=Group)
+def lidar() -> None:
+    """The emulated Ouster OS0-64: offline recording to pcap, or live on the wire."""
+
+
+def _sensor_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    """--mode, --profile and --seed, shared by the lidar commands."""
+    return mode_option()(profile_option()(seed_option("Random seed.")(f)))
+
+
+@lidar.command("pcap")
+@click.argument("scenario_name", metavar="SCENARIO")
+@_sensor_options
+@click.option("--backend", type=click.Choice(["embree", "open3d"]), default="embree",
+              show_default=True, help="Ray casting backend.")
+@click.option("--noise", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="Range noise sigma (m).")
+@click.option("--max-range", type=click.FloatRange(min=0, min_open=True), default=50.0,
+              show_default=True, help="Range cap (m), as the paper.")
+@click.option("--frames", type=click.IntRange(min=1), default=None,
+              help="Stop after this many frames (default: the whole track).")
+@click.option("--mtu", type=click.IntRange(min=68), default=1500, show_default=True,
+              help="IPv4 MTU of the recorded link (larger packets are fragmented).")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Output directory.")
+@fault_option
+def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, backend: str,
+               noise: float, max_range: float, frames: int | None, mtu: int,
+               out: Path, faults: tuple[str, ...]) -> None:
+    """Drive the sensor along the scenario's track, as fast as the machine allows.
+
+    Writes lidar.pcap (lidar UDP to 7502, LEGACY IMU to 7503 at 100 Hz, from 127.0.0.1),
+    metadata.json (read it with ouster-sdk: ouster-cli -m metadata.json source lidar.pcap),
+    ground_truth.json (with the returns each stem got), visibility.json and sensor_poses.csv
+    (the sensor frame in the world at every column time stamp). UDP and lidar faults
+    (--fault, or the scenario's [faults]) go into the capture, logged in faults.jsonl.
+    """
+    from emulators.lidar import ReturnModel
+    from tcf_hil.lidar import record_pcap
+
+    scn = scenario_with_faults(scenario_name, faults)
+    model = ReturnModel(noise_sigma_m=noise, max_range_m=max_range)
+    with blame(scenario_name), Progress(f"{scn.name} {mode} {profile}") as bar:
+        r = record_pcap(scn, out, mode=mode, profile=profile, seed=seed, backend=backend,
+                        model=model, max_frames=frames, mtu=mtu, progress=bar.counter)
+    console.print(f"{scn.name}: {r.frames} frames, {r.packets} lidar packets, {r.returns} "
+                  f"returns, {r.stems_seen} stems seen ({r.backend}); wrote {out}/")
+
+
+@lidar.command("stream")
+@click.argument("scenario_name", metavar="SCENARIO")
+@_sensor_options
+@click.option("--sensor-address", default="auto", show_default=True,
+              help="Address the packets come from (ouster-sdk checks it; any 127.x works); "
+                   "auto: a loopback address of its own (127.0.0.2, ...) with the sensor's "
+                   "HTTP API on port 80, as a real sensor.")
+@click.option("--dest", default="127.0.0.1", show_default=True, help="Where packets go.")
+@click.option("--lidar-port", type=click.IntRange(1, 65535), default=7502, show_default=True)
+@click.option("--imu-port", type=click.IntRange(1, 65535), default=7503, show_default=True)
+@click.option("--speed", type=click.FloatRange(min=0), default=1.0, show_default=True,
+              help="Simulation seconds per second; 0 = as fast as possible.")
+@click.option("--frames", type=click.IntRange(min=1), default=None,
+              help="Stop after this many frames (default: the whole track).")
+@click.option("--record", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also write what was sent (pcap) and the sidecar files here (with "
+                   "--http-port, a client's re-initialisation n goes into DIR/reinit-n).")
+@click.option("--http-port", type=click.IntRange(0, 65535), default=None,
+              help="Serve the sensor's HTTP API on this port (ouster-sdk and ouster-cli "
+                   "need 80, which needs root) [default with --sensor-address auto: 80 where "
+                   "it may be bound, else a free port; otherwise no API]. Given here, the API "
+                   "stays up after the track until Ctrl-C; by default the command ends with "
+                   "the track.")
+@click.option("--http-address", default=None,
+              help="Address of the HTTP API (default: the sensor address).")
+@fault_option
+def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
+                 sensor_address: str, dest: str, lidar_port: int, imu_port: int, speed: float,
+                 frames: int | None, record: Path | None, http_port: int | None,
+                 http_address: str | None, faults: tuple[str, ...]) -> None:
+    """Stream the emulated OS0-64 live over UDP until the track ends or Ctrl-C.
+
+    \b
+    The sensor gets a loopback address of its own with its HTTP API on port 80 (as root),
+    and stock clients connect as to a real sensor (the address is printed):
+      ouster-cli source 127.0.0.2 slice 0:5 save x.pcap
+    Without the HTTP API, give ouster-sdk the metadata instead (written by --record DIR or
+    by `tcf-hil lidar pcap`):
+      sensor.SensorFrameSetSource("127.0.0.2", sensor_info=[core.SensorInfo(json_text)])
+    """
+    from tcf_hil.endpoints import claim_sensor_host
+    from tcf_hil.lidar import RecordResult
+
+    scn = scenario_with_faults(scenario_name, faults)
+    claims = contextlib.ExitStack()
+    linger = http_port is not None  # an API asked for stays up after the track until Ctrl-C
+    if sensor_address == "auto":
+        host = claims.enter_context(claim_sensor_host(err_console.print))
+        sensor_address = host.address
+        if http_port is None:
+            http_port = host.http_port
+
+    def summary(r: RecordResult) -> None:
+        p50, p99 = r.pacing_us
+        console.print(f"sent {r.packets} lidar packets in {r.frames} frames; pacing error "
+                      f"p50 {p50:.0f} us, p99 {p99:.0f} us "
+                      f"({'SCHED_FIFO' if r.realtime else 'ordinary scheduling: not permitted'}"
+                      f"; pacing loop {100 * r.sender_cpu_share:.0f} % of a core); "
+                      f"refused {r.refused}")
+
+    # the first Ctrl-C finishes the frame on the wire, then writes the recording
+    with claims, graceful_stop("stopping after this frame") as stop:
+        try:
+            _stream(scn, stop, sensor_address, http_port, http_address, linger, summary,
+                    mode=mode, profile=profile, seed=seed, dest=dest, lidar_port=lidar_port,
+                    imu_port=imu_port, speed=speed, frames=frames, record=record)
+        except KeyboardInterrupt:  # the second: the sensor's threads end too
+            stop.set()
+            raise
+
+
+def _stream(scn: Any, stop: Any, sensor_address: str, http_port: int | None,
+            http_address: str | None, linger: bool, summary: Any, *, mode: str, profile: str,
+            seed: int | None, dest: str, lidar_port: int, imu_port: int, speed: float,
+            frames: int | None, record: Path | None) -> None:
+    from tcf_hil.lidar import serve_sensor, stream_lidar
+
+    if http_port is not None:
+        host_ip = http_address or sensor_address
+
+        def listening(api: Any) -> None:
+            console.print(f"sensor {scn.name} {mode} {profile}: HTTP API on "
+                          f"{api.address[0]}:{api.address[1]}, UDP from {sensor_address} "
+                          f"to {dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
+
+        try:
+            serve_sensor(scn, http_host=host_ip, http_port=http_port, on_api=listening,
+                         sensor_ip=sensor_address, speed=speed, stop=stop, mode=mode,
+                         profile=profile, seed=seed, max_frames=frames, udp_dest=dest,
+                         udp_port_lidar=lidar_port, udp_port_imu=imu_port, record=record,
+                         on_result=summary, linger=linger)
+        except OSError as err:
+            raise click.ClickException(
+                f"cannot serve {host_ip}:{http_port}: {err.strerror} (port 80 needs root; "
+                "or pass the metadata file to the client instead)") from err
+        return
+    console.print(f"streaming {scn.name} {mode} {profile} from {sensor_address} to "
+                  f"{dest}:{lidar_port}/{imu_port} (Ctrl-C stops)")
+    summary(stream_lidar(scn, sensor_ip=sensor_address, dest=dest, speed=speed,
+                         record=record, stop=stop, mode=mode, profile=profile, seed=seed,
+                         max_frames=frames, udp_port_lidar=lidar_port,
+                         udp_port_imu=imu_port))

@@ -1,0 +1,278 @@
+"""``demo``, ``run``, ``replay``, ``soak`` and ``sic``: runs of a program under test, all
+driving one :class:`tcf_hil.run.RunSession`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+from rich.table import Table
+
+from tcf_hil.cli._shared import (
+    ExitStatus,
+    Progress,
+    console,
+    err_console,
+    fault_option,
+    finish,
+    graceful_stop,
+    mode_option,
+    preset_option,
+    profile_option,
+    run_dir,
+    run_dir_option,
+    scenario_with_faults,
+    seed_option,
+)
+
+_STOP_RUN = "stopping the run: closing the recording and scoring what was published"
+
+
+def _session(start: Any, out: Path) -> int:
+    """Drive a run session (``start(stop, announce, progress)`` returns its result) with a
+    progress bar and the graceful stop (the partial recording is kept and scored); prints
+    the score table. Returns the exit status."""
+    from tcf_hil._logs import library_logs
+    from tcf_hil.run import RunStatus
+
+    with graceful_stop(_STOP_RUN) as stop, library_logs(out / "bench.log"), \
+            Progress("frames on the wire") as bar:
+        r = start(stop, err_console.print, bar.counter)
+    if r.status == RunStatus.CAN_CONFLICT:  # nothing was scored: its poses were not the run's
+        click.echo(f"Error: {r.message}; nothing scored (run directory {r.out}/)", err=True)
+        return ExitStatus.BAD_INPUT
+    _print_run(r)
+    if r.passed:
+        return ExitStatus.OK
+    return ExitStatus.INTERRUPTED if r.status == RunStatus.INTERRUPTED else ExitStatus.FAILED
+
+
+def _print_run(r: Any) -> None:
+    from tcf_hil.evaluation._report import ROWS
+
+    m = r.manifest
+    if r.scores is not None:
+        t = Table(title=f"{m.scenario} {m.mode}: the SIC's final forest", header_style="bold")
+        t.add_column("metric")
+        t.add_column("all trees", justify="right")
+        t.add_column("seen trees", justify="right")
+        a, b = r.scores.all.metrics, r.scores.seen.metrics
+        for key, label, fmt in ROWS[:1] + ROWS[7:13] + ROWS[13:15]:
+            t.add_row(label, fmt.format(a[key]), fmt.format(b[key]))
+        t.add_row("Ground-truth trees", str(a["n_ground_truth"]), str(b["n_ground_truth"]))
+        console.print(t)
+    sent = (f"frames sent {(m.lidar or {}).get('frames_sent', 0)}" if m.replay_sent is None
+            else f"replayed {m.replay_sent.get('udp', 0)} datagrams, "
+                 f"{m.replay_sent.get('can', 0)} CAN frames")
+    console.print(f"{sent}, publications {r.publications} "
+                  f"({r.invalid_publications} invalid), SIC exit code {r.sic_returncode}")
+    if r.message:
+        err_console.print(f"[bold]{r.status}[/]: {r.message}")
+    report = r.out / "report.html"
+    console.print(f"run directory: {r.out}/" + (f"  report: {report}" if report.exists()
+                                               else ""))
+
+
+@click.command()
+@run_dir_option()
+@seed_option()
+@preset_option()
+def demo(out: Path | None, seed: int | None, preset: str) -> None:
+    """The main job end to end, on loopback: Forest V at 1024x10.
+
+    \b
+    The emulated OS0-64 streams over UDP (with its HTTP API), the harvester publishes its
+    pose as a CANopen node on the embedded CAN server, the reference onboard SIC
+    (`python -m tcf_hil.sic`) runs as a separate program on that wire, and the recorder
+    scores its forest. Writes ./runs/<UTC time stamp>/ (or --out): lidar.pcap, can.log,
+    metadata.json, ground_truth.json, visibility.json, sic/, manifest.json, score.json and
+    report.html. About two minutes.
+    """
+    from tcf_hil.run import run_bridge, sic_reference_command
+    from tcf_hil.scenario import load_scenario
+
+    scn, out = load_scenario("forest-v"), run_dir(out)
+    finish(_session(lambda stop, say, step: run_bridge(
+        scn, sic_reference_command(preset), out, mode="1024x10", seed=seed, stop=stop,
+        announce=say, progress=step), out))
+
+
+@click.command("run")
+@click.argument("scenario_name", metavar="SCENARIO", required=False)
+@click.option("--sic", "sic", default=None,
+              help="The onboard program to test, e.g. \"./my_sic --port {lidar_port}\" "
+                   "(default: the reference SIC). {placeholders} and TCF_* environment "
+                   "variables carry the endpoints (see README).")
+@click.option("--shell", is_flag=True, help="Run --sic through /bin/sh (default: no shell).")
+@mode_option("2048x10")
+@profile_option()
+@seed_option()
+@run_dir_option()
+@click.option("--speed", type=click.FloatRange(min=0.05, max=20), default=1.0,
+              show_default=True, help="Simulation seconds per second (1 = real time).")
+@click.option("--duration", type=click.FloatRange(min=0.1), default=None,
+              help="Stop the stream after this many simulated seconds (default: the track).")
+@click.option("--can", "can_spec", default="own", show_default=True,
+              help="CAN bus: own (a CAN server of the run's own on a free port: no other "
+                   "bench or harvester can mix in), or join one on purpose: auto, "
+                   "socketcan:IFACE, socketcand:HOST:PORT:CHANNEL. On a joined bus a second "
+                   "node with the harvester's id stops the run (exit 1).")
+@click.option("--grace", type=click.FloatRange(min=0), default=30.0, show_default=True,
+              help="Seconds the SIC gets after the stream ends to publish its final forest "
+                   "and exit (then SIGTERM, then SIGKILL).")
+@click.option("--ready-timeout", "ready_s", type=click.FloatRange(min=0), default=15.0,
+              show_default=True,
+              help="The clock starts when the SIC listens on the lidar UDP port, or after "
+                   "this many seconds (0: at once).")
+@click.option("--replay", "replay_dir", type=click.Path(file_okay=False, exists=True,
+                                                         path_type=Path), default=None,
+              help="Send a recorded run's traffic instead of the live emulators.")
+@fault_option
+def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, profile: str,
+            seed: int | None, out: Path | None, speed: float, duration: float | None,
+            can_spec: str, grace: float, ready_s: float, replay_dir: Path | None,
+            faults: tuple[str, ...]) -> None:
+    """A hardware-in-the-loop run of an onboard SIC program against SCENARIO.
+
+    \b
+    Builds the forest, starts the harvester (CANopen on the CAN bus) and the OS0-64 (UDP and
+    its HTTP API) on one simulation clock, launches --sic as its own process with the
+    endpoints in its environment, records everything into the run directory, and scores
+    the SIC's last published forest against all trees and against the trees the sensor saw.
+    Exit status 0 when the run completed and the SIC published a valid forest, 1 when a
+    second node with the harvester's id was on a joined CAN bus, 3 when the SIC failed
+    (exited early or with an error, or published nothing valid), 130 when stopped by
+    Ctrl-C/SIGTERM (the partial run is still recorded and scored).
+
+    \b
+    The run owns its endpoints: the sensor gets a loopback address of its own (127.0.0.2,
+    ...; packets come from it, its HTTP API answers on port 80 there, so
+    SensorFrameSetSource($TCF_SENSOR_HOST) works), the lidar and IMU ports are 7502/7503
+    unless taken, and the CAN bus is the run's own unless --can joins one.
+
+    \b
+    Faults (the scenario's [faults] section, or --fault KEY=VALUE) are injected on the wire
+    and logged with their times in faults.jsonl; score.json and report.html show the score
+    next to them, e.g.:
+      tcf-hil run forest-v --duration 30 --fault udp.loss=0.01 --fault can.bus_off_at_s=[10]
+    """
+    from tcf_hil.run import check_sic_command, replay_run, run_bridge, sic_reference_command
+
+    command = sic or sic_reference_command()
+    try:
+        check_sic_command(command, shell)
+    except ValueError as err:
+        raise click.BadParameter(str(err), param_hint="--sic") from err
+    out = run_dir(out)
+    if replay_dir is not None:
+        src = replay_dir
+        finish(_session(lambda stop, say, _step: replay_run(
+            src, command, out, speed=speed, shell=shell, can_spec=can_spec, grace_s=grace,
+            ready_s=ready_s, stop=stop, announce=say), out))
+        return
+    if scenario_name is None:
+        raise click.UsageError("give a SCENARIO (a preset name or TOML file) or --replay RUN_DIR")
+    scn = scenario_with_faults(scenario_name, faults)
+    finish(_session(lambda stop, say, step: run_bridge(
+        scn, command, out, mode=mode, profile=profile, seed=seed, speed=speed,
+        duration_s=duration, can=can_spec, shell=shell, grace_s=grace, ready_s=ready_s,
+        stop=stop, announce=say, progress=step), out))
+
+
+@click.command("replay")
+@click.argument("run_dir_", metavar="RUN_DIR",
+                type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option("--speed", type=click.FloatRange(min=0.05, max=20), default=1.0,
+              show_default=True, help="Playback speed (1 = the original timing).")
+@click.option("--loop", is_flag=True, help="Start over at the end (frame_id, column time "
+                                           "stamps and pose time continue) until Ctrl-C.")
+@click.option("--sensor-address", default="auto", show_default=True,
+              help="Address the packets come from and the HTTP API answers on; auto: a "
+                   "loopback address of its own (127.0.0.2, ...), the API on port 80.")
+@click.option("--dest", default=None, help="Where packets go (default: the recorded "
+                                           "udp_dest).")
+@click.option("--http-port", type=click.IntRange(0, 65535), default=None,
+              help="Port of the HTTP API serving the recorded metadata [default: 80 with "
+                   "--sensor-address auto where it may be bound, else a free one].")
+@click.option("--can", "can_spec", default="auto", show_default=True,
+              help="CAN bus for the recorded frames (auto, socketcan:IFACE, "
+                   "socketcand:HOST:PORT:CHANNEL).")
+def replay_cmd(run_dir_: Path, speed: float, loop: bool, sensor_address: str,
+               dest: str | None, http_port: int | None, can_spec: str) -> None:
+    """Send a recorded run's lidar, IMU and CAN traffic to live endpoints.
+
+    \b
+    The pcap and the CAN log go out with their original relative timing (times --speed),
+    from --sensor-address to the recorded ports; your program listens as in the run. To
+    score another SIC on this traffic use: tcf-hil run --replay RUN_DIR --sic "COMMAND".
+    """
+    from tcf_hil.run import replay_run
+
+    with graceful_stop("stopping the replay") as stop:
+        try:
+            r = replay_run(run_dir_, None, None, speed=speed, loop=loop, dest=dest,
+                           can_spec=can_spec, lead_s=0.0,
+                           sensor_ip=None if sensor_address == "auto" else sensor_address,
+                           http_port=http_port, stop=stop, announce=console.print)
+        except OSError as err:
+            if err.errno is None:
+                raise
+            raise click.ClickException(f"cannot serve the sensor's HTTP API: "
+                                       f"{err.strerror}") from err
+    sent = r.manifest.replay_sent or {}
+    console.print(f"sent {sent.get('udp', 0)} UDP datagrams and {sent.get('can', 0)} CAN "
+                  "frames")
+
+
+@click.command("sic", add_help_option=False,
+               context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
+@click.pass_context
+def sic_cmd(ctx: click.Context) -> None:
+    """The reference onboard SIC (the same as python -m tcf_hil.sic; --help for options)."""
+    from tcf_hil.sic._cli import sic_command
+
+    sic_command.main(args=list(ctx.args), prog_name="tcf-hil sic")
+
+
+@click.command("soak")
+@click.argument("scenario_name", metavar="[SCENARIO]", default="forest-v", required=False)
+@click.option("--minutes", type=click.FloatRange(min=0.25, max=30), default=10.0,
+              show_default=True, help="How long the stream runs.")
+@mode_option("2048x10")
+@preset_option()
+@seed_option()
+@click.option("--max-growth", type=click.FloatRange(min=0), default=5.0, show_default=True,
+              help="Memory growth after the warm-up (%) above which the soak fails.")
+@run_dir_option("Run directory (default ./runs/soak-<UTC time stamp>/).")
+@fault_option
+def soak_cmd(scenario_name: str, minutes: float, mode: str, preset: str, seed: int | None,
+             max_growth: float, out: Path | None, faults: tuple[str, ...]) -> None:
+    """Run the whole bench live for --minutes with the reference SIC and watch it.
+
+    \b
+    The track becomes a stretch of the strip road driven back and forth, so after the first
+    pass (the warm-up) the SIC has seen all it will see. Reports the frames lost at the
+    receiver, the pacing error (p50, p99), and the resident memory of the bench, its frame
+    producer and the SIC after the warm-up and at the end. Writes soak.json and soak.md in
+    the run directory (no lidar.pcap: 2048x10 sends 16 MB/s). Exit status 0 when the run
+    completed with no frame lost and memory growth under --max-growth, 3 when the soak
+    failed, 130 when stopped by Ctrl-C.
+    """
+    from tcf_hil._logs import library_logs
+    from tcf_hil.soak import run_soak
+
+    scn = scenario_with_faults(scenario_name, faults)
+    out = run_dir(out, "soak-")
+    try:
+        with graceful_stop("stopping the soak: judging what ran") as stop, \
+                library_logs(out / "bench.log"), Progress("soak: frames on the wire") as bar:
+            r = run_soak(scn, out, minutes=minutes, mode=mode, preset=preset, seed=seed,
+                         max_growth_percent=max_growth, announce=err_console.print,
+                         progress=bar.counter, stop=stop)
+    except ValueError as err:
+        raise click.BadParameter(str(err), param_hint="--minutes") from err
+    console.print((out / "soak.md").read_text())
+    console.print(f"run directory: {out}/")
+    if not r.ok:
+        finish(ExitStatus.INTERRUPTED if r.doc["status"] == "interrupted" else ExitStatus.FAILED)

@@ -1,0 +1,36 @@
+"""A run: the program under test (a SIC) against traffic on the wire, recorded and scored.
+
+One :class:`RunSession` serves every kind of run: ``tcf-hil run`` (:class:`LiveTraffic`:
+the emulated OS0-64 and harvester on one clock), ``run --replay`` and ``replay``
+(:class:`ReplayTraffic`: a recording sent again) and ``soak`` (a long live run). The
+session owns the endpoints, supervises the SIC's process, records its publications, writes
+the typed :class:`Manifest` and scores the result; a feature added there reaches them all.
+"""
+
+from tcf_hil.run._live import RUN_T0_NS, LiveTraffic, run_bridge
+from tcf_hil.run._manifest import Manifest, RunStatus, SicRecord
+from tcf_hil.run._replay import ReplayTraffic, copy_recording, replay_run
+from tcf_hil.run._session import (
+    RunResult,
+    RunSession,
+    Traffic,
+    Wire,
+    follow_redirects,
+    udp_port_taken,
+    wait_for_listener,
+)
+from tcf_hil.run._sic import (
+    ENV_DOC,
+    SicProcess,
+    check_sic_command,
+    sensor_url,
+    sic_command,
+    sic_environment,
+    sic_reference_command,
+)
+
+__all__ = ["ENV_DOC", "RUN_T0_NS", "LiveTraffic", "Manifest", "ReplayTraffic", "RunResult",
+           "RunSession", "RunStatus", "SicProcess", "SicRecord", "Traffic", "Wire",
+           "check_sic_command", "copy_recording", "follow_redirects", "replay_run",
+           "run_bridge", "sensor_url", "sic_command", "sic_environment",
+           "sic_reference_command", "udp_port_taken", "wait_for_listener"]

@@ -1,0 +1,325 @@
+"""The layers hold, read from the source (nothing is imported): ``protocols/`` is sans-IO and
+imports only the standard library, numpy and itself; ``emulators/`` never imports ``tcf_hil``;
+``tcf_hil/`` may import anything declared; only command-line modules end the process; and
+every third-party module imported anywhere in the three packages is declared in
+pyproject.toml. Each failure lists the offending ``file:line``s."""
+
+from __future__ import annotations
+
+import ast
+import re
+import sys
+import tomllib
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from functools import cache
+from importlib.metadata import packages_distributions
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("protocols", "emulators", "tcf_hil")
+STDLIB = frozenset(sys.stdlib_module_names)
+FORBIDDEN_STDLIB = frozenset({"socket", "threading", "asyncio", "time", "subprocess", "select",
+                              "selectors", "multiprocessing"})
+"""Standard modules that do I/O, wait or run concurrently: not sans-IO, so not in protocols."""
+ALIASES: dict[str, frozenset[str]] = {
+    "can": frozenset({"python-can"}),
+    "sklearn": frozenset({"scikit-learn"}),
+    "open3d": frozenset({"open3d", "open3d-cpu"}),
+    "ouster": frozenset({"ouster-sdk"}),
+}
+"""Import name -> distributions, for modules that may not be installed here (open3d-cpu has no
+wheel off x86_64); installed ones are looked up with packages_distributions()."""
+NOT_FOR_THE_PACKAGE = frozenset({"test"})
+"""Extras that serve the test suite, not the package: importing one of their distributions
+from tcf_hil/, emulators/ or protocols/ is undeclared."""
+GUARD_EXCEPTIONS = frozenset({"ImportError", "ModuleNotFoundError", "Exception",
+                              "BaseException"})
+
+
+@dataclass(frozen=True)
+class Import:
+    """One import: ``module`` as written (relative ones resolved to their package), where."""
+
+    where: str
+    module: str
+    lazy: bool  # inside a function: importing the module does not need it
+    guarded: bool  # inside try/except ImportError (or broader) or contextlib.suppress
+
+    @property
+    def top(self) -> str:
+        return self.module.split(".")[0]
+
+
+@dataclass(frozen=True)
+class Exit:
+    where: str
+    what: str
+
+
+def _catches_import_errors(types: ast.expr | None) -> bool:
+    if types is None:  # a bare except
+        return True
+    exprs = types.elts if isinstance(types, ast.Tuple) else [types]
+    return any(isinstance(e, ast.Name | ast.Attribute)
+               and (e.id if isinstance(e, ast.Name) else e.attr) in GUARD_EXCEPTIONS
+               for e in exprs)
+
+
+def _call_name(func: ast.expr) -> str:
+    """``a.b.c`` for a called name (``""`` for anything else)."""
+    parts: list[str] = []
+    while isinstance(func, ast.Attribute):
+        parts.append(func.attr)
+        func = func.value
+    if not isinstance(func, ast.Name):
+        return ""
+    return ".".join([func.id, *reversed(parts)])
+
+
+class _Scanner(ast.NodeVisitor):
+    def __init__(self, rel: str, package: str) -> None:
+        self.rel, self.package = rel, package
+        self.imports: list[Import] = []
+        self.exits: list[Exit] = []
+        self._depth = 0  # functions around the node
+        self._guards = 0  # import guards around the node
+
+    def _add(self, node: ast.AST, module: str) -> None:
+        self.imports.append(Import(f"{self.rel}:{getattr(node, 'lineno', 0)}", module,
+                                   self._depth > 0, self._guards > 0))
+
+    def _function(self, node: ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda) -> None:
+        self._depth += 1
+        self.generic_visit(node)
+        self._depth -= 1
+
+    visit_FunctionDef = visit_AsyncFunctionDef = visit_Lambda = _function  # noqa: N815
+
+    def _try(self, node: ast.Try | ast.TryStar) -> None:
+        guard = any(_catches_import_errors(h.type) for h in node.handlers)
+        self._guards += guard
+        for stmt in node.body:
+            self.visit(stmt)
+        self._guards -= guard
+        for other in [*node.handlers, *node.orelse, *node.finalbody]:
+            self.visit(other)
+
+    visit_Try = visit_TryStar = _try  # noqa: N815
+
+    def visit_With(self, node: ast.With) -> None:
+        guard = any(isinstance(i.context_expr, ast.Call)
+                    and _call_name(i.context_expr.func).split(".")[-1] == "suppress"
+                    and any(_catches_import_errors(a) for a in i.context_expr.args)
+                    for i in node.items)
+        self._guards += guard
+        self.generic_visit(node)
+        self._guards -= guard
+
+    def visit_Import(self, node: ast.Import) -> None:
+        for alias in node.names:
+            self._add(node, alias.name)
+
+    def visit_ImportFrom(self, node: ast.ImportFrom) -> None:
+        if node.level:  # relative: inside this file's own package
+            self._add(node, ".".join(filter(None, [self.package, node.module])))
+        elif node.module:
+            self._add(node, node.module)
+
+    def visit_Call(self, node: ast.Call) -> None:
+        name = _call_name(node.func)
+        if (name.split(".")[-1] in ("import_module", "__import__") and node.args
+                and isinstance(node.args[0], ast.Constant)
+                and isinstance(node.args[0].value, str)):
+            self._add(node, node.args[0].value)
+        if name in ("sys.exit", "exit", "quit"):
+            self.exits.append(Exit(f"{self.rel}:{node.lineno}", f"{name}("))
+        self.generic_visit(node)
+
+    def visit_Raise(self, node: ast.Raise) -> None:
+        exc = node.exc.func if isinstance(node.exc, ast.Call) else node.exc
+        if exc is not None and _call_name(exc).split(".")[-1] == "SystemExit":
+            self.exits.append(Exit(f"{self.rel}:{node.lineno}", "raise SystemExit"))
+        self.generic_visit(node)
+
+
+def scan(path: Path, root: Path = ROOT) -> _Scanner:
+    rel = path.relative_to(root).as_posix()
+    scanner = _Scanner(rel, rel.split("/")[0])
+    scanner.visit(ast.parse(path.read_text(encoding="utf-8"), filename=rel))
+    return scanner
+
+
+def files(*packages: str) -> Iterator[Path]:
+    for package in packages:
+        found = sorted((ROOT / package).rglob("*.py"))
+        assert found, f"no Python files under {package}/"
+        yield from found
+
+
+def all_imports(*packages: str) -> list[Import]:
+    return [i for f in files(*packages) for i in scan(f).imports]
+
+
+def _fail(offenders: list[str], what: str) -> None:
+    if offenders:
+        pytest.fail(f"{what}:\n  " + "\n  ".join(offenders), pytrace=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# what pyproject.toml declares
+# ---------------------------------------------------------------------------------------------
+def _normalize(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def _requirement_name(req: str) -> str:
+    m = re.match(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)", req)
+    assert m, f"cannot read the requirement {req!r}"
+    return _normalize(m[1])
+
+
+def declared() -> dict[str, bool]:
+    """Distributions the package may import -> True where always installed (a dependency
+    without an environment marker), False where only sometimes (a marker, or an extra)."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
+    own = _normalize(project["name"])
+    out: dict[str, bool] = {}
+    for req in project["dependencies"]:
+        out[_requirement_name(req)] = ";" not in req
+    for extra, reqs in project.get("optional-dependencies", {}).items():
+        if extra in NOT_FOR_THE_PACKAGE:
+            continue
+        for req in reqs:
+            name = _requirement_name(req)
+            if name != own:
+                out.setdefault(name, False)
+    return out
+
+
+@cache
+def _installed() -> Mapping[str, list[str]]:
+    return packages_distributions()
+
+
+def distributions_of(module: str) -> set[str]:
+    """The distributions that may provide top-level ``module``."""
+    names = {module, *ALIASES.get(module, ()), *_installed().get(module, ())}
+    return {_normalize(n) for n in names}
+
+
+# ---------------------------------------------------------------------------------------------
+# the layers
+# ---------------------------------------------------------------------------------------------
+def test_protocols_import_only_the_stdlib_numpy_and_themselves() -> None:
+    allowed = (STDLIB - FORBIDDEN_STDLIB) | {"numpy", "protocols"}
+    _fail([f"{i.where} imports {i.module}" for i in all_imports("protocols")
+           if i.top not in allowed],
+          "protocols/ is sans-IO: stdlib (no I/O, threads or clocks), numpy and protocols only")
+
+
+def test_emulators_never_import_tcf_hil() -> None:
+    _fail([f"{i.where} imports {i.module}" for i in all_imports("emulators")
+           if i.top == "tcf_hil"],
+          "emulators/ may import protocols, the stdlib and declared packages, never tcf_hil")
+
+
+def test_every_third_party_import_is_declared() -> None:
+    """tcf_hil/ may import anything, emulators/ anything but tcf_hil, as long as it is declared;
+    a distribution installed only sometimes (an extra, or a platform marker) is imported only
+    inside a function or under an import guard, so that importing the package never needs
+    it."""
+    deps = declared()
+    first_party = set(PACKAGES)
+    bad: list[str] = []
+    for i in all_imports(*PACKAGES):
+        if i.top in STDLIB or i.top in first_party:
+            continue
+        dists = distributions_of(i.top) & deps.keys()
+        if not dists:
+            bad.append(f"{i.where} imports {i.module}, which no dependency in pyproject.toml "
+                       f"provides (looked for {sorted(distributions_of(i.top))})")
+        elif not any(deps[d] for d in dists) and not (i.lazy or i.guarded):
+            bad.append(f"{i.where} imports {i.module} at module level, but "
+                       f"{'/'.join(sorted(dists))} is not always installed (an extra or a "
+                       "platform marker): import it inside a function or guard it")
+    _fail(bad, "undeclared third-party imports")
+
+
+def is_cli(rel: str) -> bool:
+    parts = rel.split("/")
+    return (parts[:2] == ["tcf_hil", "cli"] or rel == "tcf_hil/cli.py"
+            or parts[-1] in ("_cli.py", "__main__.py"))
+
+
+def test_only_command_line_modules_end_the_process() -> None:
+    """A library raises its documented errors; only the CLI (tcf_hil/cli/, tcf_hil/cli.py,
+    any _cli.py or __main__.py) turns them into exit statuses. benchmarks/ and .ci/ are
+    scripts and not scanned."""
+    bad = [f"{e.where}: {e.what}" for f in files(*PACKAGES) for e in scan(f).exits
+           if not is_cli(e.where.rsplit(":", 1)[0])]
+    _fail(bad, "the process is ended outside a command-line module")
+
+
+# ---------------------------------------------------------------------------------------------
+# the checks themselves
+# ---------------------------------------------------------------------------------------------
+def test_the_scanner_sees_every_form_of_import_and_exit(tmp_path: Path) -> None:
+    pkg = tmp_path / "emulators"
+    pkg.mkdir()
+    f = pkg / "x.py"
+    f.write_text(
+        "import socket\n"
+        "from can import Bus\n"
+        "from . import sibling\n"
+        "from .sub import thing\n"
+        "import importlib\n"
+        "try:\n"
+        "    import open3d\n"
+        "except ImportError:\n"
+        "    open3d = None\n"
+        "def f():\n"
+        "    import tcf_hil.forest\n"
+        "    importlib.import_module('tcf_hil.scene')\n"
+        "    with contextlib.suppress(Exception):\n"
+        "        from threadpoolctl import threadpool_limits\n"
+        "    try:\n"
+        "        sys.exit(2)\n"
+        "    except (SystemExit, OSError):\n"
+        "        raise SystemExit('no')\n"
+        "    exit(1)\n"
+        "    raise SystemExit\n")
+    s = scan(f, tmp_path)
+    assert {i.top for i in s.imports} == {"socket", "can", "emulators", "importlib", "open3d",
+                                          "tcf_hil", "threadpoolctl"}
+    got = {(i.module, i.where.split(":")[1], i.lazy, i.guarded) for i in s.imports}
+    assert ("emulators.sub", "4", False, False) in got
+    assert ("open3d", "7", False, True) in got
+    assert ("tcf_hil.forest", "11", True, False) in got
+    assert ("tcf_hil.scene", "12", True, False) in got
+    assert ("threadpoolctl", "14", True, True) in got
+    assert [(e.where, e.what) for e in s.exits] == [
+        ("emulators/x.py:16", "sys.exit("), ("emulators/x.py:18", "raise SystemExit"),
+        ("emulators/x.py:19", "exit("), ("emulators/x.py:20", "raise SystemExit")]
+
+
+def test_the_declared_distributions_are_read_with_their_markers_and_extras() -> None:
+    deps = declared()
+    assert deps["numpy"] is True and deps["python-can"] is True and deps["dask"] is True
+    assert deps["embreex"] is False  # x86_64 only
+    assert deps["open3d-cpu"] is False  # the [open3d] extra
+    assert "ouster-sdk" not in deps and "pytest" not in deps  # the test suite's, not ours
+    assert "tcf-hil" not in deps
+    assert {"python-can"} <= distributions_of("can")
+    assert {"open3d-cpu"} <= distributions_of("open3d")
+
+
+@pytest.mark.parametrize(("rel", "cli"), [
+    ("tcf_hil/cli.py", True), ("tcf_hil/cli/run.py", True), ("tcf_hil/sic/_cli.py", True),
+    ("tcf_hil/__main__.py", True), ("tcf_hil/sic/__main__.py", True),
+    ("tcf_hil/sic/_online.py", False), ("tcf_hil/client.py", False),
+    ("emulators/canbus/_socketcand.py", False)])
+def test_command_line_modules_are_recognised(rel: str, cli: bool) -> None:
+    assert is_cli(rel) is cli
