@@ -111,7 +111,7 @@ class LidarRun:
                               "field carries")
         self.emu = Os0Emulator(self.meta, self.scene, self.track, model, seed=self.forest.seed,
                                start_ns=self.track.t0_ns,
-                               threads=getattr(self.scene.caster, "threads", None))
+                               threads=self.scene.caster.threads)
         n = max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
         self.frames = min(n, max_frames) if max_frames is not None else n
         self.backend = backend
@@ -293,8 +293,8 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(1)
-    caster = getattr(run.scene, "caster", None)
-    if caster is not None and hasattr(caster, "threads"):  # the same for the ray caster
+    caster = run.scene.caster
+    if caster.threads is not None:  # the same for a ray caster that splits casts itself
         caster.threads = max(1, caster.threads - 1)
     run.emu.threads = max(1, run.emu.threads - 1)  # and for the emulator's column chunks
     fh = open(rec.path, "wb") if rec is not None else None  # closed in the finally below
