@@ -398,7 +398,8 @@ class Scene:
     def threads(self) -> int | None:
         """Threads the caster splits a large cast over (Embree's), or None where it does not
         split casts itself (open3d spreads them over the CPUs by itself; trimesh casts on
-        the calling thread). Settable (a value set where it is None has no effect)."""
+        the calling thread). Settable; on a backend that does not split casts the value is
+        kept but changes nothing."""
         return self.caster.threads
 
     @threads.setter

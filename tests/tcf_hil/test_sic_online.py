@@ -292,13 +292,14 @@ def test_sdo_reads_of_a_silent_node_fail_with_context(caplog: pytest.LogCaptureF
     object: the SIC's own lines name both, and the bare one is held back."""
     import logging
 
+    from tcf_hil.errors import SicError
     from tcf_hil.sic._online import CanPose, SicConfig
 
     cfg = SicConfig(can_interface="virtual", can_channel=f"sdo-silent-{os.getpid()}",
                     node_id=23)
     pose = CanPose(cfg, PoseTrack())
     try:
-        with caplog.at_level(logging.INFO), pytest.raises(SystemExit) as err:
+        with caplog.at_level(logging.INFO), pytest.raises(SicError) as err:
             pose.read_constants(timeout_s=0.5)
     finally:
         pose.net.disconnect()
