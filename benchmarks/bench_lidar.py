@@ -9,7 +9,7 @@ the track (after one frame of warm-up), each made, encoded into its packets and 
 (headers, CRC); its figures are means over them (the pose of a second of frames is asked at
 once, so one frame in twenty carries it). The bare cast of each frame's very rays, made by a
 second emulator, is timed between them: the backend's own ``cast`` (for Embree the directly
-bound library the pipeline casts through, :mod:`emulators._embree`), and for Embree also
+bound library the pipeline casts through, :mod:`emulators.embree`), and for Embree also
 embreex's ``run`` on a scene of its own ("embreex ms"). Ratio = total bare / total pipeline.
 """
 

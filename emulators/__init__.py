@@ -1,4 +1,5 @@
 """Things that talk on the wire (the OS0-64 lidar, the harvester's CANopen node).
 
-Empty until the Ouster and CAN issues land; the package exists so the layout is fixed.
+Public here: `lidar`, `harvester`, `canbus`, `faults`, and the compiled-kernel helpers `jit`
+(numba, optional) and `embree` (Embree bound for kernels, optional).
 """

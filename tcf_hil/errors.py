@@ -15,7 +15,7 @@ message alone, as exit status 1.
 
 from __future__ import annotations
 
-from protocols._text import short_repr
+from protocols.text import short_repr
 
 __all__ = ["ConfigError", "EndpointError", "InputError", "SicError", "TcfHilError",
            "short_repr"]

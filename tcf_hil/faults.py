@@ -19,8 +19,7 @@ from typing import IO, Any
 
 from emulators.faults import CanFaultPlan, FaultEvent, LidarFaultPlan, UdpFaults
 from tcf_hil.errors import ConfigError
-from tcf_hil.scenario import Scenario
-from tcf_hil.scenario._model import FaultsConfig
+from tcf_hil.scenario import FaultsConfig, Scenario
 
 __all__ = ["FaultLog", "FaultPlans", "apply_fault_options", "fault_plans", "faults_active"]
 

@@ -85,7 +85,7 @@ class LidarRun:
 
     def __init__(self, scn: Scenario, *, mode: str = "1024x10",
                  profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
-                 backend: str = "embree", model: ReturnModel | None = None,
+                 backend: str = "auto", model: ReturnModel | None = None,
                  max_frames: int | None = None, udp_dest: str = "127.0.0.1",
                  udp_port_lidar: int = 7502, udp_port_imu: int = 7503,
                  meta: SensorMetadata | None = None, t0_ns: int = 1_000_000_000,
@@ -114,7 +114,7 @@ class LidarRun:
                                threads=self.scene.caster.threads)
         n = max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
         self.frames = min(n, max_frames) if max_frames is not None else n
-        self.backend = backend
+        self.backend = self.scene.backend  # the concrete one: auto resolved
         self.counts = np.zeros(len(self.forest.stems) + 1, dtype=np.int64)
         self.packets = 0
         self._poses = io.StringIO()

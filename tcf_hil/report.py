@@ -11,8 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from tcf_hil._io import write_bytes_atomic
-from tcf_hil.evaluation import LABELS
-from tcf_hil.evaluation._report import ROWS
+from tcf_hil.evaluation import LABELS, ROWS
 from tcf_hil.plots import _pyplot, em_heatmap, figure_png, matched_positions
 
 if TYPE_CHECKING:

@@ -12,7 +12,7 @@ here": a cast on the calling thread (``cast1``; the plain cast where the backend
 casts by itself, ``threads_itself``), the threads it splits a large cast over (``threads``,
 None where it does not split casts itself) and an Embree scene bound for compiled kernels
 (``direct_scene``, None but for Embree's). :class:`Scene` passes them on to the lidar
-emulator as its :class:`emulators.lidar._os0.FastRayScene`.
+emulator as its :class:`emulators.lidar.FastRayScene`.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ from tcf_hil.errors import ConfigError
 from tcf_hil.forest import Forest, stem_mesh, terrain_mesh
 
 if TYPE_CHECKING:
-    from emulators._embree import DirectScene
-    from emulators.lidar._os0 import FastRayScene
+    from emulators.embree import DirectScene
+    from emulators.lidar import FastRayScene
 
 FloatArray = NDArray[np.float64]
 
@@ -76,7 +76,7 @@ class Caster(Protocol):
         ...
 
 
-def _unavailable(backend: str) -> str | None:
+def backend_unavailable(backend: str) -> str | None:
     """Why a backend cannot be had here (its modules do not import), or None."""
     for module in BACKEND_MODULES[backend]:
         try:
@@ -105,7 +105,7 @@ def resolve_backend(name: str) -> tuple[str, str | None]:
         return name, None
     why: list[str] = []
     for backend in AUTO_ORDER:
-        reason = _unavailable(backend)
+        reason = backend_unavailable(backend)
         if reason is None:
             if not why:
                 return backend, None
@@ -126,7 +126,7 @@ def default_threads() -> int:
 
 class EmbreeCaster:
     """Embree in robust mode (without it rays slip through edges shared by two triangles),
-    from the library the embreex wheel ships: bound directly (:mod:`emulators._embree`: the
+    from the library the embreex wheel ships: bound directly (:mod:`emulators.embree`: the
     scene handle and ``rtcIntersect1`` from compiled code, so the lidar emulator casts and
     answers its rays in one call without the GIL) where compiled kernels are on, else
     through embreex's own scene; the same hits either way. A batch is traced on one core
@@ -139,11 +139,11 @@ class EmbreeCaster:
 
     def __init__(self, vertices: FloatArray, faces: NDArray[np.int64],
                  threads: int | None = None, direct: bool = True) -> None:
-        from emulators._jit import jit_enabled
+        from emulators.jit import jit_enabled
 
         self.direct_scene: DirectScene | None = None
         if direct and jit_enabled():
-            from emulators._embree import direct_scene
+            from emulators.embree import direct_scene
 
             self.direct_scene = direct_scene(vertices, faces)
         if self.direct_scene is None:
@@ -161,7 +161,7 @@ class EmbreeCaster:
     def _run(self, o: NDArray[np.float32], d: NDArray[np.float32], t: NDArray[np.float32],
              prim: NDArray[np.int32]) -> None:
         if self.direct_scene is not None:
-            from emulators._embree import cast_rays
+            from emulators.embree import cast_rays
 
             cast_rays(self.direct_scene.intersect, self.direct_scene.handle, o, d, t, prim)
             return

@@ -26,12 +26,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from emulators._jit import compiled, register_kernel_source
+from emulators.jit import compiled, register_kernel_source
 from tcf_hil.errors import ConfigError
 from tcf_hil.forest import Terrain
 from tcf_hil.scenario import PoseErrorConfig, TrackConfig
 
-register_kernel_source(__file__)  # _eval_pieces is a kernel (see emulators._jit)
+register_kernel_source(__file__)  # _eval_pieces is a kernel (see emulators.jit)
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -47,6 +47,7 @@ class Import:
     module: str
     lazy: bool  # inside a function: importing the module does not need it
     guarded: bool  # inside try/except ImportError (or broader) or contextlib.suppress
+    names: tuple[str, ...] = ()  # what ``from module import ...`` takes
 
     @property
     def top(self) -> str:
@@ -87,9 +88,9 @@ class _Scanner(ast.NodeVisitor):
         self._depth = 0  # functions around the node
         self._guards = 0  # import guards around the node
 
-    def _add(self, node: ast.AST, module: str) -> None:
+    def _add(self, node: ast.AST, module: str, names: tuple[str, ...] = ()) -> None:
         self.imports.append(Import(f"{self.rel}:{getattr(node, 'lineno', 0)}", module,
-                                   self._depth > 0, self._guards > 0))
+                                   self._depth > 0, self._guards > 0, names))
 
     def _function(self, node: ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda) -> None:
         self._depth += 1
@@ -123,10 +124,11 @@ class _Scanner(ast.NodeVisitor):
             self._add(node, alias.name)
 
     def visit_ImportFrom(self, node: ast.ImportFrom) -> None:
+        names = tuple(a.name for a in node.names)
         if node.level:  # relative: inside this file's own package
-            self._add(node, ".".join(filter(None, [self.package, node.module])))
+            self._add(node, ".".join(filter(None, [self.package, node.module])), names)
         elif node.module:
-            self._add(node, node.module)
+            self._add(node, node.module, names)
 
     def visit_Call(self, node: ast.Call) -> None:
         name = _call_name(node.func)
@@ -246,6 +248,44 @@ def test_every_third_party_import_is_declared() -> None:
                        f"{'/'.join(sorted(dists))} is not always installed (an extra or a "
                        "platform marker): import it inside a function or guard it")
     _fail(bad, "undeclared third-party imports")
+
+
+def private_owner(module: str, name: str | None = None, root: Path = ROOT) -> str | None:
+    """The package directory (``a/b``) that owns a private module (``a.b._c``) or a private
+    name (``from a.b.c import _x``: the package of ``a.b.c``), or None where nothing private
+    is taken. Only files under the owner may take it."""
+    parts = module.split(".")
+    for i, part in enumerate(parts):
+        if part.startswith("_") and not part.startswith("__"):
+            return "/".join(parts[:i])
+    if name is not None and name.startswith("_") and not name.startswith("__"):
+        where = root.joinpath(*parts)
+        return "/".join(parts if where.is_dir() else parts[:-1])
+    return None
+
+
+def test_no_module_takes_another_packages_private_names() -> None:
+    """``a.b._c`` and ``from a.b import _x`` are private to ``a/b/``: a module elsewhere takes
+    what the package exports instead (tests may reach in; they are not scanned)."""
+    bad: list[str] = []
+    for i in all_imports(*PACKAGES):
+        if i.top not in PACKAGES:
+            continue
+        for name in (None, *i.names):
+            owner = private_owner(i.module, name)
+            if owner is not None and not i.where.startswith(owner + "/"):
+                bad.append(f"{i.where} takes {i.module}{'' if name is None else ':' + name}, "
+                           f"private to {owner}/")
+    _fail(bad, "private names taken from outside their package")
+
+
+def test_private_owners() -> None:
+    assert private_owner("tcf_hil._io") == "tcf_hil"
+    assert private_owner("emulators.lidar._os0", "FastRayScene") == "emulators/lidar"
+    assert private_owner("protocols.ouster", "_table") == "protocols/ouster"
+    assert private_owner("protocols.ouster.x", "_table") == "protocols/ouster"
+    assert private_owner("protocols.ouster", "PROFILES") is None
+    assert private_owner("__future__", "annotations") is None
 
 
 def is_cli(rel: str) -> bool:

@@ -4,12 +4,16 @@ and paced UDP sending of frames encoded with :mod:`protocols.ouster`."""
 
 from emulators.lidar._http import SensorApi
 from emulators.lidar._os0 import (
+    DensePoseSource,
+    FastRayScene,
     FrameResult,
     Os0Emulator,
+    PosePieces,
     PoseSource,
     RayScene,
     ReturnModel,
     carried_range_m,
+    fast_scene,
     warm_up,
 )
 from emulators.lidar._sensor import IMU_PERIOD_NS, ImuSource, Os0Sensor, SensorFrame
@@ -18,11 +22,14 @@ from emulators.lidar._stream import Datagram, PacedSender, Route, SendStats
 __all__ = [
     "IMU_PERIOD_NS",
     "Datagram",
+    "DensePoseSource",
+    "FastRayScene",
     "FrameResult",
     "ImuSource",
     "Os0Emulator",
     "Os0Sensor",
     "PacedSender",
+    "PosePieces",
     "PoseSource",
     "RayScene",
     "ReturnModel",
@@ -31,5 +38,6 @@ __all__ = [
     "SensorApi",
     "SensorFrame",
     "carried_range_m",
+    "fast_scene",
     "warm_up",
 ]

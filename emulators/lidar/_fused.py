@@ -1,6 +1,6 @@
 """Blocks of columns encoded, made, cast through Embree and answered in one compiled call,
 without the GIL: the rays (:func:`~emulators.lidar._kernel.make_rays`), ``rtcIntersect1`` per ray
-(:mod:`emulators._embree`) and the per-ray answer
+(:mod:`emulators.embree`) and the per-ray answer
 (:func:`~emulators.lidar._kernel.answer_chunk`), the very kernels the chunk path calls one
 after the other with Python in between. Imported lazily (numba), only where the scene hands
 over an Embree scene (:meth:`tcf_hil.scene.Scene.direct`) and compiled kernels are on.
@@ -15,8 +15,8 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from emulators._embree import intersect1, new_rayhit
-from emulators._jit import compiled, numba_module
+from emulators.embree import intersect1, new_rayhit
+from emulators.jit import compiled, numba_module
 from emulators.lidar._kernel import answer_chunk, make_rays
 
 numba = numba_module()  # its cache directory set before the kernels below are declared

@@ -13,11 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from emulators._jit import compiled, jit_enabled
+from emulators.jit import compiled, jit_enabled
 
 
 def answer_kernel() -> Callable[..., None] | None:
-    """The compiled :func:`answer_chunk` (:func:`emulators._jit.compiled`), or None."""
+    """The compiled :func:`answer_chunk` (:func:`emulators.jit.compiled`), or None."""
     return compiled(answer_chunk)
 
 

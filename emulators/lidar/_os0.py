@@ -25,7 +25,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from emulators._jit import jit_enabled
+from emulators.jit import jit_enabled
 from emulators.lidar._kernel import answer_kernel, frames_kernel, fused_kernel, rays_kernel
 from protocols.ouster import (
     Field,
@@ -41,7 +41,7 @@ FloatArray = NDArray[np.float64]
 
 DirectCast = tuple[int, int, NDArray[np.int32]]
 """An Embree scene the emulator's compiled kernel casts through itself
-(:mod:`emulators._embree`): rtcIntersect1's address, an RTCScene handle, and the stem id by
+(:mod:`emulators.embree`): rtcIntersect1's address, an RTCScene handle, and the stem id by
 triangle with -1 last."""
 
 
@@ -207,7 +207,7 @@ class _Nothing:
     def __init__(self, embree: bool = False) -> None:
         self._embree: Any = None
         if embree and jit_enabled():
-            from emulators._embree import direct_scene
+            from emulators.embree import direct_scene
 
             far = np.array([[1e6, 0.0, 0.0], [1e6, 1.0, 0.0], [1e6, 0.0, 1.0]])
             self._embree = direct_scene(far, np.array([[0, 1, 2]]))

@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from protocols._text import short_repr
 from protocols.ouster._errors import MetadataError
 from protocols.ouster._packets import PacketFormat
 from protocols.ouster._profiles import PROFILES
+from protocols.text import short_repr
 
 __all__ = ["MODES", "OS0_64_MODES", "SensorMetadata", "beam_rays", "os0_64_metadata",
            "xyz_from_range"]

@@ -45,6 +45,26 @@ class Group(click.Group):
 MODES: tuple[str, ...] = OS0_64_MODES
 PROFILE_NAMES: tuple[str, ...] = ("RNG19_RFL8_SIG16_NIR16", *sorted(
     p for p in PROFILES if p != "RNG19_RFL8_SIG16_NIR16"))
+BACKEND_CHOICES: tuple[str, ...] = ("auto", "embree", "open3d", "trimesh")
+"""Ray backends by name (:data:`tcf_hil.scene.BACKENDS` and ``auto``; a test holds the two
+together without importing the scene here, which would slow every command's start)."""
+_announced: set[str] = set()
+
+
+def announce_backend(name: str = "auto") -> None:
+    """Say once per process which ray backend ``auto`` took, where it is not Embree (e.g.
+    ``ray backend: open3d (embreex is not installed here: Embree has no wheel for aarch64)``).
+    A named backend that is missing is the ConfigError its scene raises."""
+    from tcf_hil.scene import resolve_backend
+
+    if name in _announced:
+        return
+    _announced.add(name)
+    note = resolve_backend(name)[1]
+    if note is not None:
+        err_console.print(f"[yellow]{note}[/]")
+
+
 SIC_PRESETS: tuple[str, ...] = tuple(sorted(PRESETS, key=lambda p: p != "tuned"))
 
 

@@ -13,10 +13,12 @@ import click
 from rich.table import Table
 
 from tcf_hil.cli._shared import (
+    BACKEND_CHOICES,
     MODES,
     SIC_PRESETS,
     Group,
     Progress,
+    announce_backend,
     console,
     err_console,
     mode_option,
@@ -33,6 +35,7 @@ def experiment() -> None:
 def _experiment1(out: Path, seed: int | None, presets: Sequence[str], write_pcd: bool) -> None:
     from tcf_hil.experiments import run_experiment1
 
+    announce_backend()
     with Progress("experiment 1", 2 * (2 + len(presets)), spinner=True) as prog:
 
         def step(msg: str) -> None:
@@ -115,6 +118,7 @@ def _progress_sweep(cells: Sequence[Any], out: Path, executor: str, workers: int
                     ) -> Any:
     from tcf_hil.experiments.sweep import run_sweep
 
+    announce_backend()
     failures = 0
     with Progress("cells", len(cells), extra=("failed {task.fields[failed]}",), keep=True,
                   failed=0) as prog:
@@ -361,7 +365,8 @@ def _floats_list(text: str, name: str) -> tuple[float, ...]:
 @click.option("--modes", default=None, help="Lidar modes (default: 512x10,1024x10,2048x10).")
 @click.option("--tolerances", default=None,
               help="Stem tessellation tolerances in mm (default: 2,10).")
-@click.option("--backends", default=None, help="Ray backends (default: embree,open3d).")
+@click.option("--backends", default=None,
+              help="Ray backends (default: embree,open3d; also auto, trimesh).")
 @click.option("--presets", default=None, help="Reference SIC presets (default: tuned,paper).")
 @click.option("--frames", type=click.IntRange(min=1), default=None,
               help="Frames per combination (default: 300; 100 quick).")
@@ -396,10 +401,11 @@ def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerance
         backends=tuple(b.strip() for b in backends.split(",")) if backends else g.backends,
         presets=tuple(p.strip() for p in presets.split(",")) if presets else g.presets,
         frames=None if whole_track else (frames or g.frames))
-    bad = [b for b in grid.backends if b not in ("embree", "open3d")]
+    bad = [b for b in grid.backends if b not in BACKEND_CHOICES]
     bad += [p for p in grid.presets if p not in ("tuned", "paper")]
     if bad or "sampled" in grid.modes:
-        raise click.BadParameter(f"{', '.join(bad) or 'sampled'}: backends are embree, open3d; "
+        raise click.BadParameter(f"{', '.join(bad) or 'sampled'}: backends are "
+                                 f"{', '.join(BACKEND_CHOICES)}; "
                                  "presets tuned, paper; modes lidar modes")
     t0 = time.perf_counter()
     with Progress("bench", spinner=True) as prog:

@@ -30,7 +30,7 @@ def scenario_list() -> None:
         t.add_row(s.name, f"{s.plot.size_m[0]:g} x {s.plot.size_m[1]:g}", str(s.stems.count),
                   s.distribution.kind, s.terrain.kind, str(s.seed))
     console.print(t)
-    from tcf_hil.scenario._load import EXTRA_PRESETS, load_scenario
+    from tcf_hil.scenario import EXTRA_PRESETS, load_scenario
 
     for name in EXTRA_PRESETS:
         console.print(f"Also [bold]{name}[/]: {load_scenario(name).description}.")

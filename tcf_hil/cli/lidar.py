@@ -10,8 +10,10 @@ from typing import Any
 import click
 
 from tcf_hil.cli._shared import (
+    BACKEND_CHOICES,
     Group,
     Progress,
+    announce_backend,
     blame,
     console,
     err_console,
@@ -37,8 +39,9 @@ def _sensor_options(f: Callable[..., Any]) -> Callable[..., Any]:
 @lidar.command("pcap")
 @click.argument("scenario_name", metavar="SCENARIO")
 @_sensor_options
-@click.option("--backend", type=click.Choice(["embree", "open3d"]), default="embree",
-              show_default=True, help="Ray casting backend.")
+@click.option("--backend", type=click.Choice(BACKEND_CHOICES), default="auto", show_default=True,
+              help="Ray casting backend: auto takes Embree where it exists, else open3d, "
+              "else trimesh (pure numpy, slow), and says so.")
 @click.option("--noise", type=click.FloatRange(min=0), default=0.0, show_default=True,
               help="Range noise sigma (m).")
 @click.option("--max-range", type=click.FloatRange(min=0, min_open=True), default=50.0,
@@ -65,6 +68,7 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
     from tcf_hil.lidar import record_pcap
 
     scn = scenario_with_faults(scenario_name, faults)
+    announce_backend(backend)
     model = ReturnModel(noise_sigma_m=noise, max_range_m=max_range)
     with blame(scenario_name), Progress(f"{scn.name} {mode} {profile}") as bar:
         r = record_pcap(scn, out, mode=mode, profile=profile, seed=seed, backend=backend,
@@ -117,6 +121,7 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     from tcf_hil.lidar import RecordResult
 
     scn = scenario_with_faults(scenario_name, faults)
+    announce_backend()
     claims = contextlib.ExitStack()
     linger = http_port is not None  # an API asked for stays up after the track until Ctrl-C
     if sensor_address == "auto":

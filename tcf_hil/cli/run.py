@@ -12,6 +12,7 @@ from rich.table import Table
 from tcf_hil.cli._shared import (
     ExitStatus,
     Progress,
+    announce_backend,
     console,
     err_console,
     fault_option,
@@ -49,7 +50,7 @@ def _session(start: Any, out: Path) -> int:
 
 
 def _print_run(r: Any) -> None:
-    from tcf_hil.evaluation._report import ROWS
+    from tcf_hil.evaluation import ROWS
 
     m = r.manifest
     if r.scores is not None:
@@ -93,6 +94,7 @@ def demo(out: Path | None, seed: int | None, preset: str) -> None:
     from tcf_hil.scenario import load_scenario
 
     scn, out = load_scenario("forest-v"), run_dir(out)
+    announce_backend()
     finish(_session(lambda stop, say, step: run_bridge(
         scn, sic_reference_command(preset), out, mode="1024x10", seed=seed, stop=stop,
         announce=say, progress=step), out))
@@ -174,6 +176,7 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     if scenario_name is None:
         raise click.UsageError("give a SCENARIO (a preset name or TOML file) or --replay RUN_DIR")
     scn = scenario_with_faults(scenario_name, faults)
+    announce_backend()
     finish(_session(lambda stop, say, step: run_bridge(
         scn, command, out, mode=mode, profile=profile, seed=seed, speed=speed,
         duration_s=duration, can=can_spec, shell=shell, grace_s=grace, ready_s=ready_s,
@@ -230,7 +233,7 @@ def replay_cmd(run_dir_: Path, speed: float, loop: bool, sensor_address: str,
 @click.pass_context
 def sic_cmd(ctx: click.Context) -> None:
     """The reference onboard SIC (the same as python -m tcf_hil.sic; --help for options)."""
-    from tcf_hil.sic._cli import sic_command
+    from tcf_hil.sic import sic_command
 
     sic_command.main(args=list(ctx.args), prog_name="tcf-hil sic")
 
@@ -264,6 +267,7 @@ def soak_cmd(scenario_name: str, minutes: float, mode: str, preset: str, seed: i
 
     scn = scenario_with_faults(scenario_name, faults)
     out = run_dir(out, "soak-")
+    announce_backend()
     try:
         with graceful_stop("stopping the soak: judging what ran") as stop, \
                 library_logs(out / "bench.log"), Progress("soak: frames on the wire") as bar:

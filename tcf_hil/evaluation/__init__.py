@@ -11,11 +11,12 @@ from tcf_hil.evaluation._metrics import (
     evaluation_matrix,
     weighted_score,
 )
-from tcf_hil.evaluation._report import metrics_table, write_plots
+from tcf_hil.evaluation._report import ROWS, metrics_table, write_plots
 
 __all__ = [
     "CASES",
     "LABELS",
+    "ROWS",
     "EvalConfig",
     "Evaluation",
     "candidate_pairs",

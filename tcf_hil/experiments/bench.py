@@ -48,13 +48,10 @@ BENCH_COLUMNS = ("forest", "mode", "tolerance_mm", "backend", "preset", "triangl
 
 
 def backend_available(name: str) -> str | None:
-    """None if the backend can be used here, else why not."""
-    if name == "open3d":
-        try:
-            import open3d  # noqa: F401
-        except Exception as err:  # not installed, or its shared libraries are missing
-            return f"open3d cannot be imported ({type(err).__name__}: {err})"
-    return None
+    """None if the backend can be used here (``auto`` always can), else why not."""
+    from tcf_hil.scene import BACKENDS, backend_unavailable
+
+    return backend_unavailable(name) if name in BACKENDS else None
 
 
 def _range_error(run: Any, k: int) -> np.ndarray:
@@ -110,7 +107,7 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
                     ms = np.asarray(sic.frame_ms)
                     rows.append({
                         "forest": scn.name, "mode": mode, "tolerance_mm": tol,
-                        "backend": backend, "preset": preset,
+                        "backend": run.backend, "preset": preset,
                         "triangles": len(run.scene.faces), "frames": frames,
                         "emulator_ms_frame": 1000.0 * emu_s / max(frames, 1),
                         "emulator_x_realtime": sim_s / max(emu_s, 1e-9),

@@ -64,7 +64,7 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("sic", "'reference' or the SIC command"),
     ("preset", "reference SIC preset (tuned or paper); empty for another SIC"),
     ("profile", "lidar packet profile"),
-    ("backend", "ray backend (embree or open3d)"),
+    ("backend", "ray backend: auto (Embree where it exists), embree, open3d or trimesh"),
     ("passes", "passes along the strip road"),
     ("status", "ok or failed"),
     ("error", "why the cell failed (one line); empty when ok"),
@@ -99,7 +99,7 @@ class Cell:
     sic: str = "reference"
     preset: str = "tuned"
     profile: str = "RNG19_RFL8_SIG16_NIR16"
-    backend: str = "embree"
+    backend: str = "auto"
     speed: float = 1.0  # another SIC runs live at this pace
     max_frames: int | None = None
     tag: str = ""  # extra id part (e.g. passes) when forests share a name
@@ -143,10 +143,12 @@ def _score_row(all_ev: Evaluation, seen_ev: Evaluation) -> dict[str, Any]:
 
 
 def _base_row(cell: Cell, scn: Scenario) -> dict[str, Any]:
+    from tcf_hil.scene import resolve_backend
+
     row: dict[str, Any] = dict.fromkeys(COLUMN_NAMES, "")
     row.update(cell=cell.id, forest=cell.forest, mode=cell.mode, seed=cell.seed, sic=cell.sic,
                preset=cell.preset if cell.sic == "reference" else "", profile=cell.profile,
-               backend=cell.backend, passes=scn.track.passes,
+               backend=resolve_backend(cell.backend)[0], passes=scn.track.passes,
                worker=f"{socket.gethostname()}:{os.getpid()}")
     return row
 

@@ -32,8 +32,7 @@ from tcf_hil.lidar import LidarRun
 from tcf_hil.recorder import Scores, score_forest
 from tcf_hil.run import RUN_T0_NS  # as a live run: CAN time never goes negative
 from tcf_hil.scenario import Scenario
-from tcf_hil.sic._map import StemMap
-from tcf_hil.sic._online import CanPose, LidarStats, OnboardSic, PoseTrack, SicConfig
+from tcf_hil.sic import CanPose, LidarStats, OnboardSic, PoseTrack, SicConfig, StemMap
 from tcf_hil.stems_json import stem_table
 from tcf_hil.trajectory import rotation_ypr
 
@@ -141,7 +140,7 @@ def drive(run: LidarRun, model: HarvesterModel, sics: list[OfflineSic],
 
 def run_offline(scn: Scenario, *, mode: str = "1024x10",
                 profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
-                backend: str = "embree", preset: str = "tuned", max_frames: int | None = None,
+                backend: str = "auto", preset: str = "tuned", max_frames: int | None = None,
                 eval_cfg: EvalConfig | None = None, voxel_m: float | None = None,
                 progress: Callable[[int, int], None] | None = None,
                 forest: Forest | None = None, t0_ns: int = RUN_T0_NS,

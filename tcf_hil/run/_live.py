@@ -63,7 +63,7 @@ class LiveTraffic:
     def __init__(self, scn: Scenario, *, mode: str = "2048x10",
                  profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
                  speed: float = 1.0, lead_s: float = 3.0, duration_s: float | None = None,
-                 backend: str = "embree", record_lidar: bool = True,
+                 backend: str = "auto", record_lidar: bool = True,
                  progress: Any = None, announce: Announce = quiet) -> None:
         if lead_s * speed * 1e9 >= RUN_T0_NS:
             raise ValueError(f"lead {lead_s} s at speed {speed} reaches before simulation "
@@ -115,7 +115,7 @@ class LiveTraffic:
                                             RUN_T0_NS).node_config()
         return Manifest(
             scenario=scn.name, seed=run.forest.seed, mode=self.mode, profile=self.profile,
-            speed=self.speed, sic=sic, backend=self.backend, lidar_pcap=self.record_lidar,
+            speed=self.speed, sic=sic, backend=run.backend, lidar_pcap=self.record_lidar,
             frames_planned=run.frames,
             can_node={"node_id": node.node_id, "datum_mm": list(node.datum_mm),
                       "mount_mm": list(node.mount_mm), "mount_cdeg": list(node.mount_cdeg)},
@@ -237,7 +237,7 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
                speed: float = 1.0, can: str = "own", shell: bool = False,
                sensor_ip: str | None = None, lead_s: float = 3.0, grace_s: float = 30.0,
-               duration_s: float | None = None, backend: str = "embree",
+               duration_s: float | None = None, backend: str = "auto",
                eval_cfg: EvalConfig | None = None, stop: threading.Event | None = None,
                announce: Announce = quiet, progress: Any = None, ready_s: float = 15.0,
                record_lidar: bool = True, on_start: Any = None) -> RunResult:

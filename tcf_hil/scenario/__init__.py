@@ -2,6 +2,7 @@
 
 from protocols.stems import CLASSES
 from tcf_hil.scenario._load import (
+    EXTRA_PRESETS,
     PRESET_NAMES,
     list_presets,
     load_scenario,
@@ -14,6 +15,7 @@ from tcf_hil.scenario._model import (
     ClassMix,
     DbhConfig,
     DistributionConfig,
+    FaultsConfig,
     HarvesterConfig,
     PlotConfig,
     PoseErrorConfig,
@@ -27,10 +29,12 @@ from tcf_hil.scenario._model import (
 
 __all__ = [
     "CLASSES",
+    "EXTRA_PRESETS",
     "PRESET_NAMES",
     "ClassMix",
     "DbhConfig",
     "DistributionConfig",
+    "FaultsConfig",
     "HarvesterConfig",
     "PlotConfig",
     "PoseErrorConfig",

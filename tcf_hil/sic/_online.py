@@ -36,8 +36,7 @@ from typing import Any, TextIO
 import numpy as np
 from numpy.typing import NDArray
 
-from protocols.harvester import DATUM, MOUNT, eds_path, unwrap_time_us
-from protocols.harvester._codec import TIME_WRAP_US
+from protocols.harvester import DATUM, MOUNT, TIME_WRAP_US, eds_path, unwrap_time_us
 from protocols.ouster import (
     PacketIdError,
     ProtocolError,

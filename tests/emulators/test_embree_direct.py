@@ -1,4 +1,4 @@
-"""The directly bound Embree scene (emulators._embree) gives embreex's hits bit for bit, and
+"""The directly bound Embree scene (emulators.embree) gives embreex's hits bit for bit, and
 the lidar emulator's fused kernel (rays, that cast and the answer in one compiled call)
 writes the packets the step-by-step path writes through embreex."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from emulators._jit import jit_enabled
+from emulators.jit import jit_enabled
 from emulators.lidar import Os0Emulator, ReturnModel
 from protocols.ouster import os0_64_metadata
 from tcf_hil.forest import generate_forest

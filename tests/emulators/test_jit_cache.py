@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from emulators import _jit
+from emulators import jit as _jit
 
 
 def test_kernel_sources_are_emulators_own_and_the_registered(

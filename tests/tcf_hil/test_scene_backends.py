@@ -5,8 +5,10 @@ hits. The fallbacks are forced by making the imports fail."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import platform
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,7 +25,7 @@ SCN = scenario_from_dict({
 # what "embree" imports: embreex's modules, and the directly bound scene (which loads the
 # library embreex ships, perhaps already loaded in this process)
 NO_EMBREE = ("embreex", "embreex.rtcore_scene", "embreex.mesh_construction",
-             "emulators._embree")
+             "emulators.embree")
 needs_embreex = pytest.mark.skipif(importlib.util.find_spec("embreex") is None,
                                    reason="embreex is not installed here")
 needs_open3d = pytest.mark.skipif(importlib.util.find_spec("open3d") is None,
@@ -169,3 +171,32 @@ def test_a_scene_declares_its_casters_threads(small: Scene) -> None:
                 make_caster("open3d", small.vertices, small.faces))
     assert o3d.backend == "open3d" and o3d.threads is None and o3d.threads_itself
     assert o3d.direct() is None
+
+
+def test_the_cli_offers_every_backend() -> None:
+    from tcf_hil.cli._shared import BACKEND_CHOICES
+
+    assert BACKEND_CHOICES == ("auto", *BACKENDS)
+
+
+@needs_open3d
+def test_lidar_pcap_says_once_which_backend_auto_took_and_records_it(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Where Embree cannot be had, the default (auto) works on open3d, says so once on
+    stderr, and the recording names the backend that cast its rays."""
+    from tcf_hil.cli import _shared, main
+    from tcf_hil.scenario import scenario_to_toml
+
+    _without(monkeypatch, *NO_EMBREE)
+    monkeypatch.setattr(_shared, "_announced", set())
+    toml = tmp_path / "small.toml"
+    toml.write_text(scenario_to_toml(SCN))
+    code = main(["lidar", "pcap", str(toml), "--mode", "512x10", "--frames", "2",
+                 "--out", str(tmp_path / "o")])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert out.err.count("ray backend: open3d (embreex is not installed here") == 1
+    assert "(open3d)" in out.out
+    vis = json.loads((tmp_path / "o" / "visibility.json").read_text())
+    assert vis["backend"] == "open3d" and vis["frames"] == 2

@@ -25,7 +25,7 @@ from numba import types
 from numba.extending import intrinsic
 from numpy.typing import NDArray
 
-from emulators._jit import jit_enabled, numba_module
+from emulators.jit import jit_enabled, numba_module
 
 numba = numba_module()  # its cache directory set before the kernels below are declared
 
