@@ -109,9 +109,13 @@ class LidarRun:
             raise ConfigError("max_range_m", model.max_range_m,
                               f"at most {limit:.0f} m: what {self.meta.profile}'s RANGE "
                               "field carries")
+        if model is not None and not scn.sensor.ideal:
+            raise ConfigError("sensor", scn.sensor.preset,
+                              "'ideal' for a return model of its own (--noise, --max-range)")
+        self.sensor = scn.sensor
         self.emu = Os0Emulator(self.meta, self.scene, self.track, model, seed=self.forest.seed,
                                start_ns=self.track.t0_ns,
-                               threads=self.scene.caster.threads)
+                               threads=self.scene.caster.threads, sensor=scn.sensor)
         n = max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
         self.frames = min(n, max_frames) if max_frames is not None else n
         self.backend = self.scene.backend  # the concrete one: auto resolved
@@ -195,7 +199,8 @@ class LidarRun:
         c = self.counts
         vis: dict[str, Any] = {
             "frames": self.frames, "mode": self.meta.mode, "profile": self.meta.profile,
-            "backend": self.backend, "terrain_returns": int(c[0]),
+            "backend": self.backend, "sensor": self.sensor.preset,
+            "terrain_returns": int(c[0]),
             "stem_returns": int(c[1:].sum()), "stems_seen": int(np.count_nonzero(c[1:])),
             "stems_total": len(self.forest.stems),
             "returns_per_stem": {str(i): int(v) for i, v in enumerate(c) if i and v},
@@ -401,8 +406,10 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
 
     run_kw.setdefault("udp_dest", dest)
     run = run or LidarRun(scn, **run_kw)
-    warm_up_kernels(run.meta, run.emu.model)  # compiled before the fork: the first frame
-    warm_up_poses()  # is not late (the first run on a machine compiles; seconds)
+    # compiled before the fork: the first frame is not late (the first run on a machine
+    # compiles; seconds)
+    warm_up_kernels(run.meta, run.emu.model, run.emu.sensor)
+    warm_up_poses()
     dest = run.meta.udp_dest
     ctx = mp.get_context("fork")
     slot_bytes = _slot_bytes(run)
@@ -572,7 +579,7 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
         inner[0].set()
 
     # compiled before the API answers: a client that connects at once gets packets at once
-    warm_up_kernels(first, run_kw.get("model"))
+    warm_up_kernels(first, run_kw.get("model"), scn.sensor)
     warm_up_poses()
     api = SensorApi(first, http_host, http_port, on_reinit=on_reinit).start()
     if on_api is not None:

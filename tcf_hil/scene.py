@@ -34,7 +34,7 @@ from tcf_hil.forest import Forest, stem_mesh, terrain_mesh
 
 if TYPE_CHECKING:
     from emulators.embree import DirectScene
-    from emulators.lidar import FastRayScene
+    from emulators.lidar import FastRayScene, Surfaces
 
 FloatArray = NDArray[np.float64]
 
@@ -365,6 +365,8 @@ class Scene:
     caster: Caster
     _sid_of_prim: tuple[NDArray[np.int32], NDArray[np.int32]] | None = field(
         default=None, init=False, repr=False, compare=False)
+    _surfaces: tuple[NDArray[np.int32], Surfaces] | None = field(
+        default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def from_forest(cls, forest: Forest, backend: str = AUTO,
@@ -428,6 +430,22 @@ class Scene:
         if ds is None:
             return None
         return ds.intersect, ds.handle, self._stem_table()
+
+    def surfaces(self) -> Surfaces:
+        """For the physical sensor model: the stem id, unit normal and material of every
+        triangle (terrain ground, stems bark), and the caster's casts that answer triangles
+        (:class:`emulators.lidar.Surfaces`)."""
+        from emulators.lidar import Surfaces
+
+        if self._surfaces is None or self._surfaces[0] is not self.stem_id:
+            v = self.vertices[self.faces]
+            n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+            n /= np.maximum(np.linalg.norm(n, axis=1), 1e-30)[:, None]
+            mat = np.append(np.where(self.stem_id > 0, 1, 0), 0).astype(np.uint8)
+            self._surfaces = (self.stem_id, Surfaces(
+                self._stem_table(), n.astype(np.float32), mat, self.caster.cast,
+                self.caster.cast1))
+        return self._surfaces[1]
 
     def _stem_table(self) -> NDArray[np.int32]:
         """Stem id by triangle, then -1 last: a miss (triangle -1) looks itself up."""

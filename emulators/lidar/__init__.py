@@ -16,11 +16,25 @@ from emulators.lidar._os0 import (
     fast_scene,
     warm_up,
 )
+from emulators.lidar._physics import (
+    DEFAULT_SENSOR,
+    MATERIALS,
+    SENSOR_PRESETS,
+    SIGNAL_MULTIPLIERS,
+    Physics,
+    Reflectance,
+    SensorModel,
+    Surfaces,
+)
 from emulators.lidar._sensor import IMU_PERIOD_NS, ImuSource, Os0Sensor, SensorFrame
 from emulators.lidar._stream import Datagram, PacedSender, Route, SendStats
 
 __all__ = [
+    "DEFAULT_SENSOR",
     "IMU_PERIOD_NS",
+    "MATERIALS",
+    "SENSOR_PRESETS",
+    "SIGNAL_MULTIPLIERS",
     "Datagram",
     "DensePoseSource",
     "FastRayScene",
@@ -29,14 +43,18 @@ __all__ = [
     "Os0Emulator",
     "Os0Sensor",
     "PacedSender",
+    "Physics",
     "PosePieces",
     "PoseSource",
     "RayScene",
+    "Reflectance",
     "ReturnModel",
     "Route",
     "SendStats",
     "SensorApi",
     "SensorFrame",
+    "SensorModel",
+    "Surfaces",
     "carried_range_m",
     "fast_scene",
     "warm_up",

@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from emulators.jit import jit_enabled
 from emulators.lidar._kernel import answer_kernel, frames_kernel, fused_kernel, rays_kernel
+from emulators.lidar._physics import Physics, SensorModel, Surfaces
 from protocols.ouster import (
     Field,
     PacketFormat,
@@ -76,6 +77,12 @@ class FastRayScene(RayScene, Protocol):
         """The Embree scene the compiled kernel casts through itself, or None."""
         ...
 
+    def surfaces(self) -> Surfaces | None:
+        """What the triangles a cast hits are (stem, normal, material) and casts that answer
+        triangles, for the physical sensor model; or None (then the hits are stem ids, seen
+        square on, bark or ground)."""
+        ...
+
 
 class _CastOnly:
     """A :class:`RayScene` that declares nothing more, as a :class:`FastRayScene`: cast
@@ -96,6 +103,9 @@ class _CastOnly:
         return np.asarray(t, np.float32), np.asarray(sid, np.int32)
 
     def direct(self) -> DirectCast | None:
+        return None
+
+    def surfaces(self) -> Surfaces | None:
         return None
 
 
@@ -224,6 +234,9 @@ class _Nothing:
         e = self._embree
         return None if e is None else (e.intersect, e.handle, np.array([0, -1], np.int32))
 
+    def surfaces(self) -> Surfaces | None:
+        return None
+
 
 class _Still:
     """A sensor that never moves."""
@@ -232,13 +245,15 @@ class _Still:
         return np.zeros((len(t_ns), 3)), np.tile(np.eye(3), (len(t_ns), 1, 1))
 
 
-def warm_up(meta: SensorMetadata, model: ReturnModel | None = None) -> None:
+def warm_up(meta: SensorMetadata, model: ReturnModel | None = None,
+            sensor: SensorModel | None = None) -> None:
     """Compile the emulator's kernels (numba; or load them from its on-disk cache) for this
     sensor and return model now, not in the first frame of a live stream (seconds, the first
     time on a machine): one frame of a still sensor in an empty scene, cast by the scene
     (open3d's way) and through a directly bound Embree scene (the fused kernel)."""
     for embree in (False, True):
-        Os0Emulator(meta, _Nothing(embree), _Still(), model, threads=1).frame(0)
+        Os0Emulator(meta, _Nothing(embree), _Still(), model, threads=1,
+                    sensor=sensor).frame(0)
 
 
 def carried_range_m(fmt: PacketFormat) -> float:
@@ -296,8 +311,17 @@ class Os0Emulator:
 
     def __init__(self, meta: SensorMetadata, scene: RayScene, poses: PoseSource,
                  model: ReturnModel | None = None, *, seed: int = 0,
-                 start_ns: int = 1_000_000_000, threads: int | None = None) -> None:
+                 start_ns: int = 1_000_000_000, threads: int | None = None,
+                 sensor: SensorModel | None = None) -> None:
+        """``sensor``: the physical sensor model (:mod:`emulators.lidar._physics`); None or an
+        ideal one: one exact ray per pixel answered by ``model``."""
         self.meta = meta
+        self.sensor = sensor
+        if sensor is not None and sensor.ideal and model is None:
+            model = ReturnModel(min_range_m=sensor.min_range_m, ambient=sensor.ambient,
+                                reflectance={"ground": sensor.reflectance.ground,
+                                             "bark": sensor.reflectance.bark})
+        self._seed = seed
         self.scene = scene
         self.poses = poses
         self._scene = fast_scene(scene)
@@ -333,6 +357,16 @@ class Os0Emulator:
         self._refl_signal = refl * m.signal_scale
         self._reach = [float(m.max_range_m * min(1.0, math.sqrt(r / m.reference_reflectance)))
                        for r in refl[1:]]
+        self._min_r = m.min_range_m
+        self.physics: Physics | None = None
+        if sensor is not None and not sensor.ideal:
+            carried = carried_range_m(self._fmt)
+            self.physics = Physics(sensor, meta.mode, carried)
+            # the cast keeps every hit the profile can carry; the physics answers them
+            self._reach = [carried - 0.01, carried - 0.01]
+            self._min_r = 0.0
+        self._surfaces: Surfaces | None = None
+        self._surfaces_asked = False
         self._reflectivity = np.round(refl * 100.0).astype(np.uint32)
         nir = np.minimum(m.ambient * np.array([0.05, refl[1], refl[2]]), 65535.0
                          ).astype(np.uint32)
@@ -394,7 +428,7 @@ class Os0Emulator:
 
     def warm_up(self) -> None:
         """:func:`warm_up` for this sensor and return model."""
-        warm_up(self.meta, self.model)
+        warm_up(self.meta, self.model, self.sensor)
 
     def column_times(self, k: int) -> NDArray[np.int64]:
         return self._col_offsets + (self.start_ns + k * self.period_ns)
@@ -481,6 +515,11 @@ class Os0Emulator:
         if not self._direct_asked:
             self._direct = self._scene.direct()
             self._direct_asked = True
+            surfaces = self._scene_surfaces() if self.physics is not None else None
+            if self._direct is not None and surfaces is not None:  # answer triangles
+                n = len(surfaces.normals)
+                self._direct = (*self._direct[:2],
+                                np.append(np.arange(n, dtype=np.int32), np.int32(-1)))
         return self._direct
 
     def rays(self, k: int, dtype: type[np.floating] = np.float64
@@ -529,14 +568,16 @@ class Os0Emulator:
         arr = packets
         self._settle()
         pieces, ts = self._pose_pieces(k)
-        noise = (self.rng.normal(0.0, m.noise_sigma_m, (H, W)).T if m.noise_sigma_m > 0
-                 else None)
+        physics = self.physics
+        noise = (self.rng.normal(0.0, m.noise_sigma_m, (H, W)).T
+                 if m.noise_sigma_m > 0 and physics is None else None)
         dual = "RANGE2" in self.profile_fields  # only what the profile carries
+        keep = dual or physics is not None  # the rays and first hits, for what follows
         sid_out = np.empty((W, H), np.int32)  # column-major; stem_id is its transposed view
-        o_all = np.empty((W, H, 3), np.float32) if dual else None
-        d_all = np.empty((W, H, 3), np.float32) if dual else None
-        t_all = np.empty((W, H)) if dual else None
-        ok_all = np.empty((W, H), bool) if dual else None
+        o_all = np.empty((W, H, 3), np.float32) if keep else None
+        d_all = np.empty((W, H, 3), np.float32) if keep else None
+        t_all = np.empty((W, H)) if keep else None
+        ok_all = np.empty((W, H), bool) if keep else None
         mt, oc = np.empty((3, W, 3), np.float32), np.empty((W, 3), np.float32)
         job = _FrameJob(mt, oc, noise, sid_out, arr, self._views(arr), ts, o_all, d_all, t_all,
                         ok_all)
@@ -553,7 +594,11 @@ class Os0Emulator:
             else:
                 self._run(self._chunk, chunks)
         sid2 = None
-        if o_all is not None and d_all is not None and t_all is not None \
+        if physics is not None and o_all is not None and d_all is not None \
+                and t_all is not None and ok_all is not None:
+            sid_out, sid2 = self._physical(physics, k, arr, o_all, d_all, t_all, ok_all,
+                                           sid_out, dual)
+        elif o_all is not None and d_all is not None and t_all is not None \
                 and ok_all is not None:  # only what the profile carries
             second: dict[str, NDArray[np.uint32]] = {}
             sid2 = self._second_return(o_all.reshape(-1, 3), d_all.reshape(-1, 3), t_all.T,
@@ -561,6 +606,48 @@ class Os0Emulator:
             encode_pixel_fields(fmt, arr, 0, second)
         return FrameResult(k, ts.astype(np.uint64), sid_out.T, sid2, pos, rot, arr, fmt,
                            self._field_names)
+
+    def _scene_surfaces(self) -> Surfaces | None:
+        if not self._surfaces_asked:
+            self._surfaces = self._scene.surfaces()
+            self._surfaces_asked = True
+        return self._surfaces
+
+    def _physical(self, physics: Physics, k: int, arr: NDArray[np.uint8],
+                  o_all: NDArray[np.float32], d_all: NDArray[np.float32], t_all: FloatArray,
+                  ok_all: NDArray[np.bool_], hits: NDArray[np.int32], dual: bool
+                  ) -> tuple[NDArray[np.int32], NDArray[np.int32] | None]:
+        """The physical sensor's answer to frame k's first cast (``hits`` (W, H): the
+        triangle hit where the scene tells triangles, else the stem id; -1 none): every
+        pixel's fields rewritten into the packets. Returns the stem ids of the first and
+        (DUAL) second returns, (W, H) column-major."""
+        H, W = self.meta.pixels, self.meta.columns
+        surfaces = self._scene_surfaces()
+        cast = surfaces.cast if surfaces is not None else self._scene.cast
+        t = np.where(ok_all, t_all, np.inf).reshape(-1)
+        rng = np.random.default_rng([self._seed, 0x0501, k])
+        out = physics.respond(o_all.reshape(-1, 3), d_all.reshape(-1, 3), t, hits.reshape(-1),
+                              surfaces, cast, self.n_m, rng, (W, H), dual)
+        q = self.quantum_mm
+
+        def img(v: NDArray[Any]) -> NDArray[np.uint32]:
+            return np.ascontiguousarray(np.asarray(v).reshape(W, H).T).astype(np.uint32)
+
+        def mm(r: FloatArray) -> NDArray[np.uint32]:
+            return img(np.rint(r * (1000.0 / q)) * q)
+
+        nir = out["near_ir"]
+        if self.meta.profile == "RNG15_RFL8_NIR8":
+            nir = np.minimum(nir, 4080) // 16 * 16
+        fields = {"RANGE": mm(out["range_m"]), "REFLECTIVITY": img(out["reflectivity"]),
+                  "NEAR_IR": img(nir), "SIGNAL": img(out["signal"])}
+        if dual:
+            fields |= {"RANGE2": mm(out["range_m2"]), "REFLECTIVITY2": img(out["reflectivity2"]),
+                       "SIGNAL2": img(out["signal2"])}
+        encode_pixel_fields(self._fmt, arr, 0, {n: v for n, v in fields.items()
+                                                if n in self.profile_fields})
+        sid2 = out["sid2"].reshape(W, H).T if dual else None  # (H, W), as FrameResult's
+        return out["sid"].reshape(W, H), sid2
 
     def _poses(self, job: _FrameJob, pieces: PosePieces | None) -> tuple[FloatArray, FloatArray]:
         """The frame's column poses (from ``pieces``, or exact), and from them its ray
@@ -646,7 +733,9 @@ class Os0Emulator:
             o = np.empty((n, H, 3), np.float32)
             d = np.empty_like(o)
         self._make_rays(job.mt, job.oc, a, o, d)
-        t32, sid_cm = self._scene.cast32(o.reshape(-1, 3), d.reshape(-1, 3))
+        surfaces = self._scene_surfaces() if self.physics is not None else None
+        cast32 = surfaces.cast1 if surfaces is not None else self._scene.cast32
+        t32, sid_cm = cast32(o.reshape(-1, 3), d.reshape(-1, 3))
         t = np.asarray(t32, np.float32).reshape(n, H)  # column-major, as cast
         sid = np.asarray(sid_cm, np.int32).reshape(n, H)
         kernel = answer_kernel() if self.jit else None
@@ -682,7 +771,7 @@ class Os0Emulator:
         none2 = np.zeros((0, 0))
         words = [v[a // C:b // C] for v in job.views[:-1]]
         return (job.noise[a:b] if job.noise is not None else none2, a,
-                self.n_m, self.model.min_range_m, self._reach[0], self._reach[1],
+                self.n_m, self._min_r, self._reach[0], self._reach[1],
                 self._range_units, self._range_mult, k["luts"], self._signal32,
                 k["clamp"], *words[:3], words[3] if len(words) == 4 else words[2][:0],
                 k["words"][0] == k["words"][1], job.sid,
@@ -693,7 +782,6 @@ class Os0Emulator:
                       sid: NDArray[np.int32]) -> None:
         """The compiled kernel's work in numpy (where numba is missing; the tests hold the
         two to the same bytes): ``t``/``sid`` (n, H), column-major as the packets."""
-        m = self.model
         H, n = self.meta.pixels, b - a
         fmt = self._fmt
         C = fmt.columns_per_packet
@@ -702,7 +790,7 @@ class Os0Emulator:
         if job.noise is not None:
             tt += job.noise[a:b]
         r = tt + self.n_m
-        ok = r >= m.min_range_m
+        ok = r >= self._min_r
         bark = sid > 0
         if self._reach[0] == self._reach[1]:
             ok &= r <= self._reach[0]

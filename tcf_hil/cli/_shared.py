@@ -143,11 +143,28 @@ def blame(scenario_name: str) -> Iterator[None]:
         raise ConfigError(err.key, err.value, err.allowed, scenario_name) from err
 
 
-def scenario_with_faults(name: str, faults: Sequence[str], seed: int | None = None) -> Any:
+def scenario_with_faults(name: str, faults: Sequence[str], seed: int | None = None,
+                         sensor: str | None = None) -> Any:
+    """The scenario with the --fault options applied and the --sensor preset (None: its
+    own ``[sensor]``)."""
     from tcf_hil.faults import apply_fault_options
-    from tcf_hil.scenario import load_scenario
+    from tcf_hil.scenario import load_scenario, with_sensor
 
-    return apply_fault_options(load_scenario(name, seed=seed), faults)
+    return with_sensor(apply_fault_options(load_scenario(name, seed=seed), faults), sensor)
+
+
+SENSOR_NAMES: tuple[str, ...] = ("os0-64-rev7", "os0-64-rev6", "ideal")
+"""The sensor presets (:data:`emulators.lidar.SENSOR_PRESETS`; a test holds them together
+without importing the emulator here)."""
+
+
+def sensor_option(f: Callable[..., Any]) -> Callable[..., Any]:
+    """--sensor PRESET: the lidar's physics, over the scenario's own ``[sensor]``."""
+    return click.option(
+        "--sensor", "sensor", type=click.Choice(SENSOR_NAMES), default=None,
+        help="Sensor physics preset instead of the scenario's [sensor] (ideal unless it "
+        "says otherwise, for now): os0-64-rev7 (beam footprint, noise, reach by "
+        "reflectance), os0-64-rev6, or ideal (exact pencil rays, no noise).")(f)
 
 
 # ----------------------------------------------------------------------------- progress

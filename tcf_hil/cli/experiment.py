@@ -23,8 +23,9 @@ from tcf_hil.cli._shared import (
     err_console,
     mode_option,
     preset_option,
+    sensor_option,
 )
-from tcf_hil.scenario import PRESET_NAMES, load_scenario, preset_name
+from tcf_hil.scenario import PRESET_NAMES, load_scenario, preset_name, with_sensor
 
 
 @click.group(cls=Group)
@@ -181,6 +182,7 @@ def _sweep_options(f: Any) -> Any:
                      "default: 0.1-1 GB per cell; can.log and the SIC's output stay)."),
         click.option("--frames", type=click.IntRange(min=1), default=None,
                      help="Only the first N lidar frames of each track (quick looks)."),
+        sensor_option,
         click.option("--out", type=click.Path(file_okay=False, path_type=Path),
                      required=True, help="Output directory; a rerun skips finished cells."),
     ]
@@ -213,7 +215,7 @@ def _finish(outcome: Any, out: Path) -> None:
 @_sweep_options
 def paper_cmd(forests: str, modes: str, seeds: int, sic: str, presets: tuple[str, ...],
               executor: str, workers: int | None, speed: float, keep_pcap: bool,
-              frames: int | None, out: Path) -> None:
+              frames: int | None, sensor: str | None, out: Path) -> None:
     """The paper's Experiments 2-5 on the wire over Forests I-X.
 
     Every cell (forest x mode x seed) goes through the whole wire path: the emulator's
@@ -241,7 +243,7 @@ def paper_cmd(forests: str, modes: str, seeds: int, sic: str, presets: tuple[str
     for name in names:
         base = load_scenario(name)
         for k in range(seeds):
-            scn = load_scenario(name, seed=base.seed + k)
+            scn = with_sensor(load_scenario(name, seed=base.seed + k), sensor)
             for mode in mode_list:
                 for preset in (presets or ("tuned",)) if sic == "reference" else ("",):
                     cells.append(make_cell(scn, mode, sic=sic, preset=preset or "tuned",
@@ -268,7 +270,8 @@ def paper_cmd(forests: str, modes: str, seeds: int, sic: str, presets: tuple[str
 @_sweep_options
 def passes_cmd(forest_name: str, pass_list: str, offset: float | None, mode: str, seeds: int,
                sic: str, presets: tuple[str, ...], executor: str, workers: int | None,
-               speed: float, keep_pcap: bool, frames: int | None, out: Path) -> None:
+               speed: float, keep_pcap: bool, frames: int | None, sensor: str | None,
+               out: Path) -> None:
     """Multi-pass scanning: the same forest driven in 1, 2, 3 ... passes along a strip road.
 
     Further passes run on further strip roads, --offset to the left (U-turns between
@@ -295,7 +298,7 @@ def passes_cmd(forest_name: str, pass_list: str, offset: float | None, mode: str
     base = load_scenario(name)
     cells = []
     for k in range(seeds):
-        scn = load_scenario(name, seed=base.seed + k)
+        scn = with_sensor(load_scenario(name, seed=base.seed + k), sensor)
         for n in counts:
             multi = with_passes(scn, n, offset, counts[-1])
             for preset in (presets or ("tuned",)) if sic == "reference" else ("tuned",):
@@ -372,11 +375,12 @@ def _floats_list(text: str, name: str) -> tuple[float, ...]:
               help="Frames per combination (default: 300; 100 quick).")
 @click.option("--whole-track", is_flag=True, help="Every frame of the track (overrides --frames).")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Override the seed.")
+@sensor_option
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output directory: bench.md, bench.csv, bench.json, pareto.png.")
 def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerances: str | None,
               backends: str | None, presets: str | None, frames: int | None, whole_track: bool,
-              seed: int | None, out: Path) -> None:
+              seed: int | None, sensor: str | None, out: Path) -> None:
     """Speed against error, side by side in one run.
 
     For every lidar mode x stem tessellation tolerance x ray backend, the emulator runs the
@@ -400,7 +404,7 @@ def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerance
         else g.tolerances_mm,
         backends=tuple(b.strip() for b in backends.split(",")) if backends else g.backends,
         presets=tuple(p.strip() for p in presets.split(",")) if presets else g.presets,
-        frames=None if whole_track else (frames or g.frames))
+        frames=None if whole_track else (frames or g.frames), sensor=sensor)
     bad = [b for b in grid.backends if b not in BACKEND_CHOICES]
     bad += [p for p in grid.presets if p not in ("tuned", "paper")]
     if bad or "sampled" in grid.modes:

@@ -23,6 +23,7 @@ from tcf_hil.cli._shared import (
     profile_option,
     scenario_with_faults,
     seed_option,
+    sensor_option,
 )
 
 
@@ -42,10 +43,10 @@ def _sensor_options(f: Callable[..., Any]) -> Callable[..., Any]:
 @click.option("--backend", type=click.Choice(BACKEND_CHOICES), default="auto", show_default=True,
               help="Ray casting backend: auto takes Embree where it exists, else open3d, "
               "else trimesh (pure numpy, slow), and says so.")
-@click.option("--noise", type=click.FloatRange(min=0), default=0.0, show_default=True,
-              help="Range noise sigma (m).")
-@click.option("--max-range", type=click.FloatRange(min=0, min_open=True), default=50.0,
-              show_default=True, help="Range cap (m), as the paper.")
+@click.option("--noise", type=click.FloatRange(min=0), default=None,
+              help="With --sensor ideal: Gaussian range noise sigma (m; default 0).")
+@click.option("--max-range", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="With --sensor ideal: range cap (m; default 50, as the paper).")
 @click.option("--frames", type=click.IntRange(min=1), default=None,
               help="Stop after this many frames (default: the whole track).")
 @click.option("--mtu", type=click.IntRange(min=68), default=1500, show_default=True,
@@ -53,9 +54,10 @@ def _sensor_options(f: Callable[..., Any]) -> Callable[..., Any]:
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output directory.")
 @fault_option
+@sensor_option
 def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, backend: str,
-               noise: float, max_range: float, frames: int | None, mtu: int,
-               out: Path, faults: tuple[str, ...]) -> None:
+               noise: float | None, max_range: float | None, frames: int | None, mtu: int,
+               out: Path, faults: tuple[str, ...], sensor: str | None) -> None:
     """Drive the sensor along the scenario's track, as fast as the machine allows.
 
     Writes lidar.pcap (lidar UDP to 7502, LEGACY IMU to 7503 at 100 Hz, from 127.0.0.1),
@@ -67,9 +69,16 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
     from emulators.lidar import ReturnModel
     from tcf_hil.lidar import record_pcap
 
-    scn = scenario_with_faults(scenario_name, faults)
+    scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     announce_backend(backend)
-    model = ReturnModel(noise_sigma_m=noise, max_range_m=max_range)
+    model = None
+    if noise is not None or max_range is not None:
+        if not scn.sensor.ideal:
+            raise click.BadParameter(f"applies to --sensor ideal, not {scn.sensor.preset} "
+                                     "(whose noise and reach are physics)",
+                                     param_hint="--noise/--max-range")
+        model = ReturnModel(noise_sigma_m=noise or 0.0,
+                            max_range_m=50.0 if max_range is None else max_range)
     with blame(scenario_name), Progress(f"{scn.name} {mode} {profile}") as bar:
         r = record_pcap(scn, out, mode=mode, profile=profile, seed=seed, backend=backend,
                         model=model, max_frames=frames, mtu=mtu, progress=bar.counter)
@@ -103,10 +112,12 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
 @click.option("--http-address", default=None,
               help="Address of the HTTP API (default: the sensor address).")
 @fault_option
+@sensor_option
 def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
                  sensor_address: str, dest: str, lidar_port: int, imu_port: int, speed: float,
                  frames: int | None, record: Path | None, http_port: int | None,
-                 http_address: str | None, faults: tuple[str, ...]) -> None:
+                 http_address: str | None, faults: tuple[str, ...], sensor: str | None
+                 ) -> None:
     """Stream the emulated OS0-64 live over UDP until the track ends or Ctrl-C.
 
     \b
@@ -120,7 +131,7 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     from tcf_hil.endpoints import claim_sensor_host
     from tcf_hil.lidar import RecordResult
 
-    scn = scenario_with_faults(scenario_name, faults)
+    scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     announce_backend()
     claims = contextlib.ExitStack()
     linger = http_port is not None  # an API asked for stays up after the track until Ctrl-C

@@ -25,6 +25,7 @@ from tcf_hil.cli._shared import (
     run_dir_option,
     scenario_with_faults,
     seed_option,
+    sensor_option,
 )
 
 _STOP_RUN = "stopping the run: closing the recording and scoring what was published"
@@ -131,10 +132,11 @@ def demo(out: Path | None, seed: int | None, preset: str) -> None:
                                                          path_type=Path), default=None,
               help="Send a recorded run's traffic instead of the live emulators.")
 @fault_option
+@sensor_option
 def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, profile: str,
             seed: int | None, out: Path | None, speed: float, duration: float | None,
             can_spec: str, grace: float, ready_s: float, replay_dir: Path | None,
-            faults: tuple[str, ...]) -> None:
+            faults: tuple[str, ...], sensor: str | None) -> None:
     """A hardware-in-the-loop run of an onboard SIC program against SCENARIO.
 
     \b
@@ -175,7 +177,7 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
         return
     if scenario_name is None:
         raise click.UsageError("give a SCENARIO (a preset name or TOML file) or --replay RUN_DIR")
-    scn = scenario_with_faults(scenario_name, faults)
+    scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     announce_backend()
     finish(_session(lambda stop, say, step: run_bridge(
         scn, command, out, mode=mode, profile=profile, seed=seed, speed=speed,
@@ -249,8 +251,10 @@ def sic_cmd(ctx: click.Context) -> None:
               help="Memory growth after the warm-up (%) above which the soak fails.")
 @run_dir_option("Run directory (default ./runs/soak-<UTC time stamp>/).")
 @fault_option
+@sensor_option
 def soak_cmd(scenario_name: str, minutes: float, mode: str, preset: str, seed: int | None,
-             max_growth: float, out: Path | None, faults: tuple[str, ...]) -> None:
+             max_growth: float, out: Path | None, faults: tuple[str, ...], sensor: str | None
+             ) -> None:
     """Run the whole bench live for --minutes with the reference SIC and watch it.
 
     \b
@@ -265,7 +269,7 @@ def soak_cmd(scenario_name: str, minutes: float, mode: str, preset: str, seed: i
     from tcf_hil._logs import library_logs
     from tcf_hil.soak import run_soak
 
-    scn = scenario_with_faults(scenario_name, faults)
+    scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     out = run_dir(out, "soak-")
     announce_backend()
     try:

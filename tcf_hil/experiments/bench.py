@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from tcf_hil._io import ensure_dir, write_bytes_atomic, write_json_atomic
-from tcf_hil.scenario import Scenario, load_scenario
+from tcf_hil.scenario import Scenario, load_scenario, with_sensor
 
 
 @dataclass(frozen=True)
@@ -34,6 +34,7 @@ class BenchGrid:
     presets: tuple[str, ...]
     frames: int | None  # None: the whole track
     error_frames: int = 2  # frames cast exactly for the range error
+    sensor: str | None = None  # a sensor preset over the forest's own [sensor]
 
 
 QUICK = BenchGrid("forest-ii", ("512x10",), (2.0, 10.0), ("embree", "open3d"),
@@ -74,7 +75,7 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
     from tcf_hil.recorder import score_forest
     from tcf_hil.stems_json import stem_table
 
-    base = load_scenario(grid.forest, seed=seed)
+    base = with_sensor(load_scenario(grid.forest, seed=seed), grid.sensor)
     rows: list[dict[str, Any]] = []
     notes = []
     backends = []

@@ -65,6 +65,7 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("preset", "reference SIC preset (tuned or paper); empty for another SIC"),
     ("profile", "lidar packet profile"),
     ("backend", "ray backend: auto (Embree where it exists), embree, open3d or trimesh"),
+    ("sensor", "sensor physics preset of the scenario's [sensor] (os0-64-rev7, ideal, ...)"),
     ("passes", "passes along the strip road"),
     ("status", "ok or failed"),
     ("error", "why the cell failed (one line); empty when ok"),
@@ -148,7 +149,8 @@ def _base_row(cell: Cell, scn: Scenario) -> dict[str, Any]:
     row: dict[str, Any] = dict.fromkeys(COLUMN_NAMES, "")
     row.update(cell=cell.id, forest=cell.forest, mode=cell.mode, seed=cell.seed, sic=cell.sic,
                preset=cell.preset if cell.sic == "reference" else "", profile=cell.profile,
-               backend=resolve_backend(cell.backend)[0], passes=scn.track.passes,
+               backend=resolve_backend(cell.backend)[0], sensor=scn.sensor.preset,
+               passes=scn.track.passes,
                worker=f"{socket.gethostname()}:{os.getpid()}")
     return row
 

@@ -10,6 +10,7 @@ from tcf_hil.scenario._load import (
     scenario_from_dict,
     scenario_to_dict,
     scenario_to_toml,
+    with_sensor,
 )
 from tcf_hil.scenario._model import (
     ClassMix,
@@ -50,4 +51,5 @@ __all__ = [
     "scenario_from_dict",
     "scenario_to_dict",
     "scenario_to_toml",
+    "with_sensor",
 ]

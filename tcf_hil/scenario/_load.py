@@ -141,6 +141,11 @@ def _validate(s: Scenario, source: str | None) -> None:
         raise bad("name", s.name, "1-64 characters of letters, digits, '-', '_', '.'")
     if not s.timestamp.strip():
         raise bad("timestamp", s.timestamp, "a non-empty string")
+    from emulators.lidar import SIGNAL_MULTIPLIERS
+
+    if s.sensor.signal_multiplier not in SIGNAL_MULTIPLIERS:
+        raise bad("sensor.signal_multiplier", s.sensor.signal_multiplier,
+                  "one of " + ", ".join(f"{v:g}" for v in SIGNAL_MULTIPLIERS))
     st = s.stems
     for key, (lo, hi) in (("stems.height_m", st.height_m), ("stems.lean_deg", st.lean_deg),
                           ("stems.sweep_m.S", st.sweep_m.S), ("stems.sweep_m.C", st.sweep_m.C),
@@ -243,9 +248,35 @@ def _load_dict(name_or_path: str, _seen: tuple[str, ...] = ()) -> tuple[dict[str
     return data, source
 
 
+def _sensor_preset(data: dict[str, Any], source: str | None) -> dict[str, Any]:
+    """``data`` with its ``[sensor]`` table laid over the preset it names."""
+    from emulators.lidar import SENSOR_PRESETS
+
+    sensor = data.get("sensor")
+    if not isinstance(sensor, dict) or "preset" not in sensor:
+        return data
+    name = sensor["preset"]
+    if not isinstance(name, str) or name not in SENSOR_PRESETS:
+        raise ConfigError("sensor.preset", name, "one of " + ", ".join(
+            repr(n) for n in SENSOR_PRESETS), source)
+    return {**data, "sensor": _merge(dataclasses.asdict(SENSOR_PRESETS[name]), sensor)}
+
+
+def with_sensor(scn: Scenario, preset: str | None) -> Scenario:
+    """``scn`` with the named sensor preset instead of its own ``[sensor]`` (None: as it
+    is): what ``--sensor PRESET`` does."""
+    from emulators.lidar import SENSOR_PRESETS
+
+    if preset is None:
+        return scn
+    if preset not in SENSOR_PRESETS:
+        raise ConfigError("--sensor", preset, "one of " + ", ".join(SENSOR_PRESETS))
+    return dataclasses.replace(scn, sensor=SENSOR_PRESETS[preset])
+
+
 def scenario_from_dict(data: dict[str, Any], source: str | None = None) -> Scenario:
     """Validate a parsed TOML document into a :class:`Scenario`."""
-    scn = _build(Scenario, data, "", source)
+    scn = _build(Scenario, _sensor_preset(data, source), "", source)
     _validate(scn, source)
     return scn
 
