@@ -41,7 +41,7 @@ rays, so every path gives the same bytes:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -147,10 +147,6 @@ SENSOR_PRESETS: dict[str, SensorModel] = {
 DEFAULT_SENSOR = "os0-64-rev7"
 
 
-def sensor_keys() -> tuple[str, ...]:
-    return tuple(f.name for f in fields(SensorModel))
-
-
 @dataclass(frozen=True)
 class Surfaces:
     """What a scene tells about the triangles its casts hit (``prim``, -1 a miss): the stem
@@ -202,7 +198,6 @@ class Physics:
         s_reach = math.exp(z * m.detection_width)  # a 10 % target at the reach
         self.scale = s_reach * m.reach_10pct_m ** 2 / 0.1
         self.gain = gain
-        self.s_ref = s_reach
         self.carried_m = carried_m
         self.sub_a, self.sub_b, self.sub_w = _sub_pattern(m.footprint_rays)
         self.fwhm_h = math.radians(m.divergence_h_deg)
