@@ -361,7 +361,9 @@ class Os0Emulator:
         self.physics: Physics | None = None
         if sensor is not None and not sensor.ideal:
             carried = carried_range_m(self._fmt)
-            self.physics = Physics(sensor, meta.mode, carried)
+            shift = np.asarray(meta.pixel_shift_by_row, np.int64)
+            self.physics = Physics(sensor, meta.mode, carried, (meta.columns, meta.pixels),
+                                   shift[:-1] - shift[1:], self.quantum_mm)
             # the cast keeps every hit the profile can carry; the physics answers them
             self._reach = [carried - 0.01, carried - 0.01]
             self._min_r = 0.0
@@ -621,33 +623,19 @@ class Os0Emulator:
         triangle hit where the scene tells triangles, else the stem id; -1 none): every
         pixel's fields rewritten into the packets. Returns the stem ids of the first and
         (DUAL) second returns, (W, H) column-major."""
-        H, W = self.meta.pixels, self.meta.columns
         surfaces = self._scene_surfaces()
         cast = surfaces.cast if surfaces is not None else self._scene.cast
         t = np.where(ok_all, t_all, np.inf).reshape(-1)
         rng = np.random.default_rng([self._seed, 0x0501, k])
+        physics.jit = self.jit
         out = physics.respond(o_all.reshape(-1, 3), d_all.reshape(-1, 3), t, hits.reshape(-1),
-                              surfaces, cast, self.n_m, rng, (W, H), dual)
-        q = self.quantum_mm
-
-        def img(v: NDArray[Any]) -> NDArray[np.uint32]:
-            return np.ascontiguousarray(np.asarray(v).reshape(W, H).T).astype(np.uint32)
-
-        def mm(r: FloatArray) -> NDArray[np.uint32]:
-            return img(np.rint(r * (1000.0 / q)) * q)
-
-        nir = out["near_ir"]
+                              surfaces, cast, self.n_m, rng, dual, self._run)
         if self.meta.profile == "RNG15_RFL8_NIR8":
-            nir = np.minimum(nir, 4080) // 16 * 16
-        fields = {"RANGE": mm(out["range_m"]), "REFLECTIVITY": img(out["reflectivity"]),
-                  "NEAR_IR": img(nir), "SIGNAL": img(out["signal"])}
-        if dual:
-            fields |= {"RANGE2": mm(out["range_m2"]), "REFLECTIVITY2": img(out["reflectivity2"]),
-                       "SIGNAL2": img(out["signal2"])}
-        encode_pixel_fields(self._fmt, arr, 0, {n: v for n, v in fields.items()
+            out["NEAR_IR"] = np.minimum(out["NEAR_IR"], 4080) // 16 * 16
+        encode_pixel_fields(self._fmt, arr, 0, {n: v for n, v in out.items()
                                                 if n in self.profile_fields})
-        sid2 = out["sid2"].reshape(W, H).T if dual else None  # (H, W), as FrameResult's
-        return out["sid"].reshape(W, H), sid2
+        sid2 = np.ascontiguousarray(out["sid2"].T) if dual else None  # (H, W), as FrameResult's
+        return out["sid"], sid2
 
     def _poses(self, job: _FrameJob, pieces: PosePieces | None) -> tuple[FloatArray, FloatArray]:
         """The frame's column poses (from ``pieces``, or exact), and from them its ray

@@ -41,8 +41,9 @@ rays, so every path gives the same bytes:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -178,11 +179,17 @@ def _sub_pattern(n: int) -> tuple[FloatArray, FloatArray, FloatArray]:
 
 
 class Physics:
-    """A :class:`SensorModel` prepared for one sensor mode (see the module doc)."""
+    """A :class:`SensorModel` prepared for one sensor mode and pixel grid (see the module
+    doc): ``shape`` (W, H), ``row_step`` (H - 1,) the column of beam h + 1's pixel nearest
+    in angle to column 0's of beam h (from the metadata's pixel shifts), ``quantum_mm`` the
+    profile's range quantum."""
 
     R_NEAR = 0.5  # signal stops growing nearer than this (the receiver saturates)
+    ORDERS: ClassVar[dict[str, int]] = {o: k for k, o in enumerate(RETURN_ORDERS)}
 
-    def __init__(self, model: SensorModel, mode: str, carried_m: float) -> None:
+    def __init__(self, model: SensorModel, mode: str, carried_m: float,
+                 shape: tuple[int, int] = (1024, 64), row_step: Any = None,
+                 quantum_mm: int = 1) -> None:
         self.model = m = model
         self.refl = m.reflectance.table()
         if m.signal_multiplier not in SIGNAL_MULTIPLIERS:
@@ -198,13 +205,23 @@ class Physics:
         s_reach = math.exp(z * m.detection_width)  # a 10 % target at the reach
         self.scale = s_reach * m.reach_10pct_m ** 2 / 0.1
         self.gain = gain
+        self.sg = self.scale * self.gain
         self.carried_m = carried_m
+        self.shape = shape
+        H = shape[1]
+        self.row_step = (np.zeros(H - 1, np.int64) if row_step is None
+                         else np.asarray(row_step, np.int64))
+        self.quantum_mm = quantum_mm
         self.sub_a, self.sub_b, self.sub_w = _sub_pattern(m.footprint_rays)
         self.fwhm_h = math.radians(m.divergence_h_deg)
         self.fwhm_v = math.radians(m.divergence_v_deg)
+        self.off_a = self.sub_a * self.fwhm_h  # sub-ray offsets in radians
+        self.off_b = self.sub_b * self.fwhm_v
         # photons: SIGNAL written as counts; one signal unit at the threshold is this many
         self.photons = 5.0  # SIGNAL counts per threshold unit: see the README (anecdotal)
         self.far_m = min(carried_m, m.reach_80pct_m * math.sqrt(gain) * 1.5)
+        self.jit = True  # the compiled kernels (numba), where they can be had
+        self.last_flagged = 0  # pixels supersampled in the last frame
 
     # ---- the reach this model gives ---------------------------------------------------
     def reach_m(self, reflectance: float, probability: float = 0.5) -> float:
@@ -217,180 +234,293 @@ class Physics:
     # ---- one frame -------------------------------------------------------------------
     def respond(self, o: NDArray[np.float32], d: NDArray[np.float32], t: FloatArray,
                 prim: NDArray[np.int32], surfaces: Surfaces | None, cast: Any, n_m: float,
-                rng: np.random.Generator, shape: tuple[int, int], dual: bool
+                rng: np.random.Generator, dual: bool,
+                run: Callable[[Any, list[tuple[Any, ...]]], None] | None = None
                 ) -> dict[str, Any]:
         """The frame's returns from the centre cast: ``o``/``d`` (N, 3) column-major rays,
         ``t`` (N,) distances (inf: a miss), ``prim`` (N,) the triangle hit (or the stem id
         where the scene tells no triangles, ``surfaces`` None); ``cast`` casts float32 rays
-        to (distance, triangle or stem id as ``prim``); ``shape`` (W, H).
-        Returns images (W, H): ``range_m`` (0 none), ``signal``, ``reflectivity``,
-        ``near_ir``, ``sid`` (-1 none) and, with ``dual``, the same for the second return
-        (``range2_m``, ...)."""
+        to (distance, triangle or stem id as ``prim``); ``run(fn, calls)`` calls ``fn(*c)``
+        for each of ``calls``, spread over threads (here, by default).
+        Returns the pixel words as (H, W) uint32 images ``RANGE`` (mm, 0 none), ``SIGNAL``,
+        ``REFLECTIVITY``, ``NEAR_IR`` and, with ``dual``, ``RANGE2``, ``SIGNAL2``,
+        ``REFLECTIVITY2``; and the stem ids (W, H) ``sid`` (-1 none) and ``sid2``."""
         m = self.model
-        W, H = shape
+        W, H = self.shape
         N = W * H
-        sid, mat, cos = self._surface(prim, d, surfaces)
-        hit = np.isfinite(t) & (sid >= 0)
-        r = np.where(hit, t + n_m, np.inf)
-        energy = np.where(hit, self.refl[mat] * cos / np.maximum(r, self.R_NEAR) ** 2, 0.0)
-        # echoes: per pixel up to two (range, energy, sid); unflagged pixels have one
-        e1, r1, s1 = energy.copy(), r.copy(), np.where(hit, sid, -1)
-        e2 = np.zeros(N)
-        r2 = np.full(N, np.inf)
-        s2 = np.full(N, -1, np.int32)
-        flagged = self._flagged(r, sid, hit, W, H)
-        idx = np.flatnonzero(flagged)
-        if len(idx) and m.footprint_rays > 1:
-            fe, fr, fs = self._footprint(o, d, idx, surfaces, cast, n_m)
-            e1[idx], r1[idx], s1[idx] = fe[:, 0], fr[:, 0], fs[:, 0]
-            e2[idx], r2[idx], s2[idx] = fe[:, 1], fr[:, 1], fs[:, 1]
-        near_ir = np.where(hit, m.ambient * self.refl[mat], m.ambient * 0.05)
-        out = {"near_ir": np.minimum(near_ir, 65535.0)}
-        draws = rng.random((4, N))
-        noise = rng.standard_normal((2, N))
-        for k, (e, rr, ss) in enumerate(((e1, r1, s1), (e2, r2, s2))):
-            if k == 1 and not dual:
+        if run is None:
+            def run(fn: Any, calls: list[tuple[Any, ...]]) -> None:
+                for c in calls:
+                    fn(*c)
+        k = _kernels() if self.jit else None
+        surf = surfaces is not None
+        sop, mop, nrm = ((surfaces.stem_of_prim, surfaces.material_of_prim, surfaces.normals)
+                         if surfaces is not None else _NO_SURFACES)
+        parts = _parts(N, H, 8)
+        # 1. the centre rays' echoes
+        ss, r, e = np.empty(N, np.int32), np.empty(N), np.empty(N)
+        mat, cosi, nir = np.empty(N, np.uint8), np.empty(N), np.empty(N)
+        if k is not None:
+            run(k.centre_echoes, [(prim, t, d, sop, mop, nrm, self.refl, surf, n_m, self.R_NEAR,
+                                   m.ambient, a, b, ss, r, e, mat, cosi, nir)
+                                  for a, b in parts])
+        else:
+            self._centre_np(prim, t, d, sop, mop, nrm, surf, n_m, ss, r, e, mat, cosi, nir)
+        # 2. the footprint where it can straddle an edge
+        e1, r1, s1 = e.copy(), r.copy(), ss.copy()
+        e2, r2, s2 = np.zeros(N), np.full(N, np.inf), np.full(N, -1, np.int32)
+        flags = np.zeros((W, H), np.uint8)
+        if m.footprint == "full":
+            flags[:] = 1
+        elif m.footprint == "adaptive":
+            if k is not None:
+                k.flag_edges(ss.reshape(W, H), self.row_step, flags)
+            else:
+                self._flag_np(ss.reshape(W, H), flags)
+        idx = np.flatnonzero(flags.reshape(-1))
+        self.last_flagged = len(idx)
+        K = len(self.sub_w)
+        if len(idx) and K > 1:
+            oo = np.empty((len(idx) * (K - 1), 3), np.float32)
+            dd = np.empty((len(idx) * (K - 1), 3), np.float32)
+            if k is not None:
+                k.footprint_rays(o, d, idx, self.off_a, self.off_b, oo, dd)
+            else:
+                self._rays_np(o, d, idx, oo, dd)
+            ts, ps = cast(oo, dd)
+            ts = np.ascontiguousarray(ts, np.float64)
+            ps = np.ascontiguousarray(ps, np.int32)
+            args = (self.sub_w, ss, r, mat, cosi, ts, ps, dd, sop, mop, nrm, self.refl, surf,
+                    n_m, self.R_NEAR, m.range_resolution_m, self.ORDERS[m.return_order],
+                    e1, r1, s1, e2, r2, s2)
+            if k is not None:
+                run(k.footprint_echoes, [(idx, a, b, *args) for a, b in _parts(len(idx), 1, 8)])
+            else:
+                self._echoes_np(idx, *args)
+        # 3. detection, noise, the words
+        q = self.quantum_mm
+        out: dict[str, Any] = {"NEAR_IR": np.ascontiguousarray(
+            nir.reshape(W, H).T).astype(np.uint32)}
+        for n_ret, (ee, rr, sd) in enumerate(((e1, r1, s1), (e2, r2, s2))):
+            if n_ret == 1 and not dual:
                 break
-            sfx = "2" if k else ""
-            res = self._detect(e, rr, ss, draws[k], noise[k])
-            for name, v in res.items():
-                out[name + sfx] = v
+            u = rng.random(N)
+            z = rng.standard_normal(N)
+            words = [np.empty((H, W), np.uint32) for _ in range(3)]
+            sid_out = np.empty(N, np.int32)
+            args2 = (ee, rr, sd, u, z)
+            consts: tuple[Any, ...] = (
+                H, self.scale, self.gain, self.sg, m.detection_width, m.range_sigma_min_m,
+                m.range_sigma_m, m.range_sigma_exponent, m.min_range_m, self.carried_m,
+                self.photons, self.R_NEAR, q, *words, sid_out)
+            if k is not None:
+                run(k.detect, [(*args2, a, b, *consts) for a, b in parts])
+            else:
+                self._detect_np(*args2, *consts)
+            sfx = "2" if n_ret else ""
+            out["RANGE" + sfx], out["SIGNAL" + sfx], out["REFLECTIVITY" + sfx] = words
+            out["sid" + sfx] = sid_out.reshape(W, H)
         # ambient false returns, where no return was detected
         if m.false_positive_rate > 0:
-            fp = (out["range_m"] == 0) & (draws[2] < m.false_positive_rate)
-            if fp.any():
+            empty = np.flatnonzero(out["RANGE"].reshape(-1) == 0)
+            n_fp = int(rng.binomial(len(empty), m.false_positive_rate))
+            if n_fp:
+                at = empty[rng.choice(len(empty), n_fp, replace=False)]
                 lo = max(m.min_range_m, 0.0)
-                out["range_m"] = np.where(fp, lo + draws[3] * (self.far_m - lo), out["range_m"])
-                sig = self.threshold * self.photons
-                out["signal"] = np.where(fp, sig, out["signal"])
-                out["reflectivity"] = np.where(
-                    fp, self._reflectivity(np.full(N, self.threshold), out["range_m"]),
-                    out["reflectivity"])
+                rf = lo + rng.random(n_fp) * (self.far_m - lo)
+                rn = np.maximum(rf, self.R_NEAR)
+                for name, v in (("RANGE", np.rint(rf * (1000.0 / q)) * q),
+                                ("SIGNAL", np.full(n_fp, min(self.threshold * self.photons,
+                                                             65535.0))),
+                                ("REFLECTIVITY", np.clip(np.rint(
+                                    self.threshold * (rn * rn) / self.sg * 100.0), 0.0, 255.0))):
+                    out[name].reshape(-1)[at] = v.astype(np.uint32)
         return out
 
-    def _surface(self, prim: NDArray[np.int32], d: NDArray[np.float32],
-                 surfaces: Surfaces | None
-                 ) -> tuple[NDArray[np.int32], NDArray[np.intp], FloatArray]:
-        """Stem id, material index and |cos incidence| of each hit."""
-        if surfaces is None:
-            sid = prim.astype(np.int32)
-            mat = np.where(sid > 0, 1, 0)
-            return sid, mat, np.ones(len(sid))
-        sid = surfaces.stem_of_prim[prim]
-        mat = surfaces.material_of_prim[prim].astype(np.intp)
-        nrm = surfaces.normals[np.maximum(prim, 0)]
-        cos = np.abs(np.einsum("ij,ij->i", nrm, d, dtype=np.float64))
-        return sid, mat, np.minimum(cos, 1.0)
-
-    def _flagged(self, r: FloatArray, sid: NDArray[np.int32], hit: NDArray[np.bool_],
-                 W: int, H: int) -> NDArray[np.bool_]:
-        """Pixels (N,) whose footprint is sampled with sub-rays: ``adaptive``, those on an
-        object's edge - the centre ray of the pixel or of its neighbour (the next column,
-        wrapping; the next beam) hits another object, or nothing. Range jumps on one
-        continuous surface (grazing ground) are not edges: their sub-rays would merge into
-        one echo about the centre's range."""
-        m = self.model
-        if m.footprint == "off":
-            return np.zeros(W * H, bool)
-        if m.footprint == "full":
-            return np.ones(W * H, bool)
-        ss = np.where(hit, sid, -1).reshape(W, H)
-        out = np.zeros((W, H), bool)
-        edge = ss != np.roll(ss, -1, axis=0)  # column c against c + 1
-        out |= edge
-        out |= np.roll(edge, 1, axis=0)
-        edge = ss[:, 1:] != ss[:, :-1]  # beam h against h + 1
-        out[:, :-1] |= edge
-        out[:, 1:] |= edge
-        return out.reshape(-1)
-
-    def _footprint(self, o: NDArray[np.float32], d: NDArray[np.float32],
-                   idx: NDArray[np.intp], surfaces: Surfaces | None, cast: Any, n_m: float
-                   ) -> tuple[FloatArray, FloatArray, NDArray[np.int32]]:
-        """The two leading echoes (by return order) of each pixel in ``idx``: (M, 2) energy,
-        range, stem id."""
-        m = self.model
-        K = len(self.sub_w)
-        dd = d[idx].astype(np.float64)
-        e1 = np.stack([-dd[:, 1], dd[:, 0], np.zeros(len(dd))], axis=1)  # horizontal, ⟂ d
-        norm = np.linalg.norm(e1, axis=1)
-        e1[norm < 1e-9] = (1.0, 0.0, 0.0)
-        e1 /= np.maximum(np.linalg.norm(e1, axis=1), 1e-12)[:, None]
-        e2 = np.cross(dd, e1)
-        a = (self.sub_a * self.fwhm_h)[None, :, None]  # offsets in radians
-        b = (self.sub_b * self.fwhm_v)[None, :, None]
-        dirs = dd[:, None, :] + a * e1[:, None, :] + b * e2[:, None, :]
-        dirs /= np.linalg.norm(dirs, axis=2)[:, :, None]
-        oo = np.repeat(o[idx][:, None, :], K, axis=1)
-        t, prim = cast(oo.reshape(-1, 3).astype(np.float32),
-                       dirs.reshape(-1, 3).astype(np.float32))
-        t = np.asarray(t, np.float64).reshape(-1, K)
-        prim = np.asarray(prim, np.int32).reshape(-1)
-        sid, mat, cos = self._surface(prim, dirs.reshape(-1, 3).astype(np.float32), surfaces)
-        sid = sid.reshape(-1, K)
+    # ---- the numpy path: what the kernels of emulators.lidar._footprint compute -------
+    def _centre_np(self, prim: NDArray[np.int32], t: FloatArray, d: NDArray[np.float32],
+                   sop: Any, mop: Any, nrm: Any, surf: bool, n_m: float, ss: Any, r: Any,
+                   e: Any, mat: Any, cosi: Any, nir: Any) -> None:
+        sid, mt, cos = _surface_np(prim, d, sop, mop, nrm, surf)
         hit = np.isfinite(t) & (sid >= 0)
-        r = np.where(hit, t + n_m, np.inf)
-        e = np.where(hit, self.sub_w[None, :] * self.refl[mat].reshape(-1, K)
-                     * cos.reshape(-1, K) / np.maximum(r, self.R_NEAR) ** 2, 0.0)
-        # echoes: sort by range, split where the gap exceeds the range resolution
-        order = np.argsort(r, axis=1, kind="stable")
-        r = np.take_along_axis(r, order, 1)
-        e = np.take_along_axis(e, order, 1)
-        sid = np.take_along_axis(sid, order, 1)
+        rr = np.where(hit, t + n_m, np.inf)
+        rn = np.maximum(rr, self.R_NEAR)
+        ss[:] = np.where(hit, sid, -1)
+        r[:] = rr
+        e[:] = np.where(hit, self.refl[mt] * cos / (rn * rn), 0.0)
+        mat[:] = mt
+        cosi[:] = cos
+        amb = self.model.ambient
+        nir[:] = np.where(hit, np.minimum(amb * self.refl[mt], 65535.0),
+                          min(amb * 0.05, 65535.0))
+
+    def _flag_np(self, ss: NDArray[np.int32], out: NDArray[np.uint8]) -> None:
+        W, H = ss.shape
+        flag = out.view(bool)
+        edge = ss != np.roll(ss, -1, axis=0)  # column c against c + 1
+        flag |= edge | np.roll(edge, 1, axis=0)
+        cols = (np.arange(W)[:, None] + self.row_step[None, :]) % W  # (W, H - 1)
+        beams = np.broadcast_to(np.arange(1, H)[None, :], cols.shape)
+        edge = ss[:, :-1] != ss[cols, beams]  # beam h against h + 1 nearest in angle
+        flag[:, :-1] |= edge
+        flag[cols[edge], beams[edge]] = True
+
+    def _rays_np(self, o: NDArray[np.float32], d: NDArray[np.float32], idx: NDArray[np.intp],
+                 oo: NDArray[np.float32], dd: NDArray[np.float32]) -> None:
+        K = len(self.sub_w)
+        dx = d[idx].astype(np.float64)
+        ex = np.stack([-dx[:, 1], dx[:, 0], np.zeros(len(dx))], axis=1)  # horizontal, ⟂ d
+        nn = np.sqrt(ex[:, 0] * ex[:, 0] + ex[:, 1] * ex[:, 1] + ex[:, 2] * ex[:, 2])
+        ex[nn < 1e-9] = (1.0, 0.0, 0.0)
+        nn = np.maximum(np.sqrt(ex[:, 0] * ex[:, 0] + ex[:, 1] * ex[:, 1]
+                                + ex[:, 2] * ex[:, 2]), 1e-12)
+        ex /= nn[:, None]
+        fx = np.stack([dx[:, 1] * ex[:, 2] - dx[:, 2] * ex[:, 1],
+                       dx[:, 2] * ex[:, 0] - dx[:, 0] * ex[:, 2],
+                       dx[:, 0] * ex[:, 1] - dx[:, 1] * ex[:, 0]], axis=1)
+        a = self.off_a[None, 1:, None]
+        b = self.off_b[None, 1:, None]
+        v = dx[:, None, :] + a * ex[:, None, :] + b * fx[:, None, :]
+        n = np.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])
+        dd[:] = (v / n[..., None]).reshape(-1, 3)
+        oo[:] = np.repeat(o[idx], K - 1, axis=0)
+
+    def _echoes_np(self, idx: NDArray[np.intp], w: FloatArray, ss: Any, r: Any, mat: Any,
+                   cosi: Any, ts: FloatArray, ps: NDArray[np.int32], dd: NDArray[np.float32],
+                   sop: Any, mop: Any, nrm: Any, refl: FloatArray, surf: bool, n_m: float,
+                   r_near: float, resolution: float, order: int, e1: Any, r1: Any, s1: Any,
+                   e2: Any, r2: Any, s2: Any) -> None:
+        K = len(w)
         M = len(idx)
+        sid, mt, cos = _surface_np(ps, dd, sop, mop, nrm, surf)
+        hit = np.isfinite(ts) & (sid >= 0)
+        rr = np.where(hit, ts + n_m, np.inf)
+        rn = np.maximum(rr, r_near)
+        ee = np.where(hit, np.repeat(w[None, 1:], M, 0).reshape(-1) * refl[mt] * cos
+                      / (rn * rn), 0.0)
+        c_hit = ss[idx] >= 0
+        rc = np.maximum(r[idx], r_near)
+        ec = np.where(c_hit, w[0] * refl[mat[idx]] * cosi[idx] / (rc * rc), 0.0)
+        rk = np.concatenate([np.where(c_hit, r[idx], np.inf)[:, None], rr.reshape(M, K - 1)], 1)
+        ek = np.concatenate([ec[:, None], ee.reshape(M, K - 1)], 1)
+        sk = np.concatenate([np.where(c_hit, ss[idx], -1)[:, None],
+                             np.where(hit, sid, -1).reshape(M, K - 1)], 1)
+        # echoes: sort by range, split where the gap exceeds the range resolution
+        srt = np.argsort(rk, axis=1, kind="stable")
+        rk = np.take_along_axis(rk, srt, 1)
+        ek = np.take_along_axis(ek, srt, 1)
+        sk = np.take_along_axis(sk, srt, 1)
         new = np.ones((M, K), bool)
         with np.errstate(invalid="ignore"):  # inf - inf: misses, each its own "echo"
-            new[:, 1:] = ~(np.diff(r, axis=1) <= m.range_resolution_m)
+            new[:, 1:] = ~(np.diff(rk, axis=1) <= resolution)
         group = np.cumsum(new, axis=1) - 1  # echo index within the pixel
         flat = (np.arange(M)[:, None] * K + group).reshape(-1)
-        valid = np.isfinite(r).reshape(-1)
-        ge: FloatArray = np.asarray(np.bincount(flat[valid], e.reshape(-1)[valid], M * K),
-                                    np.float64).reshape(M, K)
-        ger = np.bincount(flat[valid], (e * np.where(np.isfinite(r), r, 0.0)).reshape(-1)[valid],
-                          M * K).reshape(M, K)
-        # each echo's stem id: that of its strongest hit
+        valid = np.isfinite(rk).reshape(-1)
+        ge = np.zeros(M * K)
+        ger = np.zeros(M * K)
+        np.add.at(ge, flat[valid], ek.reshape(-1)[valid])  # in order: as the kernel sums
+        np.add.at(ger, flat[valid], (ek * np.where(np.isfinite(rk), rk, 0.0)).reshape(-1)[valid])
+        # each echo's stem id: that of its strongest hit, the nearest on a tie
         best = np.full(M * K, -1.0)
-        np.maximum.at(best, flat[valid], e.reshape(-1)[valid])
-        is_best = valid & (e.reshape(-1) == best[flat]) & (e.reshape(-1) > 0)
+        np.maximum.at(best, flat[valid], ek.reshape(-1)[valid])
+        is_best = valid & (ek.reshape(-1) == best[flat]) & (ek.reshape(-1) > 0)
         gs = np.full(M * K, -1, np.int32)
-        gs[flat[is_best][::-1]] = sid.reshape(-1)[is_best][::-1]  # the nearest on a tie
-        gsk = gs.reshape(M, K)
+        gs[flat[is_best][::-1]] = sk.reshape(-1)[is_best][::-1]
+        ge2, ger2, gs2 = ge.reshape(M, K), ger.reshape(M, K), gs.reshape(M, K)
         with np.errstate(invalid="ignore", divide="ignore"):
-            gr = np.where(ge > 0, ger / np.where(ge > 0, ge, 1.0), np.inf)
-        if m.return_order == "STRONGEST_TO_WEAKEST":
-            key = -ge
-        elif m.return_order == "NEAREST_TO_FARTHEST":
-            key = np.where(ge > 0, gr, np.inf)
+            gr = np.where(ge2 > 0, ger2 / np.where(ge2 > 0, ge2, 1.0), np.inf)
+        if order == 0:
+            key = -ge2
+        elif order == 1:
+            key = np.where(ge2 > 0, gr, np.inf)
         else:
-            key = np.where(ge > 0, -gr, np.inf)
+            key = np.where(ge2 > 0, -gr, np.inf)
         rank = np.argsort(key, axis=1, kind="stable")[:, :2]
         rows = np.arange(M)[:, None]
-        return ge[rows, rank], gr[rows, rank], gsk[rows, rank]
+        for n_ret, (ea, ra, sa) in enumerate(((e1, r1, s1), (e2, r2, s2))):
+            pick = rank[:, n_ret:n_ret + 1]
+            ea[idx], ra[idx], sa[idx] = ge2[rows, pick][:, 0], gr[rows, pick][:, 0], \
+                gs2[rows, pick][:, 0]
 
-    def _detect(self, e: FloatArray, r: FloatArray, sid: NDArray[np.int32],
-                u: FloatArray, z: FloatArray) -> dict[str, Any]:
-        """One return per pixel from echoes of energy ``e`` at range ``r``."""
-        m = self.model
-        s = e * self.scale * self.gain  # signal units: 1 at the median threshold
+    def _detect_np(self, e: FloatArray, r: FloatArray, sid: NDArray[np.int32], u: FloatArray,
+                   z: FloatArray, H: int, scale: float, gain: float, sg: float, width: float,
+                   sigma_min: float, sigma0: float, exponent: float, min_r: float,
+                   max_r: float, photons: float, r_near: float, q: int,
+                   w_range: NDArray[np.uint32], w_signal: NDArray[np.uint32],
+                   w_refl: NDArray[np.uint32], sid_out: NDArray[np.int32]) -> None:
+        W = len(e) // H
+        s = e * scale * gain
         with np.errstate(divide="ignore"):
-            ls = np.log(np.where(s > 0, s, 1e-300))
-        p = _norm_cdf(ls / m.detection_width)
-        ok = (s > 0) & (u < p)
-        sigma = np.maximum(m.range_sigma_min_m, m.range_sigma_m * np.where(ok, s, 1.0)
-                           ** -m.range_sigma_exponent)
+            ls = np.log(np.where(s > 0, s, 1.0))
+        ok = (s > 0) & (u < _norm_cdf(ls / width))
+        sigma = np.maximum(sigma_min, sigma0 * np.where(ok, s, 1.0) ** -exponent)
         rr = np.where(ok, r + z * sigma, 0.0)
-        ok &= (rr >= m.min_range_m) & (rr <= self.carried_m)
-        rr = np.where(ok, rr, 0.0)
-        return {"range_m": rr, "signal": np.where(ok, np.minimum(s * self.photons, 65535.0),
-                                                   0.0),
-                "reflectivity": np.where(ok, self._reflectivity(s, rr), 0.0),
-                "sid": np.where(ok, sid, -1).astype(np.int32)}
+        ok &= (rr >= min_r) & (rr <= max_r)
+        rn = np.maximum(rr, r_near)
 
-    def _reflectivity(self, s: FloatArray, r: FloatArray) -> FloatArray:
-        """The calibrated reflectivity the sensor infers: 100 for a square-on full hit of a
-        reflectance-1 lambertian target (Ouster's scale: 0..100 lambertian, 8 bits)."""
-        rho = s * np.maximum(r, self.R_NEAR) ** 2 / (self.scale * self.gain)
-        return np.clip(np.rint(rho * 100.0), 0.0, 255.0)
+        def img(v: FloatArray) -> NDArray[np.uint32]:
+            return np.ascontiguousarray(np.where(ok, v, 0.0).reshape(W, H).T).astype(np.uint32)
+
+        w_range[:] = img(np.rint(rr * (1000.0 / q)) * q)
+        w_signal[:] = img(np.minimum(s * photons, 65535.0))
+        w_refl[:] = img(np.minimum(np.maximum(np.rint(s * (rn * rn) / sg * 100.0), 0.0),
+                                   255.0))
+        sid_out[:] = np.where(ok, sid, -1)
+
+
+_NO_SURFACES = (np.full(1, -1, np.int32), np.zeros(1, np.uint8), np.zeros((1, 3), np.float32))
+
+
+def _parts(n: int, align: int, k: int) -> list[tuple[int, int]]:
+    """``n`` items in up to ``k`` contiguous parts, each a multiple of ``align`` long."""
+    units = -(-n // align)
+    step = max(1, -(-units // k)) * align
+    return [(a, min(a + step, n)) for a in range(0, n, step)]
+
+
+def _surface_np(prim: NDArray[np.int32], d: NDArray[np.float32], sop: Any, mop: Any,
+                nrm: Any, surf: bool) -> tuple[NDArray[np.int32], NDArray[np.intp], FloatArray]:
+    """Stem id, material index and |cos incidence| of each hit (-1: none)."""
+    if not surf:
+        sid = prim.astype(np.int32)
+        return sid, np.where(sid > 0, 1, 0), np.ones(len(sid))
+    q = np.where(prim >= 0, prim, len(sop) - 1)
+    n = nrm[np.maximum(prim, 0)].astype(np.float64)
+    dd = d.astype(np.float64)
+    cos = np.abs(n[:, 0] * dd[:, 0] + n[:, 1] * dd[:, 1] + n[:, 2] * dd[:, 2])
+    return sop[q], mop[q].astype(np.intp), np.minimum(cos, 1.0)
+
+
+class _Kernels:
+    def __init__(self, mod: Any) -> None:
+        from emulators.jit import compiled
+
+        for name in ("centre_echoes", "flag_edges", "footprint_rays", "footprint_echoes",
+                     "detect"):
+            setattr(self, name, compiled(getattr(mod, name)))
+
+    centre_echoes: Any
+    flag_edges: Any
+    footprint_rays: Any
+    footprint_echoes: Any
+    detect: Any
+
+
+_kernels_built: list[_Kernels | None] = []
+
+
+def _kernels() -> _Kernels | None:
+    """The compiled kernels of :mod:`emulators.lidar._footprint`, or None where compiled
+    kernels are off (numba missing, ``TCF_HIL_NO_JIT``)."""
+    from emulators.jit import jit_enabled
+
+    if not jit_enabled():
+        return None
+    if not _kernels_built:
+        from emulators.lidar import _footprint
+
+        _kernels_built.append(_Kernels(_footprint))
+    return _kernels_built[0]
 
 
 def _norm_cdf(x: FloatArray) -> FloatArray:

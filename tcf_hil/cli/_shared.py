@@ -162,9 +162,9 @@ def sensor_option(f: Callable[..., Any]) -> Callable[..., Any]:
     """--sensor PRESET: the lidar's physics, over the scenario's own ``[sensor]``."""
     return click.option(
         "--sensor", "sensor", type=click.Choice(SENSOR_NAMES), default=None,
-        help="Sensor physics preset instead of the scenario's [sensor] (ideal unless it "
-        "says otherwise, for now): os0-64-rev7 (beam footprint, noise, reach by "
-        "reflectance), os0-64-rev6, or ideal (exact pencil rays, no noise).")(f)
+        help="Sensor physics preset instead of the scenario's [sensor] (os0-64-rev7 unless "
+        "it says otherwise): os0-64-rev7 (beam footprint, noise, reach by reflectance), "
+        "os0-64-rev6, or ideal (exact pencil rays, no noise).")(f)
 
 
 # ----------------------------------------------------------------------------- progress

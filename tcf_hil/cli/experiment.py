@@ -376,25 +376,47 @@ def _floats_list(text: str, name: str) -> tuple[float, ...]:
 @click.option("--whole-track", is_flag=True, help="Every frame of the track (overrides --frames).")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Override the seed.")
 @sensor_option
+@click.option("--footprints", default=None,
+              help="The beam footprint axis: off, adaptive:N, full:N (N sub-rays), comma-"
+              "separated, e.g. off,adaptive:5,adaptive:9,full:9 (default: the sensor's own).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output directory: bench.md, bench.csv, bench.json, pareto.png.")
 def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerances: str | None,
               backends: str | None, presets: str | None, frames: int | None, whole_track: bool,
-              seed: int | None, sensor: str | None, out: Path) -> None:
+              seed: int | None, sensor: str | None, footprints: str | None, out: Path) -> None:
     """Speed against error, side by side in one run.
 
-    For every lidar mode x stem tessellation tolerance x ray backend, the emulator runs the
-    track once and every reference SIC preset reads the same bytes: emulator ms per frame
-    and x real time, the mesh's range error against the exact surfaces, SIC ms per frame
-    (p50/p99), the score (wc, F1) and the position and DBH RMSE. Writes a table and a Pareto
-    plot (cost against error).
+    For every lidar mode x stem tessellation tolerance x beam footprint x ray backend, the
+    emulator runs the track once and every reference SIC preset reads the same bytes:
+    emulator ms per frame and x real time, the pixels supersampled, the mesh's range error
+    and the returns' error (noise, footprint and mesh, as the packets carry them) against
+    the exact surfaces, SIC ms per frame (p50/p99), the score (wc, F1), the position and DBH
+    RMSE and the DBH bias. Writes a table and a Pareto plot (cost against error).
 
     \b
     Examples:
       tcf-hil bench --quick --out bench-quick
       tcf-hil bench --modes 1024x10,2048x10 --tolerances 1,2,5,20 --out bench
+      tcf-hil bench --forest X --modes 2048x10 --footprints off,adaptive:5,adaptive:9,full:9
     """
-    from tcf_hil.experiments.bench import FULL, QUICK, BenchGrid, run_bench, write_bench
+    from tcf_hil.experiments.bench import (
+        FULL,
+        QUICK,
+        BenchGrid,
+        footprint_label,
+        parse_footprint,
+        run_bench,
+        write_bench,
+    )
+
+    fps: tuple[str, ...] = ("",)
+    if footprints:
+        fps = tuple(f.strip() for f in footprints.split(",") if f.strip())
+        for f in fps:
+            try:
+                parse_footprint(f)
+            except ValueError as err:
+                raise click.BadParameter(str(err), param_hint="--footprints") from err
 
     g = QUICK if quick else FULL
     grid = BenchGrid(
@@ -404,7 +426,7 @@ def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerance
         else g.tolerances_mm,
         backends=tuple(b.strip() for b in backends.split(",")) if backends else g.backends,
         presets=tuple(p.strip() for p in presets.split(",")) if presets else g.presets,
-        frames=None if whole_track else (frames or g.frames), sensor=sensor)
+        frames=None if whole_track else (frames or g.frames), sensor=sensor, footprints=fps)
     bad = [b for b in grid.backends if b not in BACKEND_CHOICES]
     bad += [p for p in grid.presets if p not in ("tuned", "paper")]
     if bad or "sampled" in grid.modes:
@@ -417,14 +439,18 @@ def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerance
     paths = write_bench(rows, notes, grid, out, time.perf_counter() - t0)
     t = Table(title=f"Speed against error, {grid.forest} "
                     f"({'whole track' if grid.frames is None else f'{grid.frames} frames'})")
-    for col in ("mode", "tol mm", "backend", "preset", "emu x RT", "range p99 mm",
-                "SIC ms p50/p99", "wc seen %", "pos mm", "DBH mm"):
-        t.add_column(col, justify="left" if col in ("mode", "backend", "preset") else "right")
+    for col in ("mode", "tol mm", "backend", "preset", "sensor", "footprint", "emu x RT",
+                "return p50/p99 mm", "SIC ms p50/p99", "wc seen %", "pos mm", "DBH mm",
+                "DBH bias mm"):
+        t.add_column(col, justify="left" if col in ("mode", "backend", "preset", "sensor",
+                                                    "footprint") else "right")
     for r in rows:
-        t.add_row(r["mode"], f"{r['tolerance_mm']:g}", r["backend"], r["preset"],
-                  f"{r['emulator_x_realtime']:.1f}", f"{r['range_err_p99_mm']:.2f}",
+        t.add_row(r["mode"], f"{r['tolerance_mm']:g}", r["backend"], r["preset"], r["sensor"],
+                  footprint_label(r), f"{r['emulator_x_realtime']:.1f}",
+                  f"{r['return_err_p50_mm']:.1f}/{r['return_err_p99_mm']:.0f}",
                   f"{r['sic_ms_p50']:.1f}/{r['sic_ms_p99']:.1f}", f"{r['wc_seen']:.1f}",
-                  f"{r['position_rmse_m'] * 1e3:.1f}", f"{r['dbh_rmse_m'] * 1e3:.1f}")
+                  f"{r['position_rmse_m'] * 1e3:.1f}", f"{r['dbh_rmse_m'] * 1e3:.1f}",
+                  f"{r['dbh_bias_m'] * 1e3:+.1f}")
     console.print(t)
     for n in notes:
         err_console.print(f"[yellow]note[/]: {n}")

@@ -35,6 +35,7 @@ class BenchGrid:
     frames: int | None  # None: the whole track
     error_frames: int = 2  # frames cast exactly for the range error
     sensor: str | None = None  # a sensor preset over the forest's own [sensor]
+    footprints: tuple[str, ...] = ("",)  # "off", "adaptive:9", "full:17"; "": the sensor's
 
 
 QUICK = BenchGrid("forest-ii", ("512x10",), (2.0, 10.0), ("embree", "open3d"),
@@ -42,10 +43,14 @@ QUICK = BenchGrid("forest-ii", ("512x10",), (2.0, 10.0), ("embree", "open3d"),
 FULL = BenchGrid("forest-v", ("512x10", "1024x10", "2048x10"), (2.0, 10.0),
                  ("embree", "open3d"), ("tuned", "paper"), frames=300)
 
-BENCH_COLUMNS = ("forest", "mode", "tolerance_mm", "backend", "preset", "triangles", "frames",
+BENCH_COLUMNS = ("forest", "mode", "tolerance_mm", "backend", "preset", "sensor", "footprint",
+                 "footprint_rays", "supersampled_pct", "triangles", "frames",
                  "emulator_ms_frame", "emulator_x_realtime", "range_err_p50_mm",
-                 "range_err_p99_mm", "sic_ms_p50", "sic_ms_p99", "stem_s", "stems_seen",
-                 "wc_all", "wc_seen", "f1_seen", "position_rmse_m", "dbh_rmse_m")
+                 "range_err_p99_mm", "return_err_p50_mm", "return_err_p99_mm",
+                 "return_bias_mm", "returns_on_stems_pct", "sic_ms_p50", "sic_ms_p99",
+                 "stem_s", "stems_seen",
+                 "wc_all", "wc_seen", "f1_seen", "position_rmse_m", "dbh_rmse_m",
+                 "dbh_bias_m")
 
 
 def backend_available(name: str) -> str | None:
@@ -63,6 +68,52 @@ def _range_error(run: Any, k: int) -> np.ndarray:
     exact, _cos = refine_hits(run.forest, o, d, t, sid)
     m = (sid > 0) & np.isfinite(exact) & (t < 50.0)
     return np.abs(t[m] - exact[m])
+
+
+def parse_footprint(text: str) -> tuple[str, int | None]:
+    """``"adaptive:9"`` -> ("adaptive", 9); ``"off"`` -> ("off", None); ``""``: the
+    sensor's own (("", None)). Raises ValueError naming what is allowed."""
+    kind, _, rays = text.strip().partition(":")
+    if kind not in ("", "off", "adaptive", "full"):
+        raise ValueError(f"{text!r}: footprints are off, adaptive:N or full:N")
+    try:
+        n = int(rays) if rays else None
+    except ValueError:
+        n = 0
+    if n is not None and not 1 <= n <= 64:
+        raise ValueError(f"{text!r}: sub-rays from 1 to 64")
+    return kind, n
+
+
+def _with_footprint(scn: Scenario, text: str) -> Scenario:
+    kind, n = parse_footprint(text)
+    sensor = scn.sensor
+    if kind:
+        sensor = dataclasses.replace(sensor, footprint=kind)  # type: ignore[arg-type]
+    if n is not None:
+        sensor = dataclasses.replace(sensor, footprint_rays=n)
+    return dataclasses.replace(scn, sensor=sensor)
+
+
+def _return_error(run: Any, k: int) -> tuple[np.ndarray, float, float]:
+    """Frame k's first returns on stems against the exact surface along each pixel's centre
+    ray (m, signed: + behind it): noise, footprint and mesh together, as a user of the
+    packets sees them. Also the share of stem pixels with a return, and of pixels
+    supersampled."""
+    from tcf_hil.analytic import refine_hits
+
+    o, d, _, _ = run.emu.rays(k)
+    fr = run.emu.frame(k)
+    t, sid = run.scene.cast(o, d)
+    exact, _cos = refine_hits(run.forest, o, d, t, sid)
+    W, H = run.meta.columns, run.meta.pixels
+    rng = fr.fields["RANGE"].T.reshape(-1).astype(np.float64) / 1000.0  # column-major
+    on = (sid > 0) & np.isfinite(exact)
+    got = on & (rng > 0)
+    err = rng[got] - run.emu.n_m - exact[got]
+    phys = run.emu.physics
+    flagged = phys.last_flagged / (W * H) if phys is not None else 0.0
+    return err, float(np.count_nonzero(got)) / max(int(np.count_nonzero(on)), 1), flagged
 
 
 def run_bench(grid: BenchGrid, *, seed: int | None = None,
@@ -85,46 +136,61 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
             notes.append(f"backend {b} skipped: {why}")
         else:
             backends.append(b)
-    for mode in grid.modes:
-        for tol in grid.tolerances_mm:
-            scn: Scenario = dataclasses.replace(
-                base, stems=dataclasses.replace(base.stems, tolerance_mm=tol))
-            for backend in backends:
-                say(f"{mode}, {tol:g} mm, {backend}")
-                run = LidarRun(scn, mode=mode, backend=backend, max_frames=grid.frames,
-                               t0_ns=RUN_T0_NS, faults=False)
-                model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed,
-                                                     RUN_T0_NS)
-                sics = [OfflineSic(p, run.meta, model.node_config()) for p in grid.presets]
-                frames, emu_s = drive(run, model, sics)
-                ks = np.linspace(0, max(frames - 1, 0), grid.error_frames).astype(int)
-                err = np.concatenate([_range_error(run, int(k)) for k in ks])
-                gt = run.ground_truth()
-                sim_s = frames * run.emu.period_ns / 1e9
-                for preset, sic in zip(grid.presets, sics, strict=True):
-                    doc = sic.finish()
-                    sc = score_forest(gt, stem_table(doc, "<reference SIC>", "observed"))
-                    a, s = sc.all.metrics, sc.seen.metrics
-                    ms = np.asarray(sic.frame_ms)
-                    rows.append({
-                        "forest": scn.name, "mode": mode, "tolerance_mm": tol,
-                        "backend": run.backend, "preset": preset,
-                        "triangles": len(run.scene.faces), "frames": frames,
-                        "emulator_ms_frame": 1000.0 * emu_s / max(frames, 1),
-                        "emulator_x_realtime": sim_s / max(emu_s, 1e-9),
-                        "range_err_p50_mm": float(np.percentile(err, 50) * 1e3) if len(err)
-                        else float("nan"),
-                        "range_err_p99_mm": float(np.percentile(err, 99) * 1e3) if len(err)
-                        else float("nan"),
-                        "sic_ms_p50": float(np.percentile(ms, 50)),
-                        "sic_ms_p99": float(np.percentile(ms, 99)),
-                        "stem_s": sic.stem_s,
-                        "stems_seen": int(np.count_nonzero(run.counts[1:])),
-                        "wc_all": a["evaluation_score_percent"],
-                        "wc_seen": s["evaluation_score_percent"], "f1_seen": s["f1"],
-                        "position_rmse_m": s["position_rmse_m"], "dbh_rmse_m": s["dbh_rmse_m"],
-                    })
+    combos = [(m, t, fp, b) for m in grid.modes for t in grid.tolerances_mm
+              for fp in grid.footprints for b in backends]
+    for mode, tol, fp, backend in combos:
+        scn: Scenario = _with_footprint(dataclasses.replace(
+            base, stems=dataclasses.replace(base.stems, tolerance_mm=tol)), fp)
+        say(f"{mode}, {tol:g} mm, {fp or scn.sensor.footprint}, {backend}")
+        run = LidarRun(scn, mode=mode, backend=backend, max_frames=grid.frames,
+                       t0_ns=RUN_T0_NS, faults=False)
+        model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed,
+                                             RUN_T0_NS)
+        sics = [OfflineSic(p, run.meta, model.node_config()) for p in grid.presets]
+        frames, emu_s = drive(run, model, sics)
+        ks = np.linspace(0, max(frames - 1, 0), grid.error_frames).astype(int)
+        err = np.concatenate([_range_error(run, int(k)) for k in ks])
+        ret = [_return_error(run, int(k)) for k in ks]
+        rerr = np.concatenate([r[0] for r in ret])
+        gt = run.ground_truth()
+        sim_s = frames * run.emu.period_ns / 1e9
+        for preset, sic in zip(grid.presets, sics, strict=True):
+            doc = sic.finish()
+            sc = score_forest(gt, stem_table(doc, "<reference SIC>", "observed"))
+            a, s = sc.all.metrics, sc.seen.metrics
+            ms = np.asarray(sic.frame_ms)
+            rows.append({
+                "forest": scn.name, "mode": mode, "tolerance_mm": tol,
+                "backend": run.backend, "preset": preset,
+                "sensor": scn.sensor.preset, "footprint": scn.sensor.footprint,
+                "footprint_rays": scn.sensor.footprint_rays,
+                "supersampled_pct": 100.0 * float(np.mean([r[2] for r in ret])),
+                "triangles": len(run.scene.faces), "frames": frames,
+                "emulator_ms_frame": 1000.0 * emu_s / max(frames, 1),
+                "emulator_x_realtime": sim_s / max(emu_s, 1e-9),
+                "range_err_p50_mm": float(np.percentile(err, 50) * 1e3) if len(err)
+                else float("nan"),
+                "range_err_p99_mm": float(np.percentile(err, 99) * 1e3) if len(err)
+                else float("nan"),
+                "return_err_p50_mm": _pct(np.abs(rerr), 50),
+                "return_err_p99_mm": _pct(np.abs(rerr), 99),
+                "return_bias_mm": float(np.mean(rerr) * 1e3) if len(rerr)
+                else float("nan"),
+                "returns_on_stems_pct": 100.0 * float(np.mean([r[1] for r in ret])),
+                "sic_ms_p50": float(np.percentile(ms, 50)),
+                "sic_ms_p99": float(np.percentile(ms, 99)),
+                "stem_s": sic.stem_s,
+                "stems_seen": int(np.count_nonzero(run.counts[1:])),
+                "wc_all": a["evaluation_score_percent"],
+                "wc_seen": s["evaluation_score_percent"], "f1_seen": s["f1"],
+                "position_rmse_m": s["position_rmse_m"], "dbh_rmse_m": s["dbh_rmse_m"],
+                "dbh_bias_m": s["dbh_bias_m"],
+            })
     return rows, notes
+
+
+def _pct(v: np.ndarray, q: float) -> float:
+    return float(np.percentile(v, q) * 1e3) if len(v) else float("nan")
 
 
 def pareto(cost: Sequence[float], err: Sequence[float]) -> list[int]:
@@ -171,21 +237,33 @@ def pareto_png(rows: Sequence[dict[str, Any]], title: str) -> bytes:
     return figure_png(fig)
 
 
+def footprint_label(r: dict[str, Any]) -> str:
+    """``adaptive:9``, ``full:17``, ``off`` (ideal sensors: ``-``)."""
+    if r["sensor"] == "ideal":
+        return "-"
+    return "off" if r["footprint"] == "off" else f"{r['footprint']}:{r['footprint_rays']}"
+
+
 def _md(rows: Sequence[dict[str, Any]]) -> str:
-    head = ["mode", "tol mm", "backend", "preset", "emu ms/frame", "emu × RT", "range p99 mm",
+    head = ["mode", "tol mm", "backend", "preset", "sensor", "footprint", "supersampled %",
+            "emu ms/frame", "emu × RT", "mesh range p99 mm", "return err p50/p99 mm",
             "SIC ms p50", "SIC ms p99", "stem s", "wc all %", "wc seen %", "F1 seen",
-            "pos RMSE mm", "DBH RMSE mm", "Pareto"]
+            "pos RMSE mm", "DBH RMSE mm", "DBH bias mm", "Pareto"]
     cost = [_cost(r) for r in rows]
     front = set(pareto(cost, [100.0 - r["wc_seen"] for r in rows]))
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for i, r in enumerate(rows):
         lines.append("| " + " | ".join([
-            r["mode"], f"{r['tolerance_mm']:g}", r["backend"], r["preset"],
+            r["mode"], f"{r['tolerance_mm']:g}", r["backend"], r["preset"], r["sensor"],
+            footprint_label(r), f"{r['supersampled_pct']:.1f}",
             f"{r['emulator_ms_frame']:.1f}", f"{r['emulator_x_realtime']:.1f}",
-            f"{r['range_err_p99_mm']:.2f}", f"{r['sic_ms_p50']:.1f}", f"{r['sic_ms_p99']:.1f}",
+            f"{r['range_err_p99_mm']:.2f}",
+            f"{r['return_err_p50_mm']:.1f}/{r['return_err_p99_mm']:.0f}",
+            f"{r['sic_ms_p50']:.1f}", f"{r['sic_ms_p99']:.1f}",
             f"{r['stem_s']:.1f}", f"{r['wc_all']:.1f}", f"{r['wc_seen']:.1f}",
             f"{r['f1_seen']:.3f}", f"{r['position_rmse_m'] * 1e3:.1f}",
-            f"{r['dbh_rmse_m'] * 1e3:.1f}", "yes" if i in front else ""]) + " |")
+            f"{r['dbh_rmse_m'] * 1e3:.1f}", f"{r['dbh_bias_m'] * 1e3:+.1f}",
+            "yes" if i in front else ""]) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from emulators.lidar import SENSOR_PRESETS, SensorModel
+from emulators.lidar import DEFAULT_SENSOR, SENSOR_PRESETS, SensorModel
 
 """Stem classes: S straight, C curved (sweep), X other (crooked beyond the C limit)."""
 
@@ -276,9 +276,8 @@ class Scenario:
     faults: FaultsConfig = field(default_factory=FaultsConfig,
                                  metadata={"doc": "faults injected on purpose in live runs "
                                            "(none by default)"})
-    # The default stays 'ideal' until the suite and the speed are ready for os0-64-rev7
-    # (issue 20, left for its next step); a scenario or --sensor picks the physical model.
-    sensor: SensorModel = field(default_factory=lambda: SENSOR_PRESETS["ideal"],
+    sensor: SensorModel = field(default_factory=lambda: SENSOR_PRESETS[DEFAULT_SENSOR],
                                 metadata={"doc": "the lidar's physics: preset = "
-                                          "'os0-64-rev7', 'os0-64-rev6' or 'ideal' (today's "
-                                          "default); any key below overrides the preset"})
+                                          "'os0-64-rev7' (the default), 'os0-64-rev6' or "
+                                          "'ideal' (exact pencil rays, no noise); any key "
+                                          "below overrides the preset"})

@@ -246,3 +246,35 @@ def test_bad_sensor_keys_are_one_line_naming_the_key(
     assert code == 1, err
     assert key in err and str(f) in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o" / "lidar.pcap").exists()
+
+
+@pytest.mark.parametrize(("order", "footprint"), [("STRONGEST_TO_WEAKEST", "adaptive"),
+                                                  ("NEAREST_TO_FARTHEST", "full"),
+                                                  ("FARTHEST_TO_NEAREST", "adaptive")])
+def test_the_compiled_physics_writes_the_numpy_paths_bytes_in_a_forest(
+        order: str, footprint: str) -> None:
+    """Forest X (dense: a third of the pixels on an edge) from its track, DUAL: the numba
+    kernels of emulators.lidar._footprint and the numpy path write the same packets and
+    stem ids, threaded or not."""
+    from tcf_hil.forest import generate_forest
+    from tcf_hil.scenario import load_scenario
+    from tcf_hil.trajectory import Trajectory
+
+    forest = generate_forest(load_scenario("forest-x"))
+    track = Trajectory.from_config(forest.scenario.track, forest.terrain)
+    scn = Scene.from_forest(forest)
+    meta = os0_64_metadata(mode="512x10", profile="RNG19_RFL8_SIG16_NIR16_DUAL")
+    sensor = dataclasses.replace(REV7, return_order=order, footprint=footprint,
+                                 false_positive_rate=0.01)
+    got = []
+    for threads, jit in ((2, True), (1, False), (2, False)):
+        emu = Os0Emulator(meta, scn, track, start_ns=track.t0_ns, sensor=sensor, seed=5,
+                          threads=threads)
+        emu.jit = jit
+        got.append(emu.frame(40))
+        assert emu.physics is not None and emu.physics.last_flagged > 1000
+    for other in got[1:]:
+        assert np.array_equal(got[0].packets, other.packets)
+        assert np.array_equal(got[0].stem_id, other.stem_id)
+        assert np.array_equal(got[0].stem_id2, other.stem_id2)
+    assert np.count_nonzero(got[0].fields["RANGE2"]) > 100

@@ -64,7 +64,9 @@ def assert_valid_recording(run: Path, frames_at_least: int = 1) -> dict:
 @pytest.fixture(scope="module")
 def reference_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("bridge") / "run"
-    p = tcf("run", "forest-ii", "--mode", "1024x10", "--speed", "2", "--out", str(out))
+    # the ideal sensor: these floors hold the loop's exactness (the demo test runs rev7)
+    p = tcf("run", "forest-ii", "--mode", "1024x10", "--speed", "2", "--sensor", "ideal",
+            "--out", str(out))
     assert p.returncode == 0, p.stdout + p.stderr
     return out
 

@@ -135,7 +135,8 @@ def test_demo_through_the_console_script(tmp_path: Path) -> None:
     assert man["lidar"]["frames_sent"] == 1000
     score = json.loads((runs[0] / "score.json").read_text())
     assert score["all_trees"]["n_ground_truth"] == 550
-    assert score["all_trees"]["evaluation_score_percent"] > 80.0
+    # the realistic default sensor (os0-64-rev7): 60.9 % measured (the ideal sensor ~96 %)
+    assert score["all_trees"]["evaluation_score_percent"] > 40.0
     for name in ("lidar.pcap", "can.log", "report.html", "ground_truth.json",
                  "visibility.json", "sic/index.ndjson"):
         assert (runs[0] / name).stat().st_size > 0
@@ -164,7 +165,8 @@ def test_a_range_cap_the_profile_cannot_carry_is_a_clear_error(
     """RNG15 carries ranges in 15 bits of 8 mm (262 m): a longer cap would wrap into other
     ranges on the wire. One line naming the setting and the limit; nothing written."""
     code, _, err = run(["lidar", "pcap", "forest-ii", "--profile", "RNG15_RFL8_NIR8",
-                        "--max-range", "400", "--frames", "1", "--out", str(tmp_path / "o")],
+                        "--max-range", "400", "--sensor", "ideal", "--frames", "1", "--out",
+                        str(tmp_path / "o")],
                        capsys)
     assert code == 1
     assert "max_range_m = 400.0 is invalid" in err and "262 m" in err

@@ -23,7 +23,7 @@ from tcf_hil.experiments.cells import COLUMN_NAMES, SAMPLED, make_cell, run_cell
 from tcf_hil.experiments.offline import run_offline
 from tcf_hil.experiments.sweep import run_sweep
 from tcf_hil.experiments.tables import ci95, write_tables
-from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
+from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict, with_sensor
 
 TCF = [sys.executable, "-m", "tcf_hil"]
 ENV = dict(os.environ, COLUMNS="200")
@@ -42,7 +42,7 @@ def _events() -> tuple[list[tuple[str, str]], object]:
 
 
 def test_sweep_on_a_two_worker_local_cluster_then_a_rerun_skips(tmp_path: Path) -> None:
-    cells = [make_cell(load_scenario(f), m, max_frames=25)
+    cells = [make_cell(with_sensor(load_scenario(f), "ideal"), m, max_frames=25)
              for f in ("forest-i", "forest-ii") for m in ("512x10", "1024x10")]
     seen, on_event = _events()
     out = run_sweep(cells, tmp_path, executor="local", workers=2, on_event=on_event)
@@ -115,7 +115,7 @@ def test_unknown_executor_is_refused() -> None:
 
 def test_poses_reach_the_sic_through_the_can_frames() -> None:
     """A GNSS bias on the bus (truth unchanged) moves every stem the SIC finds by it."""
-    base = load_scenario("forest-ii")
+    base = with_sensor(load_scenario("forest-ii"), "ideal")  # the poses alone move stems
     d = scenario_to_dict(base)
     d["harvester"]["pose_error"]["bias_m"] = [0.4, 0.0, 0.0]
     biased = scenario_from_dict(d)
@@ -136,7 +136,7 @@ def test_multi_pass_sees_more_of_the_same_forest(tmp_path: Path) -> None:
     toml.write_text('extends = "forest-iii"\nname = "strip-wide"\n[plot]\nsize_m = [90.0, 30.0]\n'
                     '[stems]\ncount = 200\n[distribution]\nstrip_roads = 2\n[track]\n'
                     'start_m = [22.0, -20.0, 2.0]\nend_m = [22.0, 20.0, 2.0]\nspeed_m_s = 4.0\n'
-                    'pass_offset_m = 44.0\n')
+                    'pass_offset_m = 44.0\n[sensor]\npreset = "ideal"\n')  # a 50 m reach
     scn = load_scenario(str(toml))
     rows, truth = {}, {}
     for n in (1, 2):
@@ -229,6 +229,34 @@ def test_bench_quick(tmp_path: Path) -> None:
     assert err[10.0] > err[2.0] > 0.0  # a coarser mesh costs range error
     assert all(float(r["emulator_x_realtime"]) > 0 and float(r["sic_ms_p50"]) > 0 for r in rows)
     assert (tmp_path / "pareto.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_bench_footprint_axis(tmp_path: Path) -> None:
+    """off / adaptive / full x sub-rays: supersampled pixels, the returns' error against the
+    exact surfaces and the DBH bias, beside an ideal sensor's."""
+    args = [*TCF, "bench", "--quick", "--backends", "auto", "--presets", "tuned",
+            "--tolerances", "2", "--frames", "20"]
+    p = subprocess.run([*args, "--footprints", "off,adaptive:5,full:3", "--out",
+                        str(tmp_path / "a")], capture_output=True, text=True, env=ENV,
+                       timeout=600)
+    assert p.returncode == 0, p.stderr
+    _, rows = _read_csv(tmp_path / "a" / "bench.csv")
+    by = {(r["footprint"], r["footprint_rays"]): r for r in rows}
+    assert set(by) == {("off", "9"), ("adaptive", "5"), ("full", "3")}
+    assert float(by["off", "9"]["supersampled_pct"]) == 0.0
+    assert 0.0 < float(by["adaptive", "5"]["supersampled_pct"]) < 50.0
+    assert float(by["full", "3"]["supersampled_pct"]) == 100.0
+    assert all(r["sensor"] == "os0-64-rev7" and float(r["return_err_p50_mm"]) > 2.0
+               for r in rows)  # the noise
+    q = subprocess.run([*args, "--sensor", "ideal", "--out", str(tmp_path / "b")],
+                       capture_output=True, text=True, env=ENV, timeout=600)
+    assert q.returncode == 0, q.stderr
+    _, (ideal,) = _read_csv(tmp_path / "b" / "bench.csv")
+    assert ideal["sensor"] == "ideal" and float(ideal["return_err_p50_mm"]) < 2.0
+    bad = subprocess.run([*args, "--footprints", "wide:3", "--out", str(tmp_path / "c")],
+                         capture_output=True, text=True, env=ENV)
+    assert bad.returncode == 2 and "--footprints" in bad.stderr
+    assert not (tmp_path / "c").exists()
 
 
 def test_strip_road_forest_does_not_depend_on_the_pass_count() -> None:

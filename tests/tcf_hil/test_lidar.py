@@ -18,14 +18,15 @@ from emulators.lidar import ReturnModel
 from tcf_hil.cli import main
 from tcf_hil.forest import Forest, generate_forest
 from tcf_hil.lidar import record_pcap
-from tcf_hil.scenario import Scenario, load_scenario, scenario_from_dict
+from tcf_hil.scenario import Scenario, load_scenario, scenario_from_dict, with_sensor
 
 ROLLING = {"name": "rolling-small", "plot": {"size_m": [20.0, 30.0]},
            "terrain": {"kind": "rolling", "amplitude_m": 0.6, "wavelength_m": 15.0,
                        "tolerance_mm": 2.0},
            "stems": {"count": 20},
            "track": {"start_m": [0.0, -20.0, 2.0], "end_m": [0.0, 20.0, 2.0],
-                     "speed_m_s": 2.0}}
+                     "speed_m_s": 2.0},
+           "sensor": {"preset": "ideal"}}  # exact geometry: points on the true surfaces
 
 
 def _poses(path: Path) -> dict[int, np.ndarray]:
@@ -101,7 +102,7 @@ def test_sdk_points_land_on_the_true_surfaces(tmp_path: Path, profile: str,
 
 @pytest.mark.parametrize("backend", ["embree", "open3d"])
 def test_backends_agree_and_count_returns(tmp_path: Path, backend: str) -> None:
-    scn = load_scenario("forest-ii")
+    scn = with_sensor(load_scenario("forest-ii"), "ideal")  # exact: on the true surfaces
     r = record_pcap(scn, tmp_path / backend, mode="512x10", backend=backend, max_frames=3)
     gt = json.loads((tmp_path / backend / "ground_truth.json").read_text())
     vis = json.loads((tmp_path / backend / "visibility.json").read_text())
@@ -254,7 +255,7 @@ def test_dual_second_return_lies_behind_the_first(tmp_path: Path) -> None:
     """DUAL only: where the beam grazes a stem, a sub-ray at the divergence angle lands on
     what is behind it; the SDK reports it as RANGE2, at least the gap behind RANGE, and its
     point (along the central ray) is within divergence x range of a true surface."""
-    scn = load_scenario("forest-iii")
+    scn = with_sensor(load_scenario("forest-iii"), "ideal")  # a return model of its own
     model = ReturnModel()
     record_pcap(scn, tmp_path, mode="512x10", profile="RNG19_RFL8_SIG16_NIR16_DUAL",
                 max_frames=2, model=model)
