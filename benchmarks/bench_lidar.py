@@ -2,7 +2,9 @@
 packets, next to the bare cast of the same rays in the same run, on Forests II, V and X at
 512/1024/2048 columns, for Embree and open3d.
 
-Run: ``python benchmarks/bench_lidar.py [--frames 20] [--forests II,V,X] [--json OUT]``.
+Run: ``python benchmarks/bench_lidar.py [--frames 20] [--forests II,V,X]
+[--sensors ideal,os0-64-rev7] [--json OUT]`` (the sensor's physics: footprint, echoes,
+detection and noise, after the cast; the bare cast is the centre rays' alone).
 
 The pipeline is timed as a run reads it: ``--frames`` consecutive frames from the middle of
 the track (after one frame of warm-up), each made, encoded into its packets and finished
@@ -16,13 +18,14 @@ embreex's ``run`` on a scene of its own ("embreex ms"). Ratio = total bare / tot
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import statistics
 import time
 
 import numpy as np
 
-from emulators.lidar import Os0Emulator
+from emulators.lidar import SENSOR_PRESETS, Os0Emulator
 from protocols.ouster import finish_lidar_packets, os0_64_metadata
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil.forest import generate_forest
@@ -37,10 +40,13 @@ def main() -> None:
     ap.add_argument("--forests", default="II,V,X")
     ap.add_argument("--modes", default="512x10,1024x10,2048x10")
     ap.add_argument("--backends", default="embree,open3d")
+    ap.add_argument("--sensors", default="ideal",
+                    help=f"comma-separated presets: {', '.join(SENSOR_PRESETS)}")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     rows = []
-    print(f"{'forest':8} {'backend':7} {'mode':8} {'rays':>7} {'bare ms':>8} {'pipe ms':>8} "
+    print(f"{'forest':8} {'sensor':12} {'backend':7} {'mode':8} {'rays':>7} {'bare ms':>8} "
+          f"{'pipe ms':>8} "
           f"{'ratio':>6} {'x RT':>5} {'Mrays/s':>8} {'finish ms':>9} {'embreex ms':>10}")
     crc = fast_crc_rows()
     for fname in a.forests.split(","):
@@ -50,9 +56,10 @@ def main() -> None:
             scene = Scene.from_forest(forest, backend=backend)
             embreex = EmbreeCaster(scene.vertices, scene.faces, direct=False) \
                 if backend == "embree" else None
-            for mode in a.modes.split(","):
+            for mode, sensor in itertools.product(a.modes.split(","), a.sensors.split(",")):
                 meta = os0_64_metadata(mode)
-                emu = Os0Emulator(meta, scene, track, start_ns=track.t0_ns)
+                emu = Os0Emulator(meta, scene, track, start_ns=track.t0_ns,
+                                  sensor=SENSOR_PRESETS[sensor])
                 ray_maker = Os0Emulator(meta, scene, track, start_ns=track.t0_ns)
                 fmt = meta.packet_format
                 n = max(1, int(track.duration_ns // emu.period_ns))
@@ -85,12 +92,14 @@ def main() -> None:
                 b, p, e = (statistics.fmean(x) for x in (bare, pipe, enc))
                 x = statistics.fmean(other) if other else float("nan")
                 period = 1.0 / meta.frequency_hz
-                row = {"forest": fname, "backend": backend, "mode": mode, "rays": rays,
+                row = {"forest": fname, "sensor": sensor, "backend": backend, "mode": mode,
+                       "rays": rays,
                        "bare_ms": b * 1e3, "pipeline_ms": p * 1e3, "ratio": b / p,
                        "x_realtime": period / p, "mrays_s": rays / p / 1e6,
                        "finish_ms": e * 1e3, "embreex_ms": x * 1e3}
                 rows.append(row)
-                print(f"{fname:8} {backend:7} {mode:8} {rays:7d} {b * 1e3:8.1f} {p * 1e3:8.1f} "
+                print(f"{fname:8} {sensor:12} {backend:7} {mode:8} {rays:7d} {b * 1e3:8.1f} "
+                      f"{p * 1e3:8.1f} "
                       f"{b / p:6.2f} {period / p:5.1f} {rays / p / 1e6:8.2f} {e * 1e3:9.2f} "
                       f"{x * 1e3:10.1f}", flush=True)
     if a.json:

@@ -59,31 +59,39 @@ def centre_echoes(prim: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim
             nir[i] = min(ambient * 0.05, 65535.0)
 
 
-def flag_edges(ss: Any, step: Any, out: Any) -> None:
-    """``out`` (W, H), zeroed: the pixels whose footprint can straddle an edge, those whose
-    centre ray hits another object (or nothing) than a neighbour's: the next column
-    (wrapping) and beam h + 1's pixel nearest in angle (column ``c + step[h]``: the beams'
-    azimuth offsets stagger a column's pixels by degrees). Both pixels of a pair."""
+def flag_edges(ss: Any, step: Any, reach: int, out: Any) -> None:
+    """``out`` (W, H), zeroed: the pixels whose footprint can straddle an edge, as bits: 1
+    horizontally, where a column within ``reach`` (wrapping) hits another object (or
+    nothing) than the pixel's centre ray, both pixels of the pair; 2 (with 1) vertically,
+    where the
+    pixel hits another object than all three of beam h + 1's pixels nearest in angle
+    (columns ``c + step[h]`` and either side: the beams' azimuth offsets stagger a column's
+    pixels by degrees, so a vertical edge seen a column apart is not a horizontal one), and
+    the other way round."""
     W, H = ss.shape
     for c in range(W):
-        cn = c + 1 if c + 1 < W else 0
         for h in range(H):
             s = ss[c, h]
-            if s != ss[cn, h]:
-                out[c, h] = 1
-                out[cn, h] = 1
+            for k in range(1, reach + 1):
+                ck = (c + k) % W
+                if s != ss[ck, h]:
+                    out[c, h] |= 1
+                    out[ck, h] |= 1
             if h + 1 < H:
                 c2 = (c + step[h]) % W
-                if s != ss[c2, h + 1]:
-                    out[c, h] = 1
-                    out[c2, h + 1] = 1
+                b = ss[c2, h + 1]
+                if s != b and s != ss[(c2 + W - 1) % W, h + 1] and s != ss[(c2 + 1) % W, h + 1]:
+                    out[c, h] |= 3
+                if b != s and b != ss[(c + W - 1) % W, h] and b != ss[(c + 1) % W, h]:
+                    out[c2, h + 1] |= 3
 
 
-def footprint_rays(o: Any, d: Any, idx: Any, a: Any, b: Any, oo: Any, dd: Any) -> None:
-    """The sub-rays (all but the centre, ``a[0] = b[0] = 0``) of the pixels ``idx``: offset
-    by ``a`` radians along the horizontal perpendicular of the centre ray and ``b`` along
-    the one in its vertical plane, unit, float32, into ``oo``/``dd`` (len(idx) (K - 1), 3)."""
-    K = a.shape[0]
+def footprint_rays(o: Any, d: Any, idx: Any, fl: Any, start: Any, ha: Any, va: Any,
+                   vb: Any, oo: Any, dd: Any) -> None:
+    """The sub-rays the pixels ``idx`` (flag bits ``fl``) cast, from row ``start[j]`` of
+    ``oo``/``dd`` (float32, unit): with bit 1 one offset ``ha[k]`` radians along the
+    horizontal perpendicular of the centre ray each, then with bit 2 one ``va[k]`` along
+    it and ``vb[k]`` along the perpendicular in the ray's vertical plane each."""
     for j in range(idx.shape[0]):
         i = idx[j]
         dx, dy, dz = float(d[i, 0]), float(d[i, 1]), float(d[i, 2])
@@ -94,29 +102,43 @@ def footprint_rays(o: Any, d: Any, idx: Any, a: Any, b: Any, oo: Any, dd: Any) -
         nn = max(math.sqrt(ex * ex + ey * ey + ez * ez), 1e-12)
         ex, ey, ez = ex / nn, ey / nn, ez / nn
         fx, fy, fz = dy * ez - dz * ey, dz * ex - dx * ez, dx * ey - dy * ex
-        for k in range(1, K):
-            x = dx + a[k] * ex + b[k] * fx
-            y = dy + a[k] * ey + b[k] * fy
-            z = dz + a[k] * ez + b[k] * fz
-            n = math.sqrt(x * x + y * y + z * z)
-            row = j * (K - 1) + k - 1
-            dd[row, 0], dd[row, 1], dd[row, 2] = x / n, y / n, z / n
-            oo[row, 0], oo[row, 1], oo[row, 2] = o[i, 0], o[i, 1], o[i, 2]
+        row = start[j]
+        for part in range(2):
+            if not fl[j] & (1 << part):
+                continue
+            offs = ha if part == 0 else vb
+            for k in range(offs.shape[0]):
+                a = ha[k] if part == 0 else va[k]
+                b = vb[k] if part == 1 else 0.0
+                x = dx + a * ex + b * fx
+                y = dy + a * ey + b * fy
+                z = dz + a * ez + b * fz
+                n = math.sqrt(x * x + y * y + z * z)
+                dd[row, 0], dd[row, 1], dd[row, 2] = x / n, y / n, z / n
+                oo[row, 0], oo[row, 1], oo[row, 2] = o[i, 0], o[i, 1], o[i, 2]
+                row += 1
 
 
-def footprint_echoes(idx: Any, j0: int, j1: int, w: Any, ss: Any, r: Any, mat: Any,
-                     cosi: Any, t_sub: Any, prim_sub: Any, dd: Any, stem_of_prim: Any,
+def footprint_echoes(idx: Any, fl: Any, start: Any, j0: int, j1: int, wt: Any, hcol: Any,
+                     hcast: Any, nh: int, H: int, ss: Any, r: Any, mat: Any, cosi: Any,
+                     t_sub: Any, prim_sub: Any, dd: Any, stem_of_prim: Any,
                      material_of_prim: Any, normals: Any, refl: Any, surf: bool, n_m: float,
                      r_near: float, resolution: float, order: int, e1: Any, r1: Any,
                      s1: Any, e2: Any, r2: Any, s2: Any) -> None:
     """The two leading echoes (``order``: 0 strongest first, 1 nearest, 2 farthest) of the
-    flagged pixels ``idx[j0:j1]`` from their K samples: the centre (its cast) and K - 1
-    sub-rays (``t_sub``/``prim_sub``/``dd``, K - 1 rows a pixel), each of energy ``w[k]
-    refl cos / max(r, r_near)^2``. Hits sorted by range (stably) join one echo while the
-    gap to the next is within ``resolution``; an echo's range is its energy-weighted mean,
-    its stem id that of its strongest hit (the nearest on a tie)."""
-    K = w.shape[0]
+    flagged pixels ``idx[j0:j1]`` from their footprint's samples, in slots: the centre;
+    with flag bit 1 the horizontal ones (slot 1 + k: column ``hcol[k]`` away in the same
+    beam, its own centre ray, where ``hcast[k]`` is -1; else the pixel's cast sub-ray
+    ``hcast[k]``); with bit 2 the vertical ones (slot ``1 + len(hcol) + k``: cast sub-ray
+    ``nh + k``, or ``k`` without bit 1); unused slots are misses. A sample of weight
+    ``wt[flags, slot]`` has the energy ``w refl cos / max(r, r_near)^2``. Samples sorted by
+    range (stably) join one echo while the gap to the next is within ``resolution``; an
+    echo's range is its energy-weighted mean, its stem id that of its strongest sample
+    (the nearest on a tie)."""
+    K = wt.shape[1]
+    KH = hcol.shape[0]
     last = stem_of_prim.shape[0] - 1
+    W = ss.shape[0] // H
     rs = np.empty(K)
     es = np.empty(K)
     sids = np.empty(K, np.int32)
@@ -127,36 +149,52 @@ def footprint_echoes(idx: Any, j0: int, j1: int, w: Any, ss: Any, r: Any, mat: A
     gs = np.empty(K, np.int32)
     for j in range(j0, j1):
         i = idx[j]
-        # the samples: the centre first, then the sub-rays
-        if ss[i] >= 0:
-            rn = max(r[i], r_near)
-            rs[0], es[0], sids[0] = r[i], w[0] * refl[mat[i]] * cosi[i] / (rn * rn), ss[i]
-        else:
-            rs[0], es[0], sids[0] = np.inf, 0.0, -1
-        for k in range(1, K):
-            row = j * (K - 1) + k - 1
+        f = fl[j]
+        c = i // H
+        h = i - c * H
+        for k in range(K):
+            rs[k], es[k], sids[k] = np.inf, 0.0, -1
+        for k in range(K):
+            w = wt[f, k]
+            if k == 0:
+                src = i
+            elif k <= KH:
+                if not f & 1:
+                    continue
+                src = -1
+                if hcast[k - 1] < 0:
+                    src = ((c + hcol[k - 1]) % W) * H + h
+            else:
+                if not f & 2:
+                    continue
+                src = -1
+            if src >= 0:  # a centre ray's sample, the pixel's own or a neighbour's
+                if ss[src] >= 0:
+                    rn = max(r[src], r_near)
+                    rs[k], es[k], sids[k] = r[src], w * refl[mat[src]] * cosi[src] / (rn * rn), \
+                        ss[src]
+                continue
+            row = start[j] + (hcast[k - 1] if k <= KH else (k - 1 - KH) + (nh if f & 1 else 0))
             p = prim_sub[row]
             if surf:
                 q = p if p >= 0 else last
                 s = stem_of_prim[q]
                 m = material_of_prim[q]
                 qn = p if p > 0 else 0
-                c = float(abs(np.float64(normals[qn, 0]) * np.float64(dd[row, 0])
-                        + np.float64(normals[qn, 1]) * np.float64(dd[row, 1])
-                        + np.float64(normals[qn, 2]) * np.float64(dd[row, 2])))
-                if c > 1.0:
-                    c = 1.0
+                cc = float(abs(np.float64(normals[qn, 0]) * np.float64(dd[row, 0])
+                         + np.float64(normals[qn, 1]) * np.float64(dd[row, 1])
+                         + np.float64(normals[qn, 2]) * np.float64(dd[row, 2])))
+                if cc > 1.0:
+                    cc = 1.0
             else:
                 s = p
                 m = 1 if p > 0 else 0
-                c = 1.0
+                cc = 1.0
             tt = np.float64(t_sub[row])
             if np.isfinite(tt) and s >= 0:
                 rr = tt + n_m
                 rn = max(rr, r_near)
-                rs[k], es[k], sids[k] = rr, w[k] * refl[m] * c / (rn * rn), s
-            else:
-                rs[k], es[k], sids[k] = np.inf, 0.0, -1
+                rs[k], es[k], sids[k] = rr, w * refl[m] * cc / (rn * rn), s
         # a stable insertion sort by range
         for k in range(K):
             srt[k] = k

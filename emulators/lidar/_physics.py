@@ -12,10 +12,14 @@ cast (:meth:`Physics.respond`), in numpy, after whichever execution path cast th
 rays, so every path gives the same bytes:
 
 1. **The footprint.** The beam is a Gaussian of the divergence (FWHM, horizontal and
-   vertical); ``footprint_rays`` sub-rays sample it where the footprint can straddle an
-   edge (``adaptive``: a pixel whose centre ray or a neighbour's - the next column, the
-   next beam - differs in object or by more than the range resolution; ``full``: every
-   pixel; ``off``: the centre ray alone).
+   vertical), sampled on a grid (:class:`FootprintGrid`, ``footprint_samples`` a FWHM):
+   along the beam's row every column spacing or a power-of-two fraction of it out to one
+   FWHM, so the neighbouring columns' own centre rays are samples (in 2048x10 all of
+   them: nothing more is cast for a vertical edge such as a stem's side), and in rows
+   above and below out to half the FWHM, cast as sub-rays. ``adaptive``: the row where a
+   column within one FWHM hits another object (or nothing) than the pixel, the grid
+   where the beam above or below sees another object (a horizontal edge: a stem's top,
+   the horizon); ``full``: the grid at every pixel; ``off``: the centre ray alone.
 2. **Echoes.** Each sub-ray's hit carries the energy ``w ρ cos(i) / r²`` (its weight in
    the beam, the material's reflectance, the incidence angle, the range). Hits sorted by
    range join one echo while the gap to the next is within ``range_resolution_m``: the
@@ -90,7 +94,9 @@ class SensorModel:
     divergence_v_deg: float = _f(0.35, "beam divergence, vertical (FWHM)", ge=0.0, le=5.0)
     footprint: Literal["adaptive", "full", "off"] = _f(
         "adaptive", "sub-rays where the footprint can straddle an edge, everywhere, or never")
-    footprint_rays: int = _f(9, "sub-rays sampling the footprint", ge=1, le=64)
+    footprint_samples: int = _f(
+        2, "footprint samples per FWHM, out to one FWHM each side (horizontally at least "
+        "every column: the neighbouring columns' own rays are samples)", ge=1, le=16)
     range_resolution_m: float = _f(
         0.3, "hits closer in range than this merge into one echo (Isaac Sim's "
         "minDistBetweenEchos; no Ouster figure found)", gt=0.0, le=10.0)
@@ -121,8 +127,9 @@ class SensorModel:
     range_sigma_exponent: float = _f(0.625, "noise falls as signal^-exponent (fit to the OS1 "
                                      "datasheet's 1.5/3/10 cm at SNR 250/100/12)", ge=0.0,
                                      le=2.0)
-    range_sigma_min_m: float = _f(0.015, "range noise (1 sigma) of strong returns (OS1 "
-                                  "datasheet: SNR > 250)", ge=0.0, le=1.0)
+    range_sigma_min_m: float = _f(0.003, "range noise (1 sigma) of strong returns (a real "
+                                  "OS0-128's, fw 3.0.1: 3.1 mm frame to frame at SIGNAL "
+                                  "> 1000; see the README)", ge=0.0, le=1.0)
     false_positive_rate: float = _f(1e-4, "ambient false returns per pixel and frame (OS1 "
                                     "datasheet: 1/10,000 at 100 klx)", ge=0.0, le=0.1)
     ambient: float = _f(1200.0, "NEAR_IR counts of a reflectance-1 surface in daylight",
@@ -162,20 +169,65 @@ class Surfaces:
     cast1: Any
 
 
-def _sub_pattern(n: int) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """n points sampling a Gaussian beam of FWHM 1: offsets (a, b) and weights summing to 1.
-    Centre first, then a sunflower spiral (equal areas) out to a radius of one FWHM (94 %
-    of the beam's power), each weighted by the Gaussian there."""
-    if n == 1:
-        return np.zeros(1), np.zeros(1), np.ones(1)
-    k = np.arange(n - 1) + 0.5
-    r = np.sqrt(k / (n - 1))  # out to one FWHM
-    phi = k * math.pi * (3.0 - math.sqrt(5.0))
-    a = np.concatenate([[0.0], r * np.cos(phi)])
-    b = np.concatenate([[0.0], r * np.sin(phi)])
-    sigma = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-    w = np.exp(-(a * a + b * b) / (2 * sigma * sigma))
-    return a, b, w / w.sum()
+def _gauss(x: Any) -> FloatArray:
+    """A Gaussian of FWHM 1, 1 at 0."""
+    return np.exp(-4.0 * math.log(2.0) * x * x)
+
+
+@dataclass(frozen=True)
+class FootprintGrid:
+    """Where the footprint is sampled: a grid, horizontally every ``step`` radians out to
+    one FWHM each side, on the sensor's own column grid (``step`` the column spacing over a
+    power of two ``sub``, no wider than FWHM / ``samples``), so every ``sub``-th sample of
+    the centre row is a neighbouring column's centre ray, cast already; vertically in rows
+    every FWHM / ``samples`` out to half the FWHM each side (the beams are 1.4 degrees
+    apart, so those rows are sub-rays, cast only where a horizontal edge can be: stem tops,
+    the horizon). Slots: the centre, the centre row's others (columns ``col[k]`` away where
+    ``cast[k]`` is -1, else the pixel's cast sub-ray ``cast[k]`` at ``h_off``), the other
+    rows' (``v_a``, ``v_b``). ``weights[flags]``: each slot's share of the beam's energy,
+    the Gaussian's, for a pixel sampled along its row (flag 1: the rows above and below
+    taken as the centre row) or over the grid (flag 3)."""
+
+    step: float
+    sub: int
+    reach: int  # columns either side a horizontal edge can be seen from
+    col: NDArray[np.int64]
+    cast: NDArray[np.int64]
+    h_off: FloatArray
+    v_a: FloatArray
+    v_b: FloatArray
+    weights: FloatArray  # (4, slots)
+
+    @classmethod
+    def of(cls, samples: int, fwhm_h: float, fwhm_v: float, columns: int) -> FootprintGrid:
+        spacing = 2.0 * math.pi / columns
+        sub = 1
+        while fwhm_h > 0 and spacing / sub > fwhm_h / samples * 1.01 and sub < 64:
+            sub *= 2
+        step = spacing / sub
+        J = math.floor(fwhm_h * 1.01 / step + 1e-9) if fwhm_h > 0 else 0
+        V = max(1, samples // 2) if fwhm_v > 0 else 0
+        js = np.array([j for j in range(-J, J + 1) if j], np.int64)
+        col = np.where(js % sub == 0, js // sub, 0)
+        cast = np.full(len(js), -1, np.int64)
+        odd = js % sub != 0
+        cast[odd] = np.arange(int(odd.sum()))
+        ch = _gauss(np.arange(-J, J + 1) * step / fwhm_h) if J else np.ones(1)
+        ch /= ch.sum()
+        rv = _gauss(np.arange(-V, V + 1) / samples) if V else np.ones(1)
+        rv /= rv.sum()
+        ii, jj = np.meshgrid([i for i in range(-V, V + 1) if i], np.arange(-J, J + 1),
+                             indexing="ij")
+        K = 1 + len(js) + ii.size
+        w = np.zeros((4, K))
+        w[1, 0], w[1, 1:1 + len(js)] = ch[J], np.delete(ch, J)
+        w[3, 0], w[3, 1:1 + len(js)] = rv[V] * ch[J], rv[V] * np.delete(ch, J)
+        w[3, 1 + len(js):] = (rv[ii + V] * ch[jj + J]).reshape(-1)
+        w[2] = w[3]
+        w[0, 0] = 1.0
+        return cls(step, sub, max(1, -(-J // sub)), col, cast, js[odd] * step,
+                   (jj * step).reshape(-1).astype(float),
+                   (ii * fwhm_v / samples).reshape(-1).astype(float), w)
 
 
 class Physics:
@@ -212,16 +264,14 @@ class Physics:
         self.row_step = (np.zeros(H - 1, np.int64) if row_step is None
                          else np.asarray(row_step, np.int64))
         self.quantum_mm = quantum_mm
-        self.sub_a, self.sub_b, self.sub_w = _sub_pattern(m.footprint_rays)
-        self.fwhm_h = math.radians(m.divergence_h_deg)
-        self.fwhm_v = math.radians(m.divergence_v_deg)
-        self.off_a = self.sub_a * self.fwhm_h  # sub-ray offsets in radians
-        self.off_b = self.sub_b * self.fwhm_v
+        self.grid = FootprintGrid.of(m.footprint_samples, math.radians(m.divergence_h_deg),
+                                     math.radians(m.divergence_v_deg), shape[0])
         # photons: SIGNAL written as counts; one signal unit at the threshold is this many
         self.photons = 5.0  # SIGNAL counts per threshold unit: see the README (anecdotal)
         self.far_m = min(carried_m, m.reach_80pct_m * math.sqrt(gain) * 1.5)
         self.jit = True  # the compiled kernels (numba), where they can be had
         self.last_flagged = 0  # pixels supersampled in the last frame
+        self.last_cast = 0  # and the sub-rays cast for them
 
     # ---- the reach this model gives ---------------------------------------------------
     def reach_m(self, reflectance: float, probability: float = 0.5) -> float:
@@ -269,34 +319,45 @@ class Physics:
         # 2. the footprint where it can straddle an edge
         e1, r1, s1 = e.copy(), r.copy(), ss.copy()
         e2, r2, s2 = np.zeros(N), np.full(N, np.inf), np.full(N, -1, np.int32)
+        g = self.grid
         flags = np.zeros((W, H), np.uint8)
         if m.footprint == "full":
-            flags[:] = 1
+            flags[:] = 3
         elif m.footprint == "adaptive":
             if k is not None:
-                k.flag_edges(ss.reshape(W, H), self.row_step, flags)
+                k.flag_edges(ss.reshape(W, H), self.row_step, g.reach, flags)
             else:
-                self._flag_np(ss.reshape(W, H), flags)
+                self._flag_np(ss.reshape(W, H), g.reach, flags)
+        if g.weights.shape[1] == 1:
+            flags[:] = 0
         idx = np.flatnonzero(flags.reshape(-1))
         self.last_flagged = len(idx)
-        K = len(self.sub_w)
-        if len(idx) and K > 1:
-            oo = np.empty((len(idx) * (K - 1), 3), np.float32)
-            dd = np.empty((len(idx) * (K - 1), 3), np.float32)
+        if len(idx):
+            fl = flags.reshape(-1)[idx]
+            nh, nv = len(g.h_off), len(g.v_b)
+            counts = np.where(fl & 1, nh, 0) + np.where(fl & 2, nv, 0)
+            start = np.cumsum(counts) - counts
+            n_sub = int(counts.sum())
+            self.last_cast = n_sub
+            oo = np.empty((n_sub, 3), np.float32)
+            dd = np.empty((n_sub, 3), np.float32)
             if k is not None:
-                k.footprint_rays(o, d, idx, self.off_a, self.off_b, oo, dd)
+                k.footprint_rays(o, d, idx, fl, start, g.h_off, g.v_a, g.v_b, oo, dd)
             else:
-                self._rays_np(o, d, idx, oo, dd)
-            ts, ps = cast(oo, dd)
+                self._rays_np(o, d, idx, fl, start, oo, dd)
+            ts, ps = cast(oo, dd) if n_sub else (np.empty(0), np.empty(0, np.int32))
             ts = np.ascontiguousarray(ts, np.float64)
             ps = np.ascontiguousarray(ps, np.int32)
-            args = (self.sub_w, ss, r, mat, cosi, ts, ps, dd, sop, mop, nrm, self.refl, surf,
-                    n_m, self.R_NEAR, m.range_resolution_m, self.ORDERS[m.return_order],
-                    e1, r1, s1, e2, r2, s2)
+            args = (g.weights, g.col, g.cast, nh, H, ss, r, mat, cosi, ts, ps, dd, sop, mop,
+                    nrm, self.refl, surf, n_m, self.R_NEAR, m.range_resolution_m,
+                    self.ORDERS[m.return_order], e1, r1, s1, e2, r2, s2)
             if k is not None:
-                run(k.footprint_echoes, [(idx, a, b, *args) for a, b in _parts(len(idx), 1, 8)])
+                run(k.footprint_echoes, [(idx, fl, start, a, b, *args)
+                                         for a, b in _parts(len(idx), 1, 8)])
             else:
-                self._echoes_np(idx, *args)
+                self._echoes_np(idx, fl, start, *args)
+        else:
+            self.last_cast = 0
         # 3. detection, noise, the words
         q = self.quantum_mm
         out: dict[str, Any] = {"NEAR_IR": np.ascontiguousarray(
@@ -354,20 +415,25 @@ class Physics:
         nir[:] = np.where(hit, np.minimum(amb * self.refl[mt], 65535.0),
                           min(amb * 0.05, 65535.0))
 
-    def _flag_np(self, ss: NDArray[np.int32], out: NDArray[np.uint8]) -> None:
+    def _flag_np(self, ss: NDArray[np.int32], reach: int, out: NDArray[np.uint8]) -> None:
         W, H = ss.shape
-        flag = out.view(bool)
-        edge = ss != np.roll(ss, -1, axis=0)  # column c against c + 1
-        flag |= edge | np.roll(edge, 1, axis=0)
+        for j in range(1, reach + 1):
+            edge = ss != np.roll(ss, -j, axis=0)  # column c against c + j
+            out[edge] |= 1
+            out[np.roll(edge, j, axis=0)] |= 1
         cols = (np.arange(W)[:, None] + self.row_step[None, :]) % W  # (W, H - 1)
         beams = np.broadcast_to(np.arange(1, H)[None, :], cols.shape)
-        edge = ss[:, :-1] != ss[cols, beams]  # beam h against h + 1 nearest in angle
-        flag[:, :-1] |= edge
-        flag[cols[edge], beams[edge]] = True
+        lo, hi = ss[:, :-1], ss[cols, beams]  # beam h, and h + 1 nearest in angle
+        up = (lo != hi) & (lo != ss[(cols - 1) % W, beams]) & (lo != ss[(cols + 1) % W, beams])
+        out[:, :-1][up] |= 3
+        down = ((hi != lo) & (hi != np.roll(ss, 1, axis=0)[:, :-1])
+                & (hi != np.roll(ss, -1, axis=0)[:, :-1]))
+        out[cols[down], beams[down]] |= 3
 
     def _rays_np(self, o: NDArray[np.float32], d: NDArray[np.float32], idx: NDArray[np.intp],
-                 oo: NDArray[np.float32], dd: NDArray[np.float32]) -> None:
-        K = len(self.sub_w)
+                 fl: NDArray[np.uint8], start: NDArray[np.intp], oo: NDArray[np.float32],
+                 dd: NDArray[np.float32]) -> None:
+        g = self.grid
         dx = d[idx].astype(np.float64)
         ex = np.stack([-dx[:, 1], dx[:, 0], np.zeros(len(dx))], axis=1)  # horizontal, ⟂ d
         nn = np.sqrt(ex[:, 0] * ex[:, 0] + ex[:, 1] * ex[:, 1] + ex[:, 2] * ex[:, 2])
@@ -378,33 +444,69 @@ class Physics:
         fx = np.stack([dx[:, 1] * ex[:, 2] - dx[:, 2] * ex[:, 1],
                        dx[:, 2] * ex[:, 0] - dx[:, 0] * ex[:, 2],
                        dx[:, 0] * ex[:, 1] - dx[:, 1] * ex[:, 0]], axis=1)
-        a = self.off_a[None, 1:, None]
-        b = self.off_b[None, 1:, None]
-        v = dx[:, None, :] + a * ex[:, None, :] + b * fx[:, None, :]
-        n = np.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])
-        dd[:] = (v / n[..., None]).reshape(-1, 3)
-        oo[:] = np.repeat(o[idx], K - 1, axis=0)
+        nh = len(g.h_off)
+        for bit, offs, first in ((1, g.h_off, 0), (2, g.v_b, None)):
+            sel = np.flatnonzero(fl & bit)
+            if not len(sel) or not len(offs):
+                continue
+            a = (g.h_off if bit == 1 else g.v_a)[None, :, None]
+            b = offs[None, :, None] if bit == 2 else 0.0
+            v = (dx[sel, None, :] + a * ex[sel, None, :]) + b * fx[sel, None, :]
+            n = np.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])
+            at = start[sel] + (0 if first == 0 else np.where(fl[sel] & 1, nh, 0))
+            rows = (at[:, None] + np.arange(len(offs))[None, :]).reshape(-1)
+            dd[rows] = (v / n[..., None]).reshape(-1, 3)
+            oo[rows] = np.repeat(o[idx[sel]], len(offs), axis=0)
 
-    def _echoes_np(self, idx: NDArray[np.intp], w: FloatArray, ss: Any, r: Any, mat: Any,
-                   cosi: Any, ts: FloatArray, ps: NDArray[np.int32], dd: NDArray[np.float32],
-                   sop: Any, mop: Any, nrm: Any, refl: FloatArray, surf: bool, n_m: float,
-                   r_near: float, resolution: float, order: int, e1: Any, r1: Any, s1: Any,
-                   e2: Any, r2: Any, s2: Any) -> None:
-        K = len(w)
+    def _echoes_np(self, idx: NDArray[np.intp], fl: NDArray[np.uint8],
+                   start: NDArray[np.intp], wt: FloatArray, hcol: Any, hcast: Any, nh: int,
+                   H: int, ss: Any, r: Any, mat: Any, cosi: Any, ts: FloatArray,
+                   ps: NDArray[np.int32], dd: NDArray[np.float32], sop: Any, mop: Any,
+                   nrm: Any, refl: FloatArray, surf: bool, n_m: float, r_near: float,
+                   resolution: float, order: int, e1: Any, r1: Any, s1: Any, e2: Any,
+                   r2: Any, s2: Any) -> None:
+        K = wt.shape[1]
+        KH = len(hcol)
         M = len(idx)
-        sid, mt, cos = _surface_np(ps, dd, sop, mop, nrm, surf)
-        hit = np.isfinite(ts) & (sid >= 0)
-        rr = np.where(hit, ts + n_m, np.inf)
-        rn = np.maximum(rr, r_near)
-        ee = np.where(hit, np.repeat(w[None, 1:], M, 0).reshape(-1) * refl[mt] * cos
-                      / (rn * rn), 0.0)
-        c_hit = ss[idx] >= 0
-        rc = np.maximum(r[idx], r_near)
-        ec = np.where(c_hit, w[0] * refl[mat[idx]] * cosi[idx] / (rc * rc), 0.0)
-        rk = np.concatenate([np.where(c_hit, r[idx], np.inf)[:, None], rr.reshape(M, K - 1)], 1)
-        ek = np.concatenate([ec[:, None], ee.reshape(M, K - 1)], 1)
-        sk = np.concatenate([np.where(c_hit, ss[idx], -1)[:, None],
-                             np.where(hit, sid, -1).reshape(M, K - 1)], 1)
+        W = len(ss) // H
+        w = wt[fl]  # (M, K)
+        rk = np.full((M, K), np.inf)
+        ek = np.zeros((M, K))
+        sk = np.full((M, K), -1, np.int32)
+        c, h = idx // H, idx % H
+        # the centre rays' samples: the pixel's own, and neighbouring columns'
+        src = np.full((M, K), -1, np.intp)
+        src[:, 0] = idx
+        for kk in range(KH):
+            if hcast[kk] < 0:
+                src[:, 1 + kk] = np.where(fl & 1, ((c + hcol[kk]) % W) * H + h, -1)
+        use = src >= 0
+        sr = np.where(use, src, 0)
+        hit = use & (ss[sr] >= 0)
+        rn = np.maximum(r[sr], r_near)
+        rk = np.where(hit, r[sr], rk)
+        with np.errstate(invalid="ignore"):
+            ek = np.where(hit, w * refl[mat[sr]] * cosi[sr] / (rn * rn), ek)
+        sk = np.where(hit, ss[sr], sk)
+        # the cast sub-rays' samples
+        row = np.full((M, K), -1, np.intp)
+        for kk in range(KH):
+            if hcast[kk] >= 0:
+                row[:, 1 + kk] = np.where(fl & 1, start + hcast[kk], -1)
+        for kk in range(K - 1 - KH):
+            row[:, 1 + KH + kk] = np.where(fl & 2, start + kk + np.where(fl & 1, nh, 0), -1)
+        at = np.flatnonzero(row.reshape(-1) >= 0)
+        if len(at):
+            rw = row.reshape(-1)[at]
+            sid, mt, cos = _surface_np(ps[rw], dd[rw], sop, mop, nrm, surf)
+            tt = ts[rw]
+            ok = np.isfinite(tt) & (sid >= 0)
+            rr = np.where(ok, tt + n_m, np.inf)
+            rn2 = np.maximum(rr, r_near)
+            rk.reshape(-1)[at] = rr
+            ek.reshape(-1)[at] = np.where(ok, w.reshape(-1)[at] * refl[mt] * cos / (rn2 * rn2),
+                                          0.0)
+            sk.reshape(-1)[at] = np.where(ok, sid, -1)
         # echoes: sort by range, split where the gap exceeds the range resolution
         srt = np.argsort(rk, axis=1, kind="stable")
         rk = np.take_along_axis(rk, srt, 1)

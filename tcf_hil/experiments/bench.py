@@ -35,7 +35,7 @@ class BenchGrid:
     frames: int | None  # None: the whole track
     error_frames: int = 2  # frames cast exactly for the range error
     sensor: str | None = None  # a sensor preset over the forest's own [sensor]
-    footprints: tuple[str, ...] = ("",)  # "off", "adaptive:9", "full:17"; "": the sensor's
+    footprints: tuple[str, ...] = ("",)  # "off", "adaptive:2", "full:4"; "": the sensor's
 
 
 QUICK = BenchGrid("forest-ii", ("512x10",), (2.0, 10.0), ("embree", "open3d"),
@@ -44,7 +44,7 @@ FULL = BenchGrid("forest-v", ("512x10", "1024x10", "2048x10"), (2.0, 10.0),
                  ("embree", "open3d"), ("tuned", "paper"), frames=300)
 
 BENCH_COLUMNS = ("forest", "mode", "tolerance_mm", "backend", "preset", "sensor", "footprint",
-                 "footprint_rays", "supersampled_pct", "triangles", "frames",
+                 "footprint_samples", "supersampled_pct", "triangles", "frames",
                  "emulator_ms_frame", "emulator_x_realtime", "range_err_p50_mm",
                  "range_err_p99_mm", "return_err_p50_mm", "return_err_p99_mm",
                  "return_bias_mm", "returns_on_stems_pct", "sic_ms_p50", "sic_ms_p99",
@@ -71,8 +71,8 @@ def _range_error(run: Any, k: int) -> np.ndarray:
 
 
 def parse_footprint(text: str) -> tuple[str, int | None]:
-    """``"adaptive:9"`` -> ("adaptive", 9); ``"off"`` -> ("off", None); ``""``: the
-    sensor's own (("", None)). Raises ValueError naming what is allowed."""
+    """``"adaptive:4"`` -> ("adaptive", 4: samples per FWHM); ``"off"`` -> ("off", None);
+    ``""``: the sensor's own (("", None)). Raises ValueError naming what is allowed."""
     kind, _, rays = text.strip().partition(":")
     if kind not in ("", "off", "adaptive", "full"):
         raise ValueError(f"{text!r}: footprints are off, adaptive:N or full:N")
@@ -80,8 +80,8 @@ def parse_footprint(text: str) -> tuple[str, int | None]:
         n = int(rays) if rays else None
     except ValueError:
         n = 0
-    if n is not None and not 1 <= n <= 64:
-        raise ValueError(f"{text!r}: sub-rays from 1 to 64")
+    if n is not None and not 1 <= n <= 16:
+        raise ValueError(f"{text!r}: samples per FWHM from 1 to 16")
     return kind, n
 
 
@@ -91,7 +91,7 @@ def _with_footprint(scn: Scenario, text: str) -> Scenario:
     if kind:
         sensor = dataclasses.replace(sensor, footprint=kind)  # type: ignore[arg-type]
     if n is not None:
-        sensor = dataclasses.replace(sensor, footprint_rays=n)
+        sensor = dataclasses.replace(sensor, footprint_samples=n)
     return dataclasses.replace(scn, sensor=sensor)
 
 
@@ -163,7 +163,7 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
                 "forest": scn.name, "mode": mode, "tolerance_mm": tol,
                 "backend": run.backend, "preset": preset,
                 "sensor": scn.sensor.preset, "footprint": scn.sensor.footprint,
-                "footprint_rays": scn.sensor.footprint_rays,
+                "footprint_samples": scn.sensor.footprint_samples,
                 "supersampled_pct": 100.0 * float(np.mean([r[2] for r in ret])),
                 "triangles": len(run.scene.faces), "frames": frames,
                 "emulator_ms_frame": 1000.0 * emu_s / max(frames, 1),
@@ -238,10 +238,10 @@ def pareto_png(rows: Sequence[dict[str, Any]], title: str) -> bytes:
 
 
 def footprint_label(r: dict[str, Any]) -> str:
-    """``adaptive:9``, ``full:17``, ``off`` (ideal sensors: ``-``)."""
+    """``adaptive:2``, ``full:4``, ``off`` (ideal sensors: ``-``)."""
     if r["sensor"] == "ideal":
         return "-"
-    return "off" if r["footprint"] == "off" else f"{r['footprint']}:{r['footprint_rays']}"
+    return "off" if r["footprint"] == "off" else f"{r['footprint']}:{r['footprint_samples']}"
 
 
 def _md(rows: Sequence[dict[str, Any]]) -> str:

@@ -209,7 +209,10 @@ def test_adaptive_footprint_matches_the_full_one() -> None:
     lost = np.count_nonzero((ra > 0) != (rb > 0))
     print(f"adaptive vs full: {np.count_nonzero(both)} returns in both, {big} differ by more "
           f"than 1 mm, {lost} in one only")
-    assert big <= 0.01 * np.count_nonzero(both) and lost <= 0.01 * np.count_nonzero(both)
+    # inside an object the adaptive footprint leaves out the range averaging over its
+    # curvature (2-3 mm on a 30 cm stem at 8 m): a few pixels differ by more than 1 mm
+    assert big <= 0.02 * np.count_nonzero(both) and lost <= 0.01 * np.count_nonzero(both)
+    assert np.count_nonzero(np.abs(ra - rb)[both] > 5) == 0
 
 
 @pytest.mark.parametrize("profile", ["RNG19_RFL8_SIG16_NIR16", "RNG19_RFL8_SIG16_NIR16_DUAL"])

@@ -232,20 +232,20 @@ def test_bench_quick(tmp_path: Path) -> None:
 
 
 def test_bench_footprint_axis(tmp_path: Path) -> None:
-    """off / adaptive / full x sub-rays: supersampled pixels, the returns' error against the
+    """off / adaptive / full x samples per FWHM: supersampled pixels, the returns' error against the
     exact surfaces and the DBH bias, beside an ideal sensor's."""
     args = [*TCF, "bench", "--quick", "--backends", "auto", "--presets", "tuned",
             "--tolerances", "2", "--frames", "20"]
-    p = subprocess.run([*args, "--footprints", "off,adaptive:5,full:3", "--out",
+    p = subprocess.run([*args, "--footprints", "off,adaptive:4,full:1", "--out",
                         str(tmp_path / "a")], capture_output=True, text=True, env=ENV,
                        timeout=600)
     assert p.returncode == 0, p.stderr
     _, rows = _read_csv(tmp_path / "a" / "bench.csv")
-    by = {(r["footprint"], r["footprint_rays"]): r for r in rows}
-    assert set(by) == {("off", "9"), ("adaptive", "5"), ("full", "3")}
-    assert float(by["off", "9"]["supersampled_pct"]) == 0.0
-    assert 0.0 < float(by["adaptive", "5"]["supersampled_pct"]) < 50.0
-    assert float(by["full", "3"]["supersampled_pct"]) == 100.0
+    by = {(r["footprint"], r["footprint_samples"]): r for r in rows}
+    assert set(by) == {("off", "2"), ("adaptive", "4"), ("full", "1")}
+    assert float(by["off", "2"]["supersampled_pct"]) == 0.0
+    assert 0.0 < float(by["adaptive", "4"]["supersampled_pct"]) < 50.0
+    assert float(by["full", "1"]["supersampled_pct"]) == 100.0
     assert all(r["sensor"] == "os0-64-rev7" and float(r["return_err_p50_mm"]) > 2.0
                for r in rows)  # the noise
     q = subprocess.run([*args, "--sensor", "ideal", "--out", str(tmp_path / "b")],
