@@ -12,8 +12,10 @@ interface time resolution); Ethernet (with 802.1Q tags) + IPv4 + UDP; fragments 
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+
+import numpy as np
 
 __all__ = ["PcapError", "PcapWriter", "UdpDatagram", "read_udp"]
 
@@ -107,6 +109,78 @@ class PcapWriter:
             off += len(chunk)
             if not more:
                 return b"".join(out)
+
+    def records_many(self, datagrams: Sequence[UdpDatagram]) -> bytes:
+        """:meth:`records` of each datagram, joined: the same bytes, built a run of alike
+        datagrams at a time (same length, addresses and ports: a frame's lidar packets) as
+        arrays, so a frame of 64 packets in 576 fragments costs a few array operations."""
+        out: list[bytes] = []
+        i, n = 0, len(datagrams)
+        while i < n:
+            d = datagrams[i]
+            key = (len(d.payload), d.src_ip, d.dst_ip, d.src_port, d.dst_port)
+            j = i + 1
+            while j < n and (len(datagrams[j].payload), datagrams[j].src_ip,
+                             datagrams[j].dst_ip, datagrams[j].src_port,
+                             datagrams[j].dst_port) == key:
+                j += 1
+            if j - i < 4:
+                out.extend(self.records(datagrams[k]) for k in range(i, j))
+            else:
+                out.append(self._run_records(datagrams[i:j]))
+            i = j
+        return b"".join(out)
+
+    def _run_records(self, run: Sequence[UdpDatagram]) -> bytes:
+        d0 = run[0]
+        L = len(d0.payload)
+        if L > 65507:
+            raise ValueError(f"UDP payload of {L} bytes exceeds 65507")
+        ts = np.array([d.timestamp_ns for d in run], np.int64)
+        bad = (ts < 0) | (ts >= (1 << 32) * 1_000_000_000)
+        if bad.any():
+            raise ValueError(f"timestamp_ns {int(ts[bad][0])} does not fit a pcap record")
+        src, dst = _ip_bytes(d0.src_ip), _ip_bytes(d0.dst_ip)
+        M = len(run)
+        udp = np.empty((M, 8 + L), np.uint8)
+        udp[:, :8] = np.frombuffer(_UDP.pack(d0.src_port, d0.dst_port, 8 + L, 0), np.uint8)
+        udp[:, 8:] = np.frombuffer(b"".join(bytes(d.payload) for d in run),
+                                   np.uint8).reshape(M, L)
+        ids = (self._ip_id + 1 + np.arange(M)) & 0xFFFF
+        self._ip_id = int(ids[-1])
+        sec, rem = np.divmod(ts, 1_000_000_000)
+        frac = rem if self.nanosecond else rem // 1000
+        room = (self.mtu - 20) // 8 * 8
+        size = 8 + L
+        parts = []
+        off = 0
+        while True:
+            clen = room if size - off > self.mtu - 20 else size - off
+            more = off + clen < size
+            flags_frag = (0x2000 if more else 0) | (off // 8)
+            hdr = np.frombuffer(_IP.pack(0x45, 0, 20 + clen, 0, flags_frag, 64, 17, 0, src,
+                                         dst), np.uint8)
+            words = hdr.reshape(10, 2).astype(np.int64)
+            base = int((words[:, 0] * 256 + words[:, 1]).sum())
+            total = base + ids
+            while (total >> 16).any():
+                total = (total & 0xFFFF) + (total >> 16)
+            csum = ~total & 0xFFFF
+            rec = np.empty((M, 16 + 14 + 20 + clen), np.uint8)
+            flen = 14 + 20 + clen
+            head = np.empty((M, 4), "<u4")
+            head[:, 0], head[:, 1], head[:, 2], head[:, 3] = sec, frac, flen, flen
+            rec[:, :16] = head.view(np.uint8).reshape(M, 16)
+            rec[:, 16:30] = np.frombuffer(_ETH.pack(_DST_MAC, _SRC_MAC, 0x0800), np.uint8)
+            rec[:, 30:50] = hdr
+            rec[:, 34], rec[:, 35] = ids >> 8, ids & 0xFF
+            rec[:, 40], rec[:, 41] = csum >> 8, csum & 0xFF
+            rec[:, 50:] = udp[:, off:off + clen]
+            parts.append(rec)
+            off += clen
+            if not more:
+                break
+        return np.concatenate(parts, axis=1).tobytes()
 
     def encode(self, datagrams: Iterable[UdpDatagram]) -> bytes:
         """A whole file: header and every datagram."""

@@ -218,8 +218,8 @@ class LidarRun:
 def _pcap_records(writer: PcapWriter, dgs: list[Datagram], sensor_ip: str, dest: str
                   ) -> bytes:
     """One frame's datagrams as pcap records, each at its simulation time."""
-    return b"".join(writer.records(UdpDatagram(d.t_ns, sensor_ip, dest, d.port, d.port,
-                                               bytes(d.payload))) for d in dgs)
+    return writer.records_many([UdpDatagram(d.t_ns, sensor_ip, dest, d.port, d.port,
+                                            bytes(d.payload)) for d in dgs])
 
 
 def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,

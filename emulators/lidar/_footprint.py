@@ -14,7 +14,25 @@ from typing import Any
 
 import numpy as np
 
+from emulators.jit import compiled
+
 SQRT2 = math.sqrt(2.0)
+
+
+def surface(p: int, dx: float, dy: float, dz: float, stem_of_prim: Any,
+            material_of_prim: Any, normals: Any, surf: bool) -> tuple[int, int, float]:
+    """What a ray of direction (dx, dy, dz) hit, from ``p`` (the triangle, -1 none; or,
+    without ``surf``, the stem id): its stem id (-1 none), material and |cos incidence|."""
+    if not surf:
+        return p, (1 if p > 0 else 0), 1.0
+    q = p if p >= 0 else stem_of_prim.shape[0] - 1
+    qn = p if p > 0 else 0
+    c = float(abs(np.float64(normals[qn, 0]) * np.float64(dx)
+                  + np.float64(normals[qn, 1]) * np.float64(dy)
+                  + np.float64(normals[qn, 2]) * np.float64(dz)))
+    if c > 1.0:
+        c = 1.0
+    return stem_of_prim[q], material_of_prim[q], c
 
 
 def centre_echoes(prim: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim: Any,
@@ -25,23 +43,9 @@ def centre_echoes(prim: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim
     ``surf``, the stem id): stem id (``ss``, -1 no hit), range from the lidar axis (``r``,
     inf none), echo energy ``refl cos / max(r, r_near)^2`` (``e``), material, |cos
     incidence| and the NEAR_IR the surface reflects."""
-    last = stem_of_prim.shape[0] - 1
     for i in range(i0, i1):
-        p = prim[i]
-        if surf:
-            q = p if p >= 0 else last
-            s = stem_of_prim[q]
-            m = material_of_prim[q]
-            qn = p if p > 0 else 0
-            c = float(abs(np.float64(normals[qn, 0]) * np.float64(d[i, 0])
-                    + np.float64(normals[qn, 1]) * np.float64(d[i, 1])
-                    + np.float64(normals[qn, 2]) * np.float64(d[i, 2])))
-            if c > 1.0:
-                c = 1.0
-        else:
-            s = p
-            m = 1 if p > 0 else 0
-            c = 1.0
+        s, m, c = surface(prim[i], d[i, 0], d[i, 1], d[i, 2], stem_of_prim, material_of_prim,
+                          normals, surf)
         mat[i] = m
         cosi[i] = c
         tt = t[i]
@@ -137,7 +141,6 @@ def footprint_echoes(idx: Any, fl: Any, start: Any, j0: int, j1: int, wt: Any, h
     (the nearest on a tie)."""
     K = wt.shape[1]
     KH = hcol.shape[0]
-    last = stem_of_prim.shape[0] - 1
     W = ss.shape[0] // H
     rs = np.empty(K)
     es = np.empty(K)
@@ -152,8 +155,7 @@ def footprint_echoes(idx: Any, fl: Any, start: Any, j0: int, j1: int, wt: Any, h
         f = fl[j]
         c = i // H
         h = i - c * H
-        for k in range(K):
-            rs[k], es[k], sids[k] = np.inf, 0.0, -1
+        n = 0  # the samples used, in slot order (unused slots are misses: left out)
         for k in range(K):
             w = wt[f, k]
             if k == 0:
@@ -168,37 +170,27 @@ def footprint_echoes(idx: Any, fl: Any, start: Any, j0: int, j1: int, wt: Any, h
                 if not f & 2:
                     continue
                 src = -1
+            rs[n], es[n], sids[n] = np.inf, 0.0, -1
             if src >= 0:  # a centre ray's sample, the pixel's own or a neighbour's
                 if ss[src] >= 0:
                     rn = max(r[src], r_near)
-                    rs[k], es[k], sids[k] = r[src], w * refl[mat[src]] * cosi[src] / (rn * rn), \
+                    rs[n], es[n], sids[n] = r[src], w * refl[mat[src]] * cosi[src] / (rn * rn), \
                         ss[src]
+                n += 1
                 continue
             row = start[j] + (hcast[k - 1] if k <= KH else (k - 1 - KH) + (nh if f & 1 else 0))
-            p = prim_sub[row]
-            if surf:
-                q = p if p >= 0 else last
-                s = stem_of_prim[q]
-                m = material_of_prim[q]
-                qn = p if p > 0 else 0
-                cc = float(abs(np.float64(normals[qn, 0]) * np.float64(dd[row, 0])
-                         + np.float64(normals[qn, 1]) * np.float64(dd[row, 1])
-                         + np.float64(normals[qn, 2]) * np.float64(dd[row, 2])))
-                if cc > 1.0:
-                    cc = 1.0
-            else:
-                s = p
-                m = 1 if p > 0 else 0
-                cc = 1.0
+            s, m, cc = surface(prim_sub[row], dd[row, 0], dd[row, 1], dd[row, 2],
+                               stem_of_prim, material_of_prim, normals, surf)
             tt = np.float64(t_sub[row])
             if np.isfinite(tt) and s >= 0:
                 rr = tt + n_m
                 rn = max(rr, r_near)
-                rs[k], es[k], sids[k] = rr, w * refl[m] * cc / (rn * rn), s
+                rs[n], es[n], sids[n] = rr, w * refl[m] * cc / (rn * rn), s
+            n += 1
         # a stable insertion sort by range
-        for k in range(K):
+        for k in range(n):
             srt[k] = k
-        for k in range(1, K):
+        for k in range(1, n):
             v = srt[k]
             x = rs[v]
             m2 = k - 1
@@ -206,11 +198,11 @@ def footprint_echoes(idx: Any, fl: Any, start: Any, j0: int, j1: int, wt: Any, h
                 srt[m2 + 1] = srt[m2]
                 m2 -= 1
             srt[m2 + 1] = v
-        for g in range(K):
+        for g in range(n):
             ge[g], ger[g], gb[g], gs[g] = 0.0, 0.0, -1.0, -1
         g = -1
         prev = 0.0
-        for k in range(K):
+        for k in range(n):
             v = srt[k]
             x = rs[v]
             if k == 0 or not (x - prev <= resolution):
@@ -222,10 +214,11 @@ def footprint_echoes(idx: Any, fl: Any, start: Any, j0: int, j1: int, wt: Any, h
                 if es[v] > 0 and es[v] > gb[g]:
                     gb[g] = es[v]
                     gs[g] = sids[v]
-        # the two leading echoes by the return order, ties to the lower index
+        # the two leading echoes by the return order, ties to the lower index (the echoes
+        # of no energy all read alike: which one comes second does not show)
         b0, b1 = -1, -1
         k0, k1 = np.inf, np.inf
-        for g2 in range(K):
+        for g2 in range(g + 1):
             if ge[g2] > 0:
                 rg = ger[g2] / ge[g2]
                 key = -ge[g2] if order == 0 else (rg if order == 1 else -rg)
@@ -238,12 +231,13 @@ def footprint_echoes(idx: Any, fl: Any, start: Any, j0: int, j1: int, wt: Any, h
                 b1, k1 = g2, key
         for slot in range(2):
             g2 = b0 if slot == 0 else b1
-            eg = ge[g2]
+            eg = ge[g2] if g2 >= 0 else 0.0
             rg = ger[g2] / eg if eg > 0 else np.inf
+            sg = gs[g2] if g2 >= 0 else -1
             if slot == 0:
-                e1[i], r1[i], s1[i] = eg, rg, gs[g2]
+                e1[i], r1[i], s1[i] = eg, rg, sg
             else:
-                e2[i], r2[i], s2[i] = eg, rg, gs[g2]
+                e2[i], r2[i], s2[i] = eg, rg, sg
 
 
 def detect(e: Any, r: Any, sid: Any, u: Any, z: Any, i0: int, i1: int, H: int,
@@ -282,3 +276,9 @@ def detect(e: Any, r: Any, sid: Any, u: Any, z: Any, i0: int, i1: int, H: int,
             w_signal[h, c] = 0
             w_refl[h, c] = 0
             sid_out[i] = -1
+
+
+# The kernels call :func:`surface` compiled: numba calls only compiled functions.
+_surface = compiled(surface)
+if _surface is not None:
+    surface = _surface

@@ -180,13 +180,14 @@ class FootprintGrid:
     one FWHM each side, on the sensor's own column grid (``step`` the column spacing over a
     power of two ``sub``, no wider than FWHM / ``samples``), so every ``sub``-th sample of
     the centre row is a neighbouring column's centre ray, cast already; vertically in rows
-    every FWHM / ``samples`` out to half the FWHM each side (the beams are 1.4 degrees
-    apart, so those rows are sub-rays, cast only where a horizontal edge can be: stem tops,
-    the horizon). Slots: the centre, the centre row's others (columns ``col[k]`` away where
-    ``cast[k]`` is -1, else the pixel's cast sub-ray ``cast[k]`` at ``h_off``), the other
-    rows' (``v_a``, ``v_b``). ``weights[flags]``: each slot's share of the beam's energy,
-    the Gaussian's, for a pixel sampled along its row (flag 1: the rows above and below
-    taken as the centre row) or over the grid (flag 3)."""
+    every FWHM / ``samples`` out to half the FWHM each side and as far sideways (the beams
+    are 1.4 degrees apart, so those rows are sub-rays, cast only where a horizontal edge
+    can be: stem tops, the horizon). Slots: the centre, the centre row's others (columns
+    ``col[k]`` away where ``cast[k]`` is -1, else the pixel's cast sub-ray ``cast[k]`` at
+    ``h_off``), the other rows' (``v_a``, ``v_b``). ``weights[flags]``: each slot's share
+    of the beam's energy, the Gaussian's, for a pixel sampled along its row (flag 1: the
+    rows above and below taken as the centre row) or over the grid (flag 3: both sides,
+    so a range that grows across the footprint averages to the centre's, as it does)."""
 
     step: float
     sub: int
@@ -196,7 +197,7 @@ class FootprintGrid:
     h_off: FloatArray
     v_a: FloatArray
     v_b: FloatArray
-    weights: FloatArray  # (4, slots)
+    weights: FloatArray  # (4, slots): by flags (1 the row, 3 the grid)
 
     @classmethod
     def of(cls, samples: int, fwhm_h: float, fwhm_v: float, columns: int) -> FootprintGrid:
@@ -216,13 +217,18 @@ class FootprintGrid:
         ch /= ch.sum()
         rv = _gauss(np.arange(-V, V + 1) / samples) if V else np.ones(1)
         rv /= rv.sum()
-        ii, jj = np.meshgrid([i for i in range(-V, V + 1) if i], np.arange(-J, J + 1),
+        # the other rows reach half a FWHM sideways too (the corners beyond carry under 1 %
+        # of the beam each, and cost a sub-ray each)
+        Jv = min(J, math.floor(fwhm_h * 0.505 / step + 1e-9)) if fwhm_h > 0 else 0
+        cv = _gauss(np.arange(-Jv, Jv + 1) * step / fwhm_h) if Jv else np.ones(1)
+        cv /= cv.sum()
+        ii, jj = np.meshgrid([i for i in range(-V, V + 1) if i], np.arange(-Jv, Jv + 1),
                              indexing="ij")
         K = 1 + len(js) + ii.size
         w = np.zeros((4, K))
         w[1, 0], w[1, 1:1 + len(js)] = ch[J], np.delete(ch, J)
         w[3, 0], w[3, 1:1 + len(js)] = rv[V] * ch[J], rv[V] * np.delete(ch, J)
-        w[3, 1 + len(js):] = (rv[ii + V] * ch[jj + J]).reshape(-1)
+        w[3, 1 + len(js):] = (rv[ii + V] * cv[jj + Jv]).reshape(-1)
         w[2] = w[3]
         w[0, 0] = 1.0
         return cls(step, sub, max(1, -(-J // sub)), col, cast, js[odd] * step,
@@ -342,7 +348,8 @@ class Physics:
             oo = np.empty((n_sub, 3), np.float32)
             dd = np.empty((n_sub, 3), np.float32)
             if k is not None:
-                k.footprint_rays(o, d, idx, fl, start, g.h_off, g.v_a, g.v_b, oo, dd)
+                run(k.footprint_rays, [(o, d, idx[a:b], fl[a:b], start[a:b], g.h_off, g.v_a,
+                                        g.v_b, oo, dd) for a, b in _parts(len(idx), 1, 8)])
             else:
                 self._rays_np(o, d, idx, fl, start, oo, dd)
             ts, ps = cast(oo, dd) if n_sub else (np.empty(0), np.empty(0, np.int32))

@@ -210,9 +210,11 @@ def test_adaptive_footprint_matches_the_full_one() -> None:
     print(f"adaptive vs full: {np.count_nonzero(both)} returns in both, {big} differ by more "
           f"than 1 mm, {lost} in one only")
     # inside an object the adaptive footprint leaves out the range averaging over its
-    # curvature (2-3 mm on a 30 cm stem at 8 m): a few pixels differ by more than 1 mm
+    # curvature (2-3 mm on a 30 cm stem at 8 m), and at a stem's side the full grid's rows
+    # above and below reach half a FWHM sideways where the centre row reaches one: a few
+    # pixels differ by more than 1 mm, a handful by more than 5
     assert big <= 0.02 * np.count_nonzero(both) and lost <= 0.01 * np.count_nonzero(both)
-    assert np.count_nonzero(np.abs(ra - rb)[both] > 5) == 0
+    assert np.count_nonzero(np.abs(ra - rb)[both] > 5) <= 0.005 * np.count_nonzero(both)
 
 
 @pytest.mark.parametrize("profile", ["RNG19_RFL8_SIG16_NIR16", "RNG19_RFL8_SIG16_NIR16_DUAL"])

@@ -42,6 +42,44 @@ def test_round_trip_with_fragmentation(ds: list[UdpDatagram], mtu: int, ns: bool
     assert back == ds
 
 
+@st.composite
+def runs_of_datagrams(draw: st.DrawFn) -> list[UdpDatagram]:
+    """Runs of alike datagrams (a frame's lidar packets) among odd ones (IMU packets)."""
+    out: list[UdpDatagram] = []
+    t = draw(st.integers(0, 2**40))
+    for _ in range(draw(st.integers(0, 4))):
+        src, dst = draw(ips), draw(ips)
+        ports = draw(st.integers(0, 65535)), draw(st.integers(0, 65535))
+        size = draw(st.integers(0, 9000))
+        for _ in range(draw(st.integers(1, 9))):
+            t += draw(st.integers(0, 10**6))
+            out.append(UdpDatagram(t, src, dst, *ports, draw(st.binary(min_size=size,
+                                                                        max_size=size))))
+    return out
+
+
+@settings(max_examples=80, deadline=None)
+@given(runs_of_datagrams(), st.sampled_from([68, 576, 1500, 9000]), st.booleans(),
+       st.integers(0, 65535))
+def test_records_of_many_are_the_records_of_each(ds: list[UdpDatagram], mtu: int, ns: bool,
+                                                 ip_id: int) -> None:
+    """The array-built records of a frame are byte for byte those built one by one, and
+    the IP ids go on from the same place."""
+    a, b = PcapWriter(mtu=mtu, nanosecond=ns), PcapWriter(mtu=mtu, nanosecond=ns)
+    a._ip_id = b._ip_id = ip_id
+    assert a.records_many(ds) == b"".join(b.records(d) for d in ds)
+    assert a._ip_id == b._ip_id
+
+
+def test_records_of_many_refuse_what_records_refuse() -> None:
+    d = UdpDatagram(-1, "10.0.0.1", "10.0.0.2", 7502, 7502, bytes(100))
+    with pytest.raises(ValueError, match="timestamp_ns -1"):
+        PcapWriter().records_many([d] * 5)
+    with pytest.raises(ValueError, match="exceeds 65507"):
+        PcapWriter().records_many([UdpDatagram(0, "10.0.0.1", "10.0.0.2", 1, 1,
+                                               bytes(65508))] * 5)
+
+
 def test_dpkt_reads_our_frames_and_checksums() -> None:
     payload = bytes(range(256)) * 49  # 12544 bytes, like an RNG19 packet
     data = PcapWriter(mtu=1500).encode([UdpDatagram(1_700_000_000_123_456_789, "127.0.0.1",
