@@ -63,41 +63,71 @@ def centre_echoes(prim: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim
             nir[i] = min(ambient * 0.05, 65535.0)
 
 
-def flag_edges(ss: Any, step: Any, reach: int, out: Any) -> None:
-    """``out`` (W, H), zeroed: the pixels whose footprint can straddle an edge, as bits: 1
-    horizontally, where a column within ``reach`` (wrapping) hits another object (or
-    nothing) than the pixel's centre ray, both pixels of the pair; 2 (with 1) vertically,
-    where the
-    pixel hits another object than all three of beam h + 1's pixels nearest in angle
-    (columns ``c + step[h]`` and either side: the beams' azimuth offsets stagger a column's
-    pixels by degrees, so a vertical edge seen a column apart is not a horizontal one), and
-    the other way round."""
+def flag_edges(ss: Any, step: Any, reach: int, c0: int, c1: int, out: Any) -> None:
+    """``out[c0:c1]`` of (W, H): the pixels whose footprint can straddle an edge, as bits:
+    1 horizontally, where a column within ``reach`` either side (wrapping) hits another
+    object (or nothing) than the pixel's centre ray; 3 (the grid) vertically, where the
+    pixel hits another object than all three of the next beam's pixels nearest in angle
+    (columns ``c + step[h]`` and either side: the beams' azimuth offsets stagger a
+    column's pixels by degrees, so a vertical edge seen a column apart is not a horizontal
+    one), or than all three of the previous beam's around the pixel it is nearest to.
+    Each pixel reads its neighbours and writes itself: columns apart run in parallel."""
     W, H = ss.shape
-    for c in range(W):
+    for c in range(c0, c1):
         for h in range(H):
             s = ss[c, h]
+            f = 0
             for k in range(1, reach + 1):
-                ck = (c + k) % W
-                if s != ss[ck, h]:
-                    out[c, h] |= 1
-                    out[ck, h] |= 1
+                if s != ss[(c + k) % W, h] or s != ss[(c - k) % W, h]:
+                    f = 1
+                    break
             if h + 1 < H:
                 c2 = (c + step[h]) % W
-                b = ss[c2, h + 1]
-                if s != b and s != ss[(c2 + W - 1) % W, h + 1] and s != ss[(c2 + 1) % W, h + 1]:
-                    out[c, h] |= 3
-                if b != s and b != ss[(c + W - 1) % W, h] and b != ss[(c + 1) % W, h]:
-                    out[c2, h + 1] |= 3
+                if s != ss[c2, h + 1] and s != ss[(c2 + W - 1) % W, h + 1] \
+                        and s != ss[(c2 + 1) % W, h + 1]:
+                    f = 3
+            if h > 0 and f != 3:
+                cp = (c - step[h - 1]) % W  # the previous beam's pixel whose nearest this is
+                if s != ss[cp, h - 1] and s != ss[(cp + W - 1) % W, h - 1] \
+                        and s != ss[(cp + 1) % W, h - 1]:
+                    f = 3
+            out[c, h] = f
 
 
-def footprint_rays(o: Any, d: Any, idx: Any, fl: Any, start: Any, ha: Any, va: Any,
-                   vb: Any, oo: Any, dd: Any) -> None:
-    """The sub-rays the pixels ``idx`` (flag bits ``fl``) cast, from row ``start[j]`` of
-    ``oo``/``dd`` (float32, unit): with bit 1 one offset ``ha[k]`` radians along the
-    horizontal perpendicular of the centre ray each, then with bit 2 one ``va[k]`` along
-    it and ``vb[k]`` along the perpendicular in the ray's vertical plane each."""
-    for j in range(idx.shape[0]):
+def mark_lattice(idx: Any, fl: Any, row_j: Any, grid_j: Any, grid_i: Any, S: int, V: int,
+                 W: int, H: int, j0: int, j1: int, need: Any) -> None:
+    """``need`` (flat lattice, zeroed) set where the flagged pixels ``idx[j0:j1]`` sample a
+    lattice ray that is not a centre ray (as
+    :meth:`~emulators.lidar._physics.FootprintGrid.needed` marks them)."""
+    WS, NR = W * S, 2 * V + 1
+    KH = row_j.shape[0]
+    for j in range(j0, j1):
         i = idx[j]
+        f = fl[j]
+        c = i // H
+        h = i - c * H
+        for k in range(KH + grid_j.shape[0]):
+            if k < KH:
+                if not f & 1:
+                    continue
+                dj, di = row_j[k], 0
+            else:
+                if not f & 2:
+                    continue
+                dj, di = grid_j[k - KH], grid_i[k - KH]
+            if di == 0 and dj % S == 0:
+                continue
+            x = (c * S + dj) % WS
+            need[(x * H + h) * NR + di + V] = 1
+
+
+def lattice_rays(o: Any, d: Any, pix: Any, ra: Any, rb: Any, n0: int, n1: int, oo: Any,
+                 dd: Any) -> None:
+    """Lattice rays n0 .. n1: from pixel ``pix[n]``'s origin, its centre ray turned by
+    ``ra[n]`` radians along the ray's horizontal perpendicular and ``rb[n]`` along the
+    perpendicular in its vertical plane, unit, float32, into ``oo``/``dd``."""
+    for n in range(n0, n1):
+        i = pix[n]
         dx, dy, dz = float(d[i, 0]), float(d[i, 1]), float(d[i, 2])
         ex, ey, ez = -dy, dx, 0.0
         nn = math.sqrt(ex * ex + ey * ey + ez * ez)
@@ -106,42 +136,36 @@ def footprint_rays(o: Any, d: Any, idx: Any, fl: Any, start: Any, ha: Any, va: A
         nn = max(math.sqrt(ex * ex + ey * ey + ez * ez), 1e-12)
         ex, ey, ez = ex / nn, ey / nn, ez / nn
         fx, fy, fz = dy * ez - dz * ey, dz * ex - dx * ez, dx * ey - dy * ex
-        row = start[j]
-        for part in range(2):
-            if not fl[j] & (1 << part):
-                continue
-            offs = ha if part == 0 else vb
-            for k in range(offs.shape[0]):
-                a = ha[k] if part == 0 else va[k]
-                b = vb[k] if part == 1 else 0.0
-                x = dx + a * ex + b * fx
-                y = dy + a * ey + b * fy
-                z = dz + a * ez + b * fz
-                n = math.sqrt(x * x + y * y + z * z)
-                dd[row, 0], dd[row, 1], dd[row, 2] = x / n, y / n, z / n
-                oo[row, 0], oo[row, 1], oo[row, 2] = o[i, 0], o[i, 1], o[i, 2]
-                row += 1
+        a, b = ra[n], rb[n]
+        x = dx + a * ex + b * fx
+        y = dy + a * ey + b * fy
+        z = dz + a * ez + b * fz
+        nr = math.sqrt(x * x + y * y + z * z)
+        dd[n, 0], dd[n, 1], dd[n, 2] = x / nr, y / nr, z / nr
+        oo[n, 0], oo[n, 1], oo[n, 2] = o[i, 0], o[i, 1], o[i, 2]
 
 
-def footprint_echoes(idx: Any, fl: Any, start: Any, j0: int, j1: int, wt: Any, hcol: Any,
-                     hcast: Any, nh: int, H: int, ss: Any, r: Any, mat: Any, cosi: Any,
-                     t_sub: Any, prim_sub: Any, dd: Any, stem_of_prim: Any,
-                     material_of_prim: Any, normals: Any, refl: Any, surf: bool, n_m: float,
-                     r_near: float, resolution: float, order: int, e1: Any, r1: Any,
-                     s1: Any, e2: Any, r2: Any, s2: Any) -> None:
+def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
+                     grid_j: Any, grid_i: Any, S: int, V: int, pos: Any, H: int, ss: Any,
+                     r: Any, mat: Any, cosi: Any, t_sub: Any, prim_sub: Any, dd: Any,
+                     stem_of_prim: Any, material_of_prim: Any, normals: Any, refl: Any,
+                     surf: bool, n_m: float, r_near: float, resolution: float, order: int,
+                     e1: Any, r1: Any, s1: Any, e2: Any, r2: Any, s2: Any) -> None:
     """The two leading echoes (``order``: 0 strongest first, 1 nearest, 2 farthest) of the
     flagged pixels ``idx[j0:j1]`` from their footprint's samples, in slots: the centre;
-    with flag bit 1 the horizontal ones (slot 1 + k: column ``hcol[k]`` away in the same
-    beam, its own centre ray, where ``hcast[k]`` is -1; else the pixel's cast sub-ray
-    ``hcast[k]``); with bit 2 the vertical ones (slot ``1 + len(hcol) + k``: cast sub-ray
-    ``nh + k``, or ``k`` without bit 1); unused slots are misses. A sample of weight
-    ``wt[flags, slot]`` has the energy ``w refl cos / max(r, r_near)^2``. Samples sorted by
-    range (stably) join one echo while the gap to the next is within ``resolution``; an
-    echo's range is its energy-weighted mean, its stem id that of its strongest sample
-    (the nearest on a tie)."""
+    with flag bit 1 the row's others (``row_j`` virtual columns away, ``S`` to a column);
+    with bit 2 (always with bit 1) the other rows' (``grid_j`` virtual columns and
+    ``grid_i`` rows away). A sample on a column's centre row is that column's centre ray;
+    any other is the lattice ray cast at ``pos[(x H + h)(2 V + 1) + i + V]``. Unused slots
+    are left out. A sample of weight ``wt[flags, slot]`` has the energy
+    ``w refl cos / max(r, r_near)^2``. Samples sorted by range (stably) join one echo while
+    the gap to the next is within ``resolution``; an echo's range is its energy-weighted
+    mean, its stem id that of its strongest sample (the nearest on a tie)."""
     K = wt.shape[1]
-    KH = hcol.shape[0]
+    KH = row_j.shape[0]
     W = ss.shape[0] // H
+    WS = W * S
+    NR = 2 * V + 1
     rs = np.empty(K)
     es = np.empty(K)
     sids = np.empty(K, np.int32)
@@ -155,21 +179,28 @@ def footprint_echoes(idx: Any, fl: Any, start: Any, j0: int, j1: int, wt: Any, h
         f = fl[j]
         c = i // H
         h = i - c * H
-        n = 0  # the samples used, in slot order (unused slots are misses: left out)
+        n = 0  # the samples used, in slot order
         for k in range(K):
             w = wt[f, k]
             if k == 0:
                 src = i
-            elif k <= KH:
-                if not f & 1:
-                    continue
-                src = -1
-                if hcast[k - 1] < 0:
-                    src = ((c + hcol[k - 1]) % W) * H + h
+                row = -1
             else:
-                if not f & 2:
-                    continue
-                src = -1
+                if k <= KH:
+                    if not f & 1:
+                        continue
+                    dj, di = row_j[k - 1], 0
+                else:
+                    if not f & 2:
+                        continue
+                    dj, di = grid_j[k - 1 - KH], grid_i[k - 1 - KH]
+                x = (c * S + dj) % WS
+                if di == 0 and dj % S == 0:
+                    src = (x // S) * H + h
+                    row = -1
+                else:
+                    src = -1
+                    row = pos[(x * H + h) * NR + di + V]
             rs[n], es[n], sids[n] = np.inf, 0.0, -1
             if src >= 0:  # a centre ray's sample, the pixel's own or a neighbour's
                 if ss[src] >= 0:
@@ -178,7 +209,6 @@ def footprint_echoes(idx: Any, fl: Any, start: Any, j0: int, j1: int, wt: Any, h
                         ss[src]
                 n += 1
                 continue
-            row = start[j] + (hcast[k - 1] if k <= KH else (k - 1 - KH) + (nh if f & 1 else 0))
             s, m, cc = surface(prim_sub[row], dd[row, 0], dd[row, 1], dd[row, 2],
                                stem_of_prim, material_of_prim, normals, surf)
             tt = np.float64(t_sub[row])

@@ -176,28 +176,30 @@ def _gauss(x: Any) -> FloatArray:
 
 @dataclass(frozen=True)
 class FootprintGrid:
-    """Where the footprint is sampled: a grid, horizontally every ``step`` radians out to
-    one FWHM each side, on the sensor's own column grid (``step`` the column spacing over a
-    power of two ``sub``, no wider than FWHM / ``samples``), so every ``sub``-th sample of
-    the centre row is a neighbouring column's centre ray, cast already; vertically in rows
-    every FWHM / ``samples`` out to half the FWHM each side and as far sideways (the beams
-    are 1.4 degrees apart, so those rows are sub-rays, cast only where a horizontal edge
-    can be: stem tops, the horizon). Slots: the centre, the centre row's others (columns
-    ``col[k]`` away where ``cast[k]`` is -1, else the pixel's cast sub-ray ``cast[k]`` at
-    ``h_off``), the other rows' (``v_a``, ``v_b``). ``weights[flags]``: each slot's share
-    of the beam's energy, the Gaussian's, for a pixel sampled along its row (flag 1: the
-    rows above and below taken as the centre row) or over the grid (flag 3: both sides,
-    so a range that grows across the footprint averages to the centre's, as it does)."""
+    """Where the footprint is sampled: a lattice fixed to the sensor, horizontally every
+    ``step`` radians (the column spacing over a power of two ``sub``, no wider than FWHM /
+    ``samples``: "virtual columns", ``sub`` to a column), vertically in rows every FWHM /
+    ``samples`` about each beam. A pixel's samples are the lattice's rays about its own:
+    its row out to one FWHM each side, and the rows above and below out to half the FWHM
+    (and as far sideways: the corners beyond carry under 1 % of the beam each). A lattice
+    ray is cast once a frame, when a pixel needs it, and serves every pixel whose footprint
+    reaches it; those of the centre row on a column are the centre rays themselves, cast
+    already (in 2048x10 a stem's side costs no ray at all). Slots: the centre, the row's
+    others (``row_j`` virtual columns away), the other rows' (``grid_j``, ``grid_i``).
+    ``weights[flags]``: each slot's share of the beam's energy, the Gaussian's, for a pixel
+    sampled along its row (flag 1: the rows above and below taken as the centre row) or
+    over the grid (flag 3: both sides, so a range that grows across the footprint averages
+    to the centre's, as it does)."""
 
     step: float
     sub: int
     reach: int  # columns either side a horizontal edge can be seen from
-    col: NDArray[np.int64]
-    cast: NDArray[np.int64]
-    h_off: FloatArray
-    v_a: FloatArray
-    v_b: FloatArray
-    weights: FloatArray  # (4, slots): by flags (1 the row, 3 the grid)
+    rows: int  # V: rows either side
+    b_step: float  # radians between rows
+    row_j: NDArray[np.int64]
+    grid_j: NDArray[np.int64]
+    grid_i: NDArray[np.int64]
+    weights: FloatArray  # (4, slots)
 
     @classmethod
     def of(cls, samples: int, fwhm_h: float, fwhm_v: float, columns: int) -> FootprintGrid:
@@ -209,16 +211,10 @@ class FootprintGrid:
         J = math.floor(fwhm_h * 1.01 / step + 1e-9) if fwhm_h > 0 else 0
         V = max(1, samples // 2) if fwhm_v > 0 else 0
         js = np.array([j for j in range(-J, J + 1) if j], np.int64)
-        col = np.where(js % sub == 0, js // sub, 0)
-        cast = np.full(len(js), -1, np.int64)
-        odd = js % sub != 0
-        cast[odd] = np.arange(int(odd.sum()))
         ch = _gauss(np.arange(-J, J + 1) * step / fwhm_h) if J else np.ones(1)
         ch /= ch.sum()
         rv = _gauss(np.arange(-V, V + 1) / samples) if V else np.ones(1)
         rv /= rv.sum()
-        # the other rows reach half a FWHM sideways too (the corners beyond carry under 1 %
-        # of the beam each, and cost a sub-ray each)
         Jv = min(J, math.floor(fwhm_h * 0.505 / step + 1e-9)) if fwhm_h > 0 else 0
         cv = _gauss(np.arange(-Jv, Jv + 1) * step / fwhm_h) if Jv else np.ones(1)
         cv /= cv.sum()
@@ -231,9 +227,36 @@ class FootprintGrid:
         w[3, 1 + len(js):] = (rv[ii + V] * cv[jj + Jv]).reshape(-1)
         w[2] = w[3]
         w[0, 0] = 1.0
-        return cls(step, sub, max(1, -(-J // sub)), col, cast, js[odd] * step,
-                   (jj * step).reshape(-1).astype(float),
-                   (ii * fwhm_v / samples).reshape(-1).astype(float), w)
+        return cls(step, sub, max(1, -(-J // sub)), V, fwhm_v / samples, js,
+                   jj.reshape(-1).astype(np.int64), ii.reshape(-1).astype(np.int64), w)
+
+    def needed(self, idx: NDArray[np.intp], fl: NDArray[np.uint8], W: int, H: int,
+               kernels: Any = None, run: Any = None
+               ) -> tuple[NDArray[np.intp], NDArray[np.int32]]:
+        """The lattice rays the flagged pixels ``idx`` (flags ``fl``) sample and that are
+        not centre rays, as flat lattice indices ((virtual column x H + beam) x (2 rows +
+        1) + row + rows), in order; and the position of each in that list by lattice index
+        (-1: not cast). ``kernels``/``run``: marked by the compiled kernel over threads."""
+        S, V = self.sub, self.rows
+        WS, NR = W * S, 2 * V + 1
+        need = np.zeros(WS * H * NR, np.uint8)
+        if kernels is not None and run is not None:
+            run(kernels.mark_lattice, [(idx, fl, self.row_j, self.grid_j, self.grid_i, S, V,
+                                        W, H, a, b, need) for a, b in _parts(len(idx), 1, 8)])
+        else:
+            c, h = idx // H, idx % H
+            for bit, jl, il in ((1, self.row_j, np.zeros(len(self.row_j), np.int64)),
+                                (2, self.grid_j, self.grid_i)):
+                sel = (fl & bit) != 0
+                for j, i in zip(jl.tolist(), il.tolist(), strict=True):
+                    if i == 0 and j % S == 0:
+                        continue  # a centre ray
+                    x = (c[sel] * S + j) % WS
+                    need[(x * H + h[sel]) * NR + i + V] = 1
+        ent = np.flatnonzero(need)
+        pos = np.full(need.size, -1, np.int32)
+        pos[ent] = np.arange(len(ent), dtype=np.int32)
+        return ent, pos
 
 
 class Physics:
@@ -331,40 +354,43 @@ class Physics:
             flags[:] = 3
         elif m.footprint == "adaptive":
             if k is not None:
-                k.flag_edges(ss.reshape(W, H), self.row_step, g.reach, flags)
+                run(k.flag_edges, [(ss.reshape(W, H), self.row_step, g.reach, a, b, flags)
+                                   for a, b in _parts(W, 1, 8)])
             else:
                 self._flag_np(ss.reshape(W, H), g.reach, flags)
         if g.weights.shape[1] == 1:
             flags[:] = 0
         idx = np.flatnonzero(flags.reshape(-1))
         self.last_flagged = len(idx)
+        self.last_cast = 0
         if len(idx):
             fl = flags.reshape(-1)[idx]
-            nh, nv = len(g.h_off), len(g.v_b)
-            counts = np.where(fl & 1, nh, 0) + np.where(fl & 2, nv, 0)
-            start = np.cumsum(counts) - counts
-            n_sub = int(counts.sum())
-            self.last_cast = n_sub
+            ent, pos = g.needed(idx, fl, W, H, k, run)
+            self.last_cast = n_sub = len(ent)
             oo = np.empty((n_sub, 3), np.float32)
             dd = np.empty((n_sub, 3), np.float32)
+            NR = 2 * g.rows + 1
+            xs, rest = np.divmod(ent, H * NR)
+            pix = (xs // g.sub) * H + rest // NR
+            ra = (xs % g.sub) * g.step
+            rb = (rest % NR - g.rows) * g.b_step
             if k is not None:
-                run(k.footprint_rays, [(o, d, idx[a:b], fl[a:b], start[a:b], g.h_off, g.v_a,
-                                        g.v_b, oo, dd) for a, b in _parts(len(idx), 1, 8)])
+                run(k.lattice_rays, [(o, d, pix, ra, rb, a, b, oo, dd)
+                                     for a, b in _parts(n_sub, 1, 8)])
             else:
-                self._rays_np(o, d, idx, fl, start, oo, dd)
+                self._rays_np(o, d, pix, ra, rb, oo, dd)
             ts, ps = cast(oo, dd) if n_sub else (np.empty(0), np.empty(0, np.int32))
             ts = np.ascontiguousarray(ts, np.float64)
             ps = np.ascontiguousarray(ps, np.int32)
-            args = (g.weights, g.col, g.cast, nh, H, ss, r, mat, cosi, ts, ps, dd, sop, mop,
-                    nrm, self.refl, surf, n_m, self.R_NEAR, m.range_resolution_m,
-                    self.ORDERS[m.return_order], e1, r1, s1, e2, r2, s2)
+            args = (g.weights, g.row_j, g.grid_j, g.grid_i, g.sub, g.rows, pos, H, ss, r, mat,
+                    cosi, ts, ps, dd, sop, mop, nrm, self.refl, surf, n_m, self.R_NEAR,
+                    m.range_resolution_m, self.ORDERS[m.return_order], e1, r1, s1, e2, r2,
+                    s2)
             if k is not None:
-                run(k.footprint_echoes, [(idx, fl, start, a, b, *args)
+                run(k.footprint_echoes, [(idx, fl, a, b, *args)
                                          for a, b in _parts(len(idx), 1, 8)])
             else:
-                self._echoes_np(idx, fl, start, *args)
-        else:
-            self.last_cast = 0
+                self._echoes_np(idx, fl, *args)
         # 3. detection, noise, the words
         q = self.quantum_mm
         out: dict[str, Any] = {"NEAR_IR": np.ascontiguousarray(
@@ -437,11 +463,10 @@ class Physics:
                 & (hi != np.roll(ss, -1, axis=0)[:, :-1]))
         out[cols[down], beams[down]] |= 3
 
-    def _rays_np(self, o: NDArray[np.float32], d: NDArray[np.float32], idx: NDArray[np.intp],
-                 fl: NDArray[np.uint8], start: NDArray[np.intp], oo: NDArray[np.float32],
+    def _rays_np(self, o: NDArray[np.float32], d: NDArray[np.float32], pix: NDArray[np.intp],
+                 ra: FloatArray, rb: FloatArray, oo: NDArray[np.float32],
                  dd: NDArray[np.float32]) -> None:
-        g = self.grid
-        dx = d[idx].astype(np.float64)
+        dx = d[pix].astype(np.float64)
         ex = np.stack([-dx[:, 1], dx[:, 0], np.zeros(len(dx))], axis=1)  # horizontal, ⟂ d
         nn = np.sqrt(ex[:, 0] * ex[:, 0] + ex[:, 1] * ex[:, 1] + ex[:, 2] * ex[:, 2])
         ex[nn < 1e-9] = (1.0, 0.0, 0.0)
@@ -451,42 +476,41 @@ class Physics:
         fx = np.stack([dx[:, 1] * ex[:, 2] - dx[:, 2] * ex[:, 1],
                        dx[:, 2] * ex[:, 0] - dx[:, 0] * ex[:, 2],
                        dx[:, 0] * ex[:, 1] - dx[:, 1] * ex[:, 0]], axis=1)
-        nh = len(g.h_off)
-        for bit, offs, first in ((1, g.h_off, 0), (2, g.v_b, None)):
-            sel = np.flatnonzero(fl & bit)
-            if not len(sel) or not len(offs):
-                continue
-            a = (g.h_off if bit == 1 else g.v_a)[None, :, None]
-            b = offs[None, :, None] if bit == 2 else 0.0
-            v = (dx[sel, None, :] + a * ex[sel, None, :]) + b * fx[sel, None, :]
-            n = np.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])
-            at = start[sel] + (0 if first == 0 else np.where(fl[sel] & 1, nh, 0))
-            rows = (at[:, None] + np.arange(len(offs))[None, :]).reshape(-1)
-            dd[rows] = (v / n[..., None]).reshape(-1, 3)
-            oo[rows] = np.repeat(o[idx[sel]], len(offs), axis=0)
+        v = (dx + ra[:, None] * ex) + rb[:, None] * fx
+        n = np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
+        dd[:] = v / n[:, None]
+        oo[:] = o[pix]
 
-    def _echoes_np(self, idx: NDArray[np.intp], fl: NDArray[np.uint8],
-                   start: NDArray[np.intp], wt: FloatArray, hcol: Any, hcast: Any, nh: int,
-                   H: int, ss: Any, r: Any, mat: Any, cosi: Any, ts: FloatArray,
+    def _echoes_np(self, idx: NDArray[np.intp], fl: NDArray[np.uint8], wt: FloatArray,
+                   row_j: Any, grid_j: Any, grid_i: Any, S: int, V: int, pos: Any, H: int,
+                   ss: Any, r: Any, mat: Any, cosi: Any, ts: FloatArray,
                    ps: NDArray[np.int32], dd: NDArray[np.float32], sop: Any, mop: Any,
                    nrm: Any, refl: FloatArray, surf: bool, n_m: float, r_near: float,
                    resolution: float, order: int, e1: Any, r1: Any, s1: Any, e2: Any,
                    r2: Any, s2: Any) -> None:
         K = wt.shape[1]
-        KH = len(hcol)
         M = len(idx)
         W = len(ss) // H
+        WS, NR = W * S, 2 * V + 1
         w = wt[fl]  # (M, K)
         rk = np.full((M, K), np.inf)
         ek = np.zeros((M, K))
         sk = np.full((M, K), -1, np.int32)
         c, h = idx // H, idx % H
-        # the centre rays' samples: the pixel's own, and neighbouring columns'
+        # each slot's sample: a centre ray (the pixel's own, a neighbouring column's) or a
+        # lattice ray cast this frame
         src = np.full((M, K), -1, np.intp)
+        row = np.full((M, K), -1, np.intp)
         src[:, 0] = idx
-        for kk in range(KH):
-            if hcast[kk] < 0:
-                src[:, 1 + kk] = np.where(fl & 1, ((c + hcol[kk]) % W) * H + h, -1)
+        slots = [(1, j, 0) for j in row_j.tolist()] + \
+            [(2, j, i) for j, i in zip(grid_j.tolist(), grid_i.tolist(), strict=True)]
+        for kk, (bit, j, i) in enumerate(slots, start=1):
+            on = (fl & bit) != 0
+            x = (c * S + j) % WS
+            if i == 0 and j % S == 0:
+                src[:, kk] = np.where(on, (x // S) * H + h, -1)
+            else:
+                row[:, kk] = np.where(on, pos[(x * H + h) * NR + i + V], -1)
         use = src >= 0
         sr = np.where(use, src, 0)
         hit = use & (ss[sr] >= 0)
@@ -495,13 +519,6 @@ class Physics:
         with np.errstate(invalid="ignore"):
             ek = np.where(hit, w * refl[mat[sr]] * cosi[sr] / (rn * rn), ek)
         sk = np.where(hit, ss[sr], sk)
-        # the cast sub-rays' samples
-        row = np.full((M, K), -1, np.intp)
-        for kk in range(KH):
-            if hcast[kk] >= 0:
-                row[:, 1 + kk] = np.where(fl & 1, start + hcast[kk], -1)
-        for kk in range(K - 1 - KH):
-            row[:, 1 + KH + kk] = np.where(fl & 2, start + kk + np.where(fl & 1, nh, 0), -1)
         at = np.flatnonzero(row.reshape(-1) >= 0)
         if len(at):
             rw = row.reshape(-1)[at]
@@ -604,13 +621,14 @@ class _Kernels:
     def __init__(self, mod: Any) -> None:
         from emulators.jit import compiled
 
-        for name in ("centre_echoes", "flag_edges", "footprint_rays", "footprint_echoes",
-                     "detect"):
+        for name in ("centre_echoes", "flag_edges", "mark_lattice", "lattice_rays",
+                     "footprint_echoes", "detect"):
             setattr(self, name, compiled(getattr(mod, name)))
 
     centre_echoes: Any
     flag_edges: Any
-    footprint_rays: Any
+    mark_lattice: Any
+    lattice_rays: Any
     footprint_echoes: Any
     detect: Any
 
