@@ -12,14 +12,16 @@ cast (:meth:`Physics.respond`), in numpy, after whichever execution path cast th
 rays, so every path gives the same bytes:
 
 1. **The footprint.** The beam is a Gaussian of the divergence (FWHM, horizontal and
-   vertical), sampled on a grid (:class:`FootprintGrid`, ``footprint_samples`` a FWHM):
-   along the beam's row every column spacing or a power-of-two fraction of it out to one
-   FWHM, so the neighbouring columns' own centre rays are samples (in 2048x10 all of
-   them: nothing more is cast for a vertical edge such as a stem's side), and in rows
-   above and below out to half the FWHM, cast as sub-rays. ``adaptive``: the row where a
-   column within one FWHM hits another object (or nothing) than the pixel, the grid
-   where the beam above or below sees another object (a horizontal edge: a stem's top,
-   the horizon); ``full``: the grid at every pixel; ``off``: the centre ray alone.
+   vertical), sampled on a lattice fixed to the sensor (:class:`FootprintGrid`,
+   ``footprint_samples`` a FWHM): along the beam's row every column spacing or a
+   power-of-two fraction of it out to one FWHM, so the neighbouring columns' own centre
+   rays are samples (in 2048x10 all of them: nothing more is cast for a vertical edge
+   such as a stem's side), and in rows above and below out to half the FWHM. Each
+   lattice ray is cast once a frame and serves every pixel whose footprint reaches it.
+   ``adaptive``: the row where a column within one FWHM hits another object (or nothing)
+   than the pixel, the grid where the beam above or below sees another object (a
+   horizontal edge: a stem's top, the horizon); ``full``: the grid at every pixel;
+   ``off``: the centre ray alone.
 2. **Echoes.** Each sub-ray's hit carries the energy ``w ρ cos(i) / r²`` (its weight in
    the beam, the material's reflectance, the incidence angle, the range). Hits sorted by
    range join one echo while the gap to the next is within ``range_resolution_m``: the
@@ -372,7 +374,7 @@ class Physics:
             NR = 2 * g.rows + 1
             xs, rest = np.divmod(ent, H * NR)
             pix = (xs // g.sub) * H + rest // NR
-            ra = (xs % g.sub) * g.step
+            ra = (xs % g.sub) * (g.step * _column_turn(d, W, H))
             rb = (rest % NR - g.rows) * g.b_step
             if k is not None:
                 run(k.lattice_rays, [(o, d, pix, ra, rb, a, b, oo, dd)
@@ -595,6 +597,16 @@ class Physics:
 
 
 _NO_SURFACES = (np.full(1, -1, np.int32), np.zeros(1, np.uint8), np.zeros((1, 3), np.float32))
+
+
+def _column_turn(d: NDArray[np.float32], W: int, H: int) -> float:
+    """+1 where the next column lies along the rays' horizontal perpendicular ``(-dy, dx,
+    0)`` (turning left), -1 where it lies the other way (the OS0's columns turn right),
+    from this frame's centre rays: the median over the beams of one column pair."""
+    a = d.reshape(W, H, 3)[0].astype(np.float64)
+    b = d.reshape(W, H, 3)[1 % W].astype(np.float64)
+    side = -a[:, 1] * b[:, 0] + a[:, 0] * b[:, 1]
+    return 1.0 if float(np.median(side)) >= 0.0 else -1.0
 
 
 def _parts(n: int, align: int, k: int) -> list[tuple[int, int]]:

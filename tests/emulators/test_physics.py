@@ -283,3 +283,35 @@ def test_the_compiled_physics_writes_the_numpy_paths_bytes_in_a_forest(
         assert np.array_equal(got[0].stem_id, other.stem_id)
         assert np.array_equal(got[0].stem_id2, other.stem_id2)
     assert np.count_nonzero(got[0].fields["RANGE2"]) > 100
+
+
+@pytest.mark.parametrize("mode", ["512x10", "1024x10", "2048x10"])
+def test_lattice_rays_between_columns_lie_between_them(mode: str) -> None:
+    """A footprint sample between two columns (a lattice ray of a virtual column) is turned
+    from its column towards the next one, as far as the lattice step: the same angle from
+    both where it halves the spacing."""
+    from emulators.lidar import Physics
+    from emulators.lidar._physics import _column_turn
+    from protocols.ouster import beam_rays
+
+    meta = os0_64_metadata(mode=mode)
+    W, H = meta.columns, meta.pixels
+    o, d = beam_rays(meta)
+    o = np.ascontiguousarray(o.transpose(1, 0, 2)).reshape(-1, 3).astype(np.float32)
+    d = np.ascontiguousarray(d.transpose(1, 0, 2)).reshape(-1, 3).astype(np.float32)
+    phys = Physics(REV7, mode, 100.0, (W, H))
+    g = phys.grid
+    h = H // 2
+    c = 10
+    pix = np.array([c * H + h] * g.sub)
+    ra = np.arange(g.sub) * g.step * _column_turn(d, W, H)
+    oo, dd = np.empty((g.sub, 3), np.float32), np.empty((g.sub, 3), np.float32)
+    phys._rays_np(o, d, pix, ra, np.zeros(g.sub), oo, dd)
+    nxt = d[(c + 1) * H + h].astype(float)
+
+    def angle(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+
+    for r in range(g.sub):
+        assert angle(dd[r], d[c * H + h]) == pytest.approx(r * g.step, abs=2e-5)
+        assert angle(dd[r], nxt) == pytest.approx((g.sub - r) * g.step, abs=2e-5)
