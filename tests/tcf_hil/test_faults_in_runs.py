@@ -115,8 +115,10 @@ def test_the_reference_sic_survives_every_fault_at_once(tmp_path: Path) -> None:
               "lidar.dropout=0.02", "lidar.reinit_at_s=[6]", "can.loss=0.01",
               "can.pose_delay_ms=30", "can.bus_off_at_s=[9]", "can.bus_off_s=0.5",
               "can.nmt_reset_at_s=[12]"]
+    # the exact sensor: what is scored here is the faults' effect, not the beam's
     p = subprocess.run([*TCF, "run", "forest-ii", "--mode", "512x10", "--speed", "2",
-                        "--out", str(out), *(a for f in faults for a in ("--fault", f))],
+                        "--sensor", "ideal", "--out", str(out),
+                        *(a for f in faults for a in ("--fault", f))],
                        capture_output=True, text=True, env=ENV, timeout=400)
     assert p.returncode == 0, p.stdout + p.stderr
     score = json.loads((out / "score.json").read_text())
