@@ -95,7 +95,8 @@ class SensorModel:
     divergence_h_deg: float = _f(0.35, "beam divergence, horizontal (FWHM)", ge=0.0, le=5.0)
     divergence_v_deg: float = _f(0.35, "beam divergence, vertical (FWHM)", ge=0.0, le=5.0)
     footprint: Literal["adaptive", "full", "off"] = _f(
-        "adaptive", "sub-rays where the footprint can straddle an edge, everywhere, or never")
+        "adaptive", "sample the footprint where it can straddle an edge, everywhere, or "
+        "never")
     footprint_samples: int = _f(
         2, "footprint samples per FWHM, out to one FWHM each side (horizontally at least "
         "every column: the neighbouring columns' own rays are samples)", ge=1, le=16)
