@@ -8,11 +8,12 @@ detection and noise, after the cast; the bare cast is the centre rays' alone).
 
 The pipeline is timed as a run reads it: ``--frames`` consecutive frames from the middle of
 the track (after one frame of warm-up), each made, encoded into its packets and finished
-(headers, CRC); its figures are means over them (the pose of a second of frames is asked at
-once, so one frame in twenty carries it). The bare cast of each frame's very rays, made by a
-second emulator, is timed between them: the backend's own ``cast`` (for Embree the directly
-bound library the pipeline casts through, :mod:`emulators.embree`), and for Embree also
-embreex's ``run`` on a scene of its own ("embreex ms"). Ratio = total bare / total pipeline.
+(headers, CRC); its figures are medians over them (the machines here are shared and noisy;
+the pose of a second of frames is asked at once, so one frame in twenty carries it). The
+bare cast of each frame's very rays, made by a second emulator, is timed between them:
+the backend's own ``cast`` (for Embree the directly bound library the pipeline casts
+through, :mod:`emulators.embree`), and for Embree also embreex's ``run`` on a scene of its
+own ("embreex ms"). Ratio = bare / pipeline.
 """
 
 from __future__ import annotations
@@ -89,8 +90,8 @@ def main() -> None:
                     pipe.append(t2 - t0)
                     enc.append(t2 - t1)
                 rays = meta.pixels * meta.columns
-                b, p, e = (statistics.fmean(x) for x in (bare, pipe, enc))
-                x = statistics.fmean(other) if other else float("nan")
+                b, p, e = (statistics.median(x) for x in (bare, pipe, enc))
+                x = statistics.median(other) if other else float("nan")
                 period = 1.0 / meta.frequency_hz
                 row = {"forest": fname, "sensor": sensor, "backend": backend, "mode": mode,
                        "rays": rays,

@@ -135,7 +135,8 @@ class EmbreeCaster:
 
     name = "embree"
     threads_itself = False
-    MIN_RAYS_PER_THREAD = 16384
+    MIN_RAYS_PER_THREAD = 2048  # a part's rays at least (handing one over costs ~40 us)
+    PARTS_PER_THREAD = 4
 
     def __init__(self, vertices: FloatArray, faces: NDArray[np.int64],
                  threads: int | None = None, direct: bool = True) -> None:
@@ -193,7 +194,9 @@ class EmbreeCaster:
         t = np.empty(n, np.float32)
         prim = np.empty(n, np.int32)
         threads = self.threads or 1
-        parts = min(threads, n // self.MIN_RAYS_PER_THREAD)
+        # a few parts a thread: rays cost by what they meet (a stem's silhouette several
+        # times the sky), and two halves of a set of rays are rarely alike
+        parts = min(self.PARTS_PER_THREAD * threads, n // self.MIN_RAYS_PER_THREAD)
         if parts <= 1:
             self._run(o, d, t, prim)
         else:

@@ -35,19 +35,26 @@ def surface(p: int, dx: float, dy: float, dz: float, stem_of_prim: Any,
     return stem_of_prim[q], material_of_prim[q], c
 
 
+def wrap(x: int, n: int) -> int:
+    """``x % n`` for ``-n <= x < 2 n`` (a neighbour's column), without the division."""
+    if x >= n:
+        return x - n
+    if x < 0:
+        return x + n
+    return x
+
+
 def centre_echoes(prim: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim: Any,
                   normals: Any, refl: Any, surf: bool, n_m: float, r_near: float,
-                  ambient: float, i0: int, i1: int, ss: Any, r: Any, e: Any, mat: Any,
-                  cosi: Any, nir: Any) -> None:
+                  ambient: float, i0: int, i1: int, ss: Any, r: Any, e: Any,
+                  nir: Any) -> None:
     """Pixels i0 .. i1 of the centre cast (``prim`` the triangle hit, -1 none; or, without
     ``surf``, the stem id): stem id (``ss``, -1 no hit), range from the lidar axis (``r``,
-    inf none), echo energy ``refl cos / max(r, r_near)^2`` (``e``), material, |cos
-    incidence| and the NEAR_IR the surface reflects."""
+    inf none), echo energy ``refl cos / max(r, r_near)^2`` (``e``, ``cos`` of the
+    incidence) and the NEAR_IR the surface reflects (uint32)."""
     for i in range(i0, i1):
         s, m, c = surface(prim[i], d[i, 0], d[i, 1], d[i, 2], stem_of_prim, material_of_prim,
                           normals, surf)
-        mat[i] = m
-        cosi[i] = c
         tt = t[i]
         if np.isfinite(tt) and s >= 0:
             rr = tt + n_m
@@ -66,31 +73,33 @@ def centre_echoes(prim: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim
 def flag_edges(ss: Any, step: Any, reach: int, c0: int, c1: int, out: Any) -> None:
     """``out[c0:c1]`` of (W, H): the pixels whose footprint can straddle an edge, as bits:
     1 horizontally, where a column within ``reach`` either side (wrapping) hits another
-    object (or nothing) than the pixel's centre ray; 3 (the grid) vertically, where the
+    object (or nothing) than the pixel's centre ray; 2 towards the next beam, where the
     pixel hits another object than all three of the next beam's pixels nearest in angle
     (columns ``c + step[h]`` and either side: the beams' azimuth offsets stagger a
     column's pixels by degrees, so a vertical edge seen a column apart is not a horizontal
-    one), or than all three of the previous beam's around the pixel it is nearest to.
-    Each pixel reads its neighbours and writes itself: columns apart run in parallel."""
+    one); 4 towards the previous beam, where it hits another object than all three of the
+    previous beam's around the pixel it is nearest to (the beams are 1.4 degrees apart:
+    the edge lies somewhere between, which the probes tell). Each pixel reads its
+    neighbours and writes itself: columns apart run in parallel."""
     W, H = ss.shape
     for c in range(c0, c1):
         for h in range(H):
             s = ss[c, h]
             f = 0
             for k in range(1, reach + 1):
-                if s != ss[(c + k) % W, h] or s != ss[(c - k) % W, h]:
+                if s != ss[_wrap(c + k, W), h] or s != ss[_wrap(c - k, W), h]:
                     f = 1
                     break
             if h + 1 < H:
-                c2 = (c + step[h]) % W
-                if s != ss[c2, h + 1] and s != ss[(c2 + W - 1) % W, h + 1] \
-                        and s != ss[(c2 + 1) % W, h + 1]:
-                    f = 3
-            if h > 0 and f != 3:
-                cp = (c - step[h - 1]) % W  # the previous beam's pixel whose nearest this is
-                if s != ss[cp, h - 1] and s != ss[(cp + W - 1) % W, h - 1] \
-                        and s != ss[(cp + 1) % W, h - 1]:
-                    f = 3
+                c2 = _wrap(c + step[h], W)
+                if s != ss[c2, h + 1] and s != ss[_wrap(c2 - 1, W), h + 1] \
+                        and s != ss[_wrap(c2 + 1, W), h + 1]:
+                    f |= 2
+            if h > 0:
+                cp = _wrap(c - step[h - 1], W)  # the previous beam's pixel whose nearest this is
+                if s != ss[cp, h - 1] and s != ss[_wrap(cp - 1, W), h - 1] \
+                        and s != ss[_wrap(cp + 1, W), h - 1]:
+                    f |= 4
             out[c, h] = f
 
 
@@ -117,15 +126,17 @@ def mark_lattice(idx: Any, fl: Any, row_j: Any, grid_j: Any, grid_i: Any, S: int
                 dj, di = grid_j[k - KH], grid_i[k - KH]
             if di == 0 and dj % S == 0:
                 continue
-            x = (c * S + dj) % WS
-            need[(x * H + h) * NR + di + V] = 1
+            x = _wrap(c * S + dj, WS)
+            need[(x * H + h) * NR + di + V] = True
 
 
 def lattice_rays(o: Any, d: Any, pix: Any, ra: Any, rb: Any, n0: int, n1: int, oo: Any,
                  dd: Any) -> None:
-    """Lattice rays n0 .. n1: from pixel ``pix[n]``'s origin, its centre ray turned by
-    ``ra[n]`` radians along the ray's horizontal perpendicular and ``rb[n]`` along the
-    perpendicular in its vertical plane, unit, float32, into ``oo``/``dd``."""
+    """Lattice rays n0 .. n1: from pixel ``pix[n]``'s origin (``o`` (W, 3) by column, ``d``
+    (W H, 3) column-major), its centre ray turned by ``ra[n]`` radians along the ray's
+    horizontal perpendicular and ``rb[n]`` along the perpendicular in its vertical plane,
+    unit, float32, into ``oo``/``dd``."""
+    H = d.shape[0] // o.shape[0]
     for n in range(n0, n1):
         i = pix[n]
         dx, dy, dz = float(d[i, 0]), float(d[i, 1]), float(d[i, 2])
@@ -142,12 +153,13 @@ def lattice_rays(o: Any, d: Any, pix: Any, ra: Any, rb: Any, n0: int, n1: int, o
         z = dz + a * ez + b * fz
         nr = math.sqrt(x * x + y * y + z * z)
         dd[n, 0], dd[n, 1], dd[n, 2] = x / nr, y / nr, z / nr
-        oo[n, 0], oo[n, 1], oo[n, 2] = o[i, 0], o[i, 1], o[i, 2]
+        c = i // H
+        oo[n, 0], oo[n, 1], oo[n, 2] = o[c, 0], o[c, 1], o[c, 2]
 
 
 def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
                      grid_j: Any, grid_i: Any, S: int, V: int, pos: Any, H: int, ss: Any,
-                     r: Any, mat: Any, cosi: Any, t_sub: Any, prim_sub: Any, dd: Any,
+                     r: Any, e: Any, t_sub: Any, prim_sub: Any, dd: Any,
                      stem_of_prim: Any, material_of_prim: Any, normals: Any, refl: Any,
                      surf: bool, n_m: float, r_near: float, resolution: float, order: int,
                      e1: Any, r1: Any, s1: Any, e2: Any, r2: Any, s2: Any) -> None:
@@ -158,9 +170,11 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
     ``grid_i`` rows away). A sample on a column's centre row is that column's centre ray;
     any other is the lattice ray cast at ``pos[(x H + h)(2 V + 1) + i + V]``. Unused slots
     are left out. A sample of weight ``wt[flags, slot]`` has the energy
-    ``w refl cos / max(r, r_near)^2``. Samples sorted by range (stably) join one echo while
-    the gap to the next is within ``resolution``; an echo's range is its energy-weighted
-    mean, its stem id that of its strongest sample (the nearest on a tie)."""
+    ``w refl cos / max(r, r_near)^2`` (a centre ray's: ``w e``, ``e`` its energy).
+    Samples sorted by range (stably) join one echo while the gap to the next is within
+    ``resolution``; an echo's range is its energy-weighted mean, its stem id that of its
+    strongest sample (the nearest on a tie). Pixel ``idx[j]``'s echoes go to ``e1[j]``,
+    ``r1[j]``, ``s1[j]`` (the first) and ``e2[j]``, ``r2[j]``, ``s2[j]`` (the second)."""
     K = wt.shape[1]
     KH = row_j.shape[0]
     W = ss.shape[0] // H
@@ -169,7 +183,6 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
     rs = np.empty(K)
     es = np.empty(K)
     sids = np.empty(K, np.int32)
-    srt = np.empty(K, np.int64)
     ge = np.empty(K)
     ger = np.empty(K)
     gb = np.empty(K)
@@ -180,21 +193,17 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
         c = i // H
         h = i - c * H
         n = 0  # the samples used, in slot order
-        for k in range(K):
+        for k in range(K if f & 2 else KH + 1):  # flags 1: the row's slots; 3: all
             w = wt[f, k]
             if k == 0:
                 src = i
                 row = -1
             else:
                 if k <= KH:
-                    if not f & 1:
-                        continue
                     dj, di = row_j[k - 1], 0
                 else:
-                    if not f & 2:
-                        continue
                     dj, di = grid_j[k - 1 - KH], grid_i[k - 1 - KH]
-                x = (c * S + dj) % WS
+                x = _wrap(c * S + dj, WS)
                 if di == 0 and dj % S == 0:
                     src = (x // S) * H + h
                     row = -1
@@ -204,9 +213,7 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
             rs[n], es[n], sids[n] = np.inf, 0.0, -1
             if src >= 0:  # a centre ray's sample, the pixel's own or a neighbour's
                 if ss[src] >= 0:
-                    rn = max(r[src], r_near)
-                    rs[n], es[n], sids[n] = r[src], w * refl[mat[src]] * cosi[src] / (rn * rn), \
-                        ss[src]
+                    rs[n], es[n], sids[n] = r[src], w * e[src], ss[src]
                 n += 1
                 continue
             s, m, cc = surface(prim_sub[row], dd[row, 0], dd[row, 1], dd[row, 2],
@@ -217,33 +224,30 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
                 rn = max(rr, r_near)
                 rs[n], es[n], sids[n] = rr, w * refl[m] * cc / (rn * rn), s
             n += 1
-        # a stable insertion sort by range
-        for k in range(n):
-            srt[k] = k
+        # a stable insertion sort by range, of the samples themselves
         for k in range(1, n):
-            v = srt[k]
-            x = rs[v]
+            x, ex, sx = rs[k], es[k], sids[k]
             m2 = k - 1
-            while m2 >= 0 and rs[srt[m2]] > x:
-                srt[m2 + 1] = srt[m2]
+            while m2 >= 0 and rs[m2] > x:
+                rs[m2 + 1], es[m2 + 1], sids[m2 + 1] = rs[m2], es[m2], sids[m2]
                 m2 -= 1
-            srt[m2 + 1] = v
+            rs[m2 + 1], es[m2 + 1], sids[m2 + 1] = x, ex, sx
         for g in range(n):
             ge[g], ger[g], gb[g], gs[g] = 0.0, 0.0, -1.0, -1
         g = -1
         prev = 0.0
         for k in range(n):
-            v = srt[k]
-            x = rs[v]
+            x = rs[k]
             if k == 0 or not (x - prev <= resolution):
                 g += 1
             prev = x
             if np.isfinite(x):
-                ge[g] += es[v]
-                ger[g] += es[v] * x
-                if es[v] > 0 and es[v] > gb[g]:
-                    gb[g] = es[v]
-                    gs[g] = sids[v]
+                ev = es[k]
+                ge[g] += ev
+                ger[g] += ev * x
+                if ev > 0 and ev > gb[g]:
+                    gb[g] = ev
+                    gs[g] = sids[k]
         # the two leading echoes by the return order, ties to the lower index (the echoes
         # of no energy all read alike: which one comes second does not show)
         b0, b1 = -1, -1
@@ -265,50 +269,53 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
             rg = ger[g2] / eg if eg > 0 else np.inf
             sg = gs[g2] if g2 >= 0 else -1
             if slot == 0:
-                e1[i], r1[i], s1[i] = eg, rg, sg
+                e1[j], r1[j], s1[j] = eg, rg, sg
             else:
-                e2[i], r2[i], s2[i] = eg, rg, sg
+                e2[j], r2[j], s2[j] = eg, rg, sg
 
 
-def detect(e: Any, r: Any, sid: Any, u: Any, z: Any, i0: int, i1: int, H: int,
-           scale: float, gain: float, sg: float, width: float, sigma_min: float,
-           sigma0: float, exponent: float, min_r: float, max_r: float, photons: float,
-           r_near: float, q: int, w_range: Any, w_signal: Any, w_refl: Any,
+def detect(e: Any, r: Any, sid: Any, v: Any, z: Any, i0: int, i1: int, scale: float,
+           gain: float, sg: float, width: float, s_sure: float, sigma_min: float,
+           sigma0: float, exponent: float, s_floor: float, min_r: float, max_r: float,
+           photons: float, r_near: float, q: int, w_range: Any, w_signal: Any, w_refl: Any,
            sid_out: Any) -> None:
-    """One return for each of pixels i0 .. i1 (column-major, ``H`` a column) from its echo
-    of energy ``e`` at range ``r``: detected with probability ``ndtr(ln(s) / width)`` of
-    its signal ``s = e scale gain`` (``u`` the pixel's uniform draw), its range moved by
-    ``z`` times ``max(sigma_min, sigma0 s^-exponent)``, kept within [min_r, max_r]; the
-    words RANGE (mm in quanta of ``q``), SIGNAL and REFLECTIVITY into (H, W) images, the
-    stem id (-1 none) into ``sid_out`` (N,)."""
+    """One return for each of pixels i0 .. i1 (column-major) from its echo of energy ``e``
+    at range ``r``: detected where ``ln(s) / width`` of its signal ``s = e scale gain``
+    exceeds the pixel's standard normal draw ``v`` (so with probability
+    ``ndtr(ln(s) / width)``; above ``s_sure``, ``ln(s) / width`` > 9.5 and a draw under 9
+    is not compared), its range moved by ``z`` times ``max(sigma_min, sigma0
+    s^-exponent)`` (``sigma_min`` above ``s_floor``), kept within [min_r, max_r]; the
+    words RANGE (mm in quanta of ``q``), SIGNAL and REFLECTIVITY and the stem id (-1
+    none) into (N,) column-major arrays."""
     for i in range(i0, i1):
-        c = i // H
-        h = i - c * H
         s = e[i] * scale * gain
         ok = False
-        if s > 0:
-            p = 0.5 * math.erfc(-(math.log(s) / width) / SQRT2)
-            ok = u[i] < p
+        if s > s_sure and v[i] < 9.0:
+            ok = True
+        elif s > 0:
+            ok = math.log(s) / width > v[i]
         rr = 0.0
         if ok:
-            sigma = max(sigma_min, sigma0 * s ** -exponent)
+            sigma = sigma_min if s > s_floor else max(sigma_min, sigma0 * s ** -exponent)
             rr = r[i] + z[i] * sigma
             ok = rr >= min_r and rr <= max_r
         if ok:
-            w_range[h, c] = np.uint32(np.rint(rr * (1000.0 / q)) * q)
-            w_signal[h, c] = np.uint32(min(s * photons, 65535.0))
+            w_range[i] = np.uint32(np.rint(rr * (1000.0 / q)) * q)
+            w_signal[i] = np.uint32(min(s * photons, 65535.0))
             rn = max(rr, r_near)
             rho = s * (rn * rn) / sg
-            w_refl[h, c] = np.uint32(min(max(np.rint(rho * 100.0), 0.0), 255.0))
+            w_refl[i] = np.uint32(min(max(np.rint(rho * 100.0), 0.0), 255.0))
             sid_out[i] = sid[i]
         else:
-            w_range[h, c] = 0
-            w_signal[h, c] = 0
-            w_refl[h, c] = 0
+            w_range[i] = 0
+            w_signal[i] = 0
+            w_refl[i] = 0
             sid_out[i] = -1
 
 
-# The kernels call :func:`surface` compiled: numba calls only compiled functions.
+# The kernels call :func:`surface` and :func:`wrap` compiled: numba calls only compiled
+# functions.
 _surface = compiled(surface)
 if _surface is not None:
     surface = _surface
+_wrap = compiled(wrap) or wrap

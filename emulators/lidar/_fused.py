@@ -17,12 +17,14 @@ from numba.extending import intrinsic
 
 from emulators.embree import intersect1, new_rayhit
 from emulators.jit import compiled, numba_module
+from emulators.lidar._footprint import centre_echoes
 from emulators.lidar._kernel import answer_chunk, make_rays
 
 numba = numba_module()  # its cache directory set before the kernels below are declared
 
 _make_rays = compiled(make_rays)
 _answer_chunk = compiled(answer_chunk)
+_centre_echoes = compiled(centre_echoes)
 
 
 @intrinsic
@@ -106,3 +108,63 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
         _fetch_add(counter, 2, 1)
     while wait_all and state == 1 and _fetch_add(counter, 2, 0) < nb:  # type: ignore[call-arg]
         pass  # the other threads' last blocks
+
+
+@numba.njit(cache=True, nogil=True)
+def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts: Any,
+                       counter: Any, wait_all: bool, width: int, o_all: Any, d_all: Any,
+                       template: Any, packets: Any, ts_words: Any, ts: Any, n_m: float,
+                       reach: float, prim_all: Any, t_all: Any, stem_of_prim: Any,
+                       material_of_prim: Any, normals: Any, refl: Any, r_near: float,
+                       ambient: float, ss: Any, r: Any, e: Any, nir: Any) -> None:
+    """:func:`cast_answer_blocks` for the physical sensor model: each block's packets
+    copied from ``template`` and its column times written, its rays made (directions into
+    ``d_all`` (W, H, 3), each column's origin into ``o_all[:, 0]``) and cast, and instead
+    of the ideal answer the centre rays' echoes
+    (:func:`~emulators.lidar._footprint.centre_echoes`, whole-frame (N,) column-major
+    arrays from ``ss`` on) from the triangles hit (``prim_all``, -1 none) and distances
+    (``t_all``, inf none or beyond ``reach`` from the lidar axis): the pixel words are the
+    physics' to write."""
+    H = beams.shape[0]
+    C = ts_words.shape[1]
+    o = np.empty((width, H, 3), np.float32)
+    d = np.empty((width, H, 3), np.float32)
+    rf, ru, addr = new_rayhit()
+    nb = starts.shape[0]
+    d_flat = d_all.reshape(-1, 3)
+    state = 0
+    while state == 0:
+        state = _fetch_add(counter, 1, 0)  # type: ignore[call-arg]  # numba: typingctx
+    while state == 1:
+        i: int = _fetch_add(counter, 0, 1)  # type: ignore[call-arg]
+        if i >= nb:
+            break
+        a = starts[i]
+        b = a + width
+        p0, p1 = a // C, b // C
+        for p in range(p0, p1):
+            for q in range(packets.shape[1]):
+                packets[p, q] = template[p, q]
+        for c in range(a, b):
+            ts_words[c // C, c % C] = ts[c]
+        _make_rays(beams, mt, oc, a, o, d)
+        for c in range(width):
+            for h in range(H):
+                t, prim = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
+                                     o[c, h, 2], d[c, h, 0], d[c, h, 1], d[c, h, 2])
+                k = (a + c) * H + h
+                tt = np.float64(t)
+                rr = tt + n_m
+                ok = rr >= 0.0 and rr <= reach
+                t_all[k] = tt if ok else np.inf
+                prim_all[k] = prim if ok else -1
+                for q in range(3):
+                    d_all[a + c, h, q] = d[c, h, q]
+            for q in range(3):  # a column's beams all start at its origin
+                o_all[a + c, 0, q] = o[c, 0, q]
+        _centre_echoes(prim_all, t_all, d_flat, stem_of_prim, material_of_prim, normals,
+                       refl, True, n_m, r_near, ambient, a * H, b * H, ss, r, e, nir)
+        _fetch_add(counter, 2, 1)
+    while wait_all and state == 1 and _fetch_add(counter, 2, 0) < nb:  # type: ignore[call-arg]
+        pass  # the other threads' last blocks
+

@@ -361,9 +361,12 @@ class Os0Emulator:
         self.physics: Physics | None = None
         if sensor is not None and not sensor.ideal:
             carried = carried_range_m(self._fmt)
-            shift = np.asarray(meta.pixel_shift_by_row, np.int64)
+            # beam h + 1's pixel nearest in angle to beam h's: from the beams' azimuths
+            # (the pixel shifts are rounded, in 2048x10 to even columns: up to 2 off)
+            az = np.asarray(meta.beam_azimuth_deg, np.float64)
+            step = np.rint((az[:-1] - az[1:]) * (meta.columns / 360.0)).astype(np.int64)
             self.physics = Physics(sensor, meta.mode, carried, (meta.columns, meta.pixels),
-                                   shift[:-1] - shift[1:], self.quantum_mm)
+                                   step, self.quantum_mm)
             # the cast keeps every hit the profile can carry; the physics answers them
             self._reach = [carried - 0.01, carried - 0.01]
             self._min_r = 0.0
@@ -585,7 +588,23 @@ class Os0Emulator:
                         ok_all)
         direct = self._direct_scene()
         fused = fused_kernel() if direct is not None else None
-        if direct is not None and fused is not None:
+        centre: tuple[Any, ...] | None = None
+        surfaces = self._scene_surfaces() if physics is not None else None
+        if direct is not None and fused is not None and physics is not None \
+                and surfaces is not None:
+            # cast and the centre rays' echoes in one call (the physics writes the words)
+            from emulators.lidar._fused import cast_centre_blocks
+
+            N = W * H
+            centre = (np.empty(N, np.int32), np.empty(N), np.empty(N), np.empty(N, np.uint32))
+            prim_all, t_phys = np.empty(N, np.int32), np.empty(N)
+            tail = (o_all, d_all, self._template_here(), job.packets, job.views[-1], job.ts,
+                    self.n_m, float(self._reach[0]), prim_all, t_phys, surfaces.stem_of_prim,
+                    surfaces.material_of_prim, surfaces.normals, physics.refl,
+                    physics.R_NEAR, physics.model.ambient, *centre)
+            pos, rot = self._fused_frame(cast_centre_blocks, (*direct[:2], self._beams32),
+                                         job, pieces, tail)
+        elif direct is not None and fused is not None:
             pos, rot = self._fused_frame(fused, direct, job, pieces)
         else:
             pos, rot = self._poses(job, pieces)
@@ -599,7 +618,7 @@ class Os0Emulator:
         if physics is not None and o_all is not None and d_all is not None \
                 and t_all is not None and ok_all is not None:
             sid_out, sid2 = self._physical(physics, k, arr, o_all, d_all, t_all, ok_all,
-                                           sid_out, dual)
+                                           sid_out, dual, centre)
         elif o_all is not None and d_all is not None and t_all is not None \
                 and ok_all is not None:  # only what the profile carries
             second: dict[str, NDArray[np.uint32]] = {}
@@ -617,19 +636,21 @@ class Os0Emulator:
 
     def _physical(self, physics: Physics, k: int, arr: NDArray[np.uint8],
                   o_all: NDArray[np.float32], d_all: NDArray[np.float32], t_all: FloatArray,
-                  ok_all: NDArray[np.bool_], hits: NDArray[np.int32], dual: bool
+                  ok_all: NDArray[np.bool_], hits: NDArray[np.int32], dual: bool,
+                  centre: tuple[Any, ...] | None = None
                   ) -> tuple[NDArray[np.int32], NDArray[np.int32] | None]:
         """The physical sensor's answer to frame k's first cast (``hits`` (W, H): the
-        triangle hit where the scene tells triangles, else the stem id; -1 none): every
-        pixel's fields rewritten into the packets. Returns the stem ids of the first and
-        (DUAL) second returns, (W, H) column-major."""
+        triangle hit where the scene tells triangles, else the stem id; -1 none; or the
+        centre rays' echoes ``centre`` the fused cast made): every pixel's fields rewritten
+        into the packets. Returns the stem ids of the first and (DUAL) second returns,
+        (W, H) column-major."""
         surfaces = self._scene_surfaces()
         cast = surfaces.cast if surfaces is not None else self._scene.cast
-        t = np.where(ok_all, t_all, np.inf).reshape(-1)
+        t = np.where(ok_all, t_all, np.inf).reshape(-1) if centre is None else t_all
         rng = np.random.default_rng([self._seed, 0x0501, k])
         physics.jit = self.jit
-        out = physics.respond(o_all.reshape(-1, 3), d_all.reshape(-1, 3), t, hits.reshape(-1),
-                              surfaces, cast, self.n_m, rng, dual, self._run)
+        out = physics.respond(o_all[:, 0], d_all.reshape(-1, 3), t, hits.reshape(-1),
+                              surfaces, cast, self.n_m, rng, dual, self._run, centre)
         if self.meta.profile == "RNG15_RFL8_NIR8":
             out["NEAR_IR"] = np.minimum(out["NEAR_IR"], 4080) // 16 * 16
         encode_pixel_fields(self._fmt, arr, 0, {n: v for n, v in out.items()
@@ -672,9 +693,19 @@ class Os0Emulator:
         for f in pending:
             f.result()
 
+    def _template_here(self) -> NDArray[np.uint8]:
+        """The frame's packets with every column encoded at time 0 (the fused kernels copy
+        each block's from it)."""
+        if self._template is None:
+            fmt, W = self._fmt, self.meta.columns
+            self._template = np.empty((fmt.packets_per_frame, fmt.packet_bytes), np.uint8)
+            encode_lidar_columns(fmt, self._template, 0, {}, np.zeros(W, np.int64))
+        return self._template
+
     def _fused_frame(self, fused: Callable[..., None],
-                     direct: DirectCast,
-                     job: _FrameJob, pieces: PosePieces | None) -> tuple[FloatArray, FloatArray]:
+                     direct: tuple[Any, ...],
+                     job: _FrameJob, pieces: PosePieces | None,
+                     tail: tuple[Any, ...] | None = None) -> tuple[FloatArray, FloatArray]:
         """The frame through :func:`emulators.lidar._fused.cast_answer_blocks`: one call per
         thread, each taking the next block of columns until none is left, so the threads
         finish together. The helper threads' calls start first and wait (spinning, without
@@ -683,15 +714,16 @@ class Os0Emulator:
         return (:meth:`_settle`). Returns the column poses."""
         fmt, W = self._fmt, self.meta.columns
         width = math.lcm(math.gcd(W, self.FUSED_BLOCK_COLUMNS), fmt.columns_per_packet)
-        if self._template is None:  # every column encoded, at time 0
-            self._template = np.empty((fmt.packets_per_frame, fmt.packet_bytes), np.uint8)
-            encode_lidar_columns(fmt, self._template, 0, {}, np.zeros(W, np.int64))
         none3 = np.zeros((0, 0, 0), np.float32)
-        head = (*direct, self._beams32, job.mt, job.oc)
-        answer = self._answer_args(job, 0, W)  # whole-frame; the kernel slices each block's
-        tail = (width, job.o_all if job.o_all is not None else none3,
-                job.d_all if job.d_all is not None else none3, self._template, job.packets,
-                job.views[-1], job.ts, answer[0], *answer[2:])
+        if tail is not None:  # another fused kernel's: its own head and tail
+            head = (*direct, job.mt, job.oc)
+            tail = (width, *tail)
+        else:
+            head = (*direct, self._beams32, job.mt, job.oc)
+            answer = self._answer_args(job, 0, W)  # whole-frame; each block slices its own
+            tail = (width, job.o_all if job.o_all is not None else none3,
+                    job.d_all if job.d_all is not None else none3, self._template_here(),
+                    job.packets, job.views[-1], job.ts, answer[0], *answer[2:])
         starts = np.arange(0, W, width)
         counter = np.zeros(3, np.int64)  # the next block, go (1) or stop (2), blocks done
         n = min(self.threads, len(starts))

@@ -234,15 +234,19 @@ class FootprintGrid:
                    jj.reshape(-1).astype(np.int64), ii.reshape(-1).astype(np.int64), w)
 
     def needed(self, idx: NDArray[np.intp], fl: NDArray[np.uint8], W: int, H: int,
-               kernels: Any = None, run: Any = None
+               kernels: Any = None, run: Any = None, cast: NDArray[np.intp] | None = None
                ) -> tuple[NDArray[np.intp], NDArray[np.int32]]:
         """The lattice rays the flagged pixels ``idx`` (flags ``fl``) sample and that are
         not centre rays, as flat lattice indices ((virtual column x H + beam) x (2 rows +
-        1) + row + rows), in order; and the position of each in that list by lattice index
-        (-1: not cast). ``kernels``/``run``: marked by the compiled kernel over threads."""
+        1) + row + rows), in order, less those ``cast`` already (lattice indices); and the
+        position of each by lattice index in ``cast`` followed by that list (-1: not cast).
+        ``kernels``/``run``: marked by the compiled kernel over threads."""
         S, V = self.sub, self.rows
         WS, NR = W * S, 2 * V + 1
-        need = np.zeros(WS * H * NR, np.uint8)
+        need = np.zeros(WS * H * NR, bool)  # (numpy finds a bool's nonzeros fastest)
+        if S == 1:  # a row's samples are all centre rays: only the grid's are cast
+            grid = (fl & 2) != 0
+            idx, fl = idx[grid], fl[grid]
         if kernels is not None and run is not None:
             run(kernels.mark_lattice, [(idx, fl, self.row_j, self.grid_j, self.grid_i, S, V,
                                         W, H, a, b, need) for a, b in _parts(len(idx), 1, 8)])
@@ -255,10 +259,16 @@ class FootprintGrid:
                     if i == 0 and j % S == 0:
                         continue  # a centre ray
                     x = (c[sel] * S + j) % WS
-                    need[(x * H + h[sel]) * NR + i + V] = 1
+                    need[(x * H + h[sel]) * NR + i + V] = True
+        n0 = 0
+        if cast is not None:
+            need[cast] = False
+            n0 = len(cast)
         ent = np.flatnonzero(need)
         pos = np.full(need.size, -1, np.int32)
-        pos[ent] = np.arange(len(ent), dtype=np.int32)
+        if cast is not None:
+            pos[cast] = np.arange(n0, dtype=np.int32)
+        pos[ent] = np.arange(n0, n0 + len(ent), dtype=np.int32)
         return ent, pos
 
 
@@ -304,6 +314,9 @@ class Physics:
         self.jit = True  # the compiled kernels (numba), where they can be had
         self.last_flagged = 0  # pixels supersampled in the last frame
         self.last_cast = 0  # and the sub-rays cast for them
+        self.last_probed = 0  # of which probes of vertical edges
+        self.last_flags = np.zeros(shape, np.uint8)  # (W, H): 1 the row sampled, 3 the grid
+        self._turns: tuple[float, int] | None = None  # the first frame's column and row turns
 
     # ---- the reach this model gives ---------------------------------------------------
     def reach_m(self, reflectance: float, probability: float = 0.5) -> float:
@@ -317,13 +330,19 @@ class Physics:
     def respond(self, o: NDArray[np.float32], d: NDArray[np.float32], t: FloatArray,
                 prim: NDArray[np.int32], surfaces: Surfaces | None, cast: Any, n_m: float,
                 rng: np.random.Generator, dual: bool,
-                run: Callable[[Any, list[tuple[Any, ...]]], None] | None = None
-                ) -> dict[str, Any]:
-        """The frame's returns from the centre cast: ``o``/``d`` (N, 3) column-major rays,
+                run: Callable[[Any, list[tuple[Any, ...]]], None] | None = None,
+                centre: tuple[Any, ...] | None = None,
+                submit: Callable[..., Any] | None = None) -> dict[str, Any]:
+        """The frame's returns from the centre cast: ``o`` (W, 3) each column's origin (every
+        beam of a column starts there), ``d`` (N, 3) column-major ray directions,
         ``t`` (N,) distances (inf: a miss), ``prim`` (N,) the triangle hit (or the stem id
         where the scene tells no triangles, ``surfaces`` None); ``cast`` casts float32 rays
         to (distance, triangle or stem id as ``prim``); ``run(fn, calls)`` calls ``fn(*c)``
-        for each of ``calls``, spread over threads (here, by default).
+        for each of ``calls``, spread over threads (here, by default); ``centre``: the
+        centre rays' echoes where the cast made them already (``ss, r, e, nir,
+as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
+        ``t`` and ``prim`` are then not read); ``submit(fn, *args)``: runs ``fn`` in the
+        background (a thread pool's ``submit``), for work nothing waits on at once.
         Returns the pixel words as (H, W) uint32 images ``RANGE`` (mm, 0 none), ``SIGNAL``,
         ``REFLECTIVITY``, ``NEAR_IR`` and, with ``dual``, ``RANGE2``, ``SIGNAL2``,
         ``REFLECTIVITY2``; and the stem ids (W, H) ``sid`` (-1 none) and ``sid2``."""
@@ -339,18 +358,31 @@ class Physics:
         sop, mop, nrm = ((surfaces.stem_of_prim, surfaces.material_of_prim, surfaces.normals)
                          if surfaces is not None else _NO_SURFACES)
         parts = _parts(N, H, 8)
-        # 1. the centre rays' echoes
-        ss, r, e = np.empty(N, np.int32), np.empty(N), np.empty(N)
-        mat, cosi, nir = np.empty(N, np.uint8), np.empty(N), np.empty(N)
-        if k is not None:
-            run(k.centre_echoes, [(prim, t, d, sop, mop, nrm, self.refl, surf, n_m, self.R_NEAR,
-                                   m.ambient, a, b, ss, r, e, mat, cosi, nir)
-                                  for a, b in parts])
+        # 0. the draws of detection and noise, each return's in two halves by two threads
+        # at once; with ``submit``, in the background while the footprint is worked out
+        draws = []
+        for _ in range(2 if dual else 1):
+            u, z = np.empty(N), np.empty(N)
+            jobs = [(g, u[a:b], z[a:b]) for g, (a, b) in
+                    zip(rng.spawn(2), ((0, N // 2), (N // 2, N)), strict=True)]
+            draws.append((u, z, jobs, [submit(_draw, *j) for j in jobs] if submit else []))
+        # 1. the centre rays' echoes (or as the cast made them: ``centre``)
+        if centre is not None:
+            ss, r, e, nir = centre
         else:
-            self._centre_np(prim, t, d, sop, mop, nrm, surf, n_m, ss, r, e, mat, cosi, nir)
-        # 2. the footprint where it can straddle an edge
-        e1, r1, s1 = e.copy(), r.copy(), ss.copy()
-        e2, r2, s2 = np.zeros(N), np.full(N, np.inf), np.full(N, -1, np.int32)
+            ss, r, e = np.empty(N, np.int32), np.empty(N), np.empty(N)
+            nir = np.empty(N, np.uint32)
+        if centre is None and k is not None:
+            run(k.centre_echoes, [(prim, t, d, sop, mop, nrm, self.refl, surf, n_m, self.R_NEAR,
+                                   m.ambient, a, b, ss, r, e, nir)
+                                  for a, b in parts])
+        elif centre is None:
+            self._centre_np(prim, t, d, sop, mop, nrm, surf, n_m, ss, r, e, nir)
+        # 2. the footprint where it can straddle an edge (the second return: where the
+        # profile carries one)
+        e1, r1, s1 = e, r, ss  # the first return: the centre's, changed where sampled
+        e2, r2, s2 = ((np.zeros(N), np.full(N, np.inf), np.full(N, -1, np.int32)) if dual
+                      else (np.empty(0), np.empty(0), np.empty(0, np.int32)))
         g = self.grid
         flags = np.zeros((W, H), np.uint8)
         if m.footprint == "full":
@@ -358,68 +390,109 @@ class Physics:
         elif m.footprint == "adaptive":
             if k is not None:
                 run(k.flag_edges, [(ss.reshape(W, H), self.row_step, g.reach, a, b, flags)
-                                   for a, b in _parts(W, 1, 8)])
+                                   for a, b in _parts(W, 1, 8, H)])
             else:
                 self._flag_np(ss.reshape(W, H), g.reach, flags)
         if g.weights.shape[1] == 1:
             flags[:] = 0
-        idx = np.flatnonzero(flags.reshape(-1))
+        if self._turns is None:  # which way columns and beams go: the sensor's, for good
+            self._turns = (_column_turn(d, W, H), _row_turn(d, W, H, self.row_step))
+        turn, down = self._turns[0], self._turns[1] * g.rows  # down: the row to beam h + 1
+        self.last_probed = 0
+        NR = 2 * g.rows + 1
+        lat: list[tuple[Any, ...]] = []  # lattice rays cast: (ent, oo, dd, ts, ps)
+        if g.rows and m.footprint == "adaptive":
+            # a vertical edge lies somewhere in the 1.4 degrees to the next beam: probe the
+            # footprint's outer row on the edge's side, and sample the grid only where a
+            # probe sees another object than the centre (most see the same: the edge
+            # passes beyond the footprint)
+            fv = flags.reshape(-1)
+            pv = np.flatnonzero((fv & 6) != 0)
+            if len(pv):
+                sides = fv[pv]
+                has2 = (sides & 2) != 0
+                has4 = (sides & 4) != 0
+                base = ((pv // H) * g.sub * H + pv % H) * NR + g.rows
+                ent_p = np.concatenate([base[has2] + down, base[has4] - down])
+                who = np.concatenate([np.flatnonzero(has2), np.flatnonzero(has4)])
+                o_p = np.argsort(ent_p, kind="stable")
+                ent_p, who = ent_p[o_p], who[o_p]
+                hits = self._lattice_cast(o, d, ent_p, W, H, turn, cast, k, run)
+                lat.append((ent_p, *hits))
+                pr = hits[3]
+                sid_p = (sop[np.where(pr >= 0, pr, len(sop) - 1)] if surf else pr)
+                sid_p = np.where(np.isfinite(hits[2]), sid_p, -1)
+                differs = np.zeros(len(pv), bool)
+                differs[who[sid_p != ss[pv[who]]]] = True
+                fv[pv] = np.where(differs, 3, fv[pv] & 1)
+                self.last_probed = len(ent_p)
+        if self.last_probed == 0:  # vertical edges not probed (no rows): the grid
+            flags[(flags & 6) != 0] = 3
+        idx = np.flatnonzero(flags.reshape(-1) != 0)
         self.last_flagged = len(idx)
-        self.last_cast = 0
+        self.last_flags = flags
+        self.last_cast = self.last_probed
         if len(idx):
             fl = flags.reshape(-1)[idx]
-            ent, pos = g.needed(idx, fl, W, H, k, run)
-            self.last_cast = n_sub = len(ent)
-            oo = np.empty((n_sub, 3), np.float32)
-            dd = np.empty((n_sub, 3), np.float32)
-            NR = 2 * g.rows + 1
-            xs, rest = np.divmod(ent, H * NR)
-            pix = (xs // g.sub) * H + rest // NR
-            ra = (xs % g.sub) * (g.step * _column_turn(d, W, H))
-            rb = (rest % NR - g.rows) * g.b_step
-            if k is not None:
-                run(k.lattice_rays, [(o, d, pix, ra, rb, a, b, oo, dd)
-                                     for a, b in _parts(n_sub, 1, 8)])
-            else:
-                self._rays_np(o, d, pix, ra, rb, oo, dd)
-            ts, ps = cast(oo, dd) if n_sub else (np.empty(0), np.empty(0, np.int32))
-            ts = np.ascontiguousarray(ts, np.float64)
-            ps = np.ascontiguousarray(ps, np.int32)
-            args = (g.weights, g.row_j, g.grid_j, g.grid_i, g.sub, g.rows, pos, H, ss, r, mat,
-                    cosi, ts, ps, dd, sop, mop, nrm, self.refl, surf, n_m, self.R_NEAR,
-                    m.range_resolution_m, self.ORDERS[m.return_order], e1, r1, s1, e2, r2,
-                    s2)
+            M = len(idx)
+            echoes = (np.empty(M), np.empty(M), np.empty(M, np.int32), np.empty(M),
+                      np.empty(M), np.empty(M, np.int32))  # e1 r1 s1 e2 r2 s2 of idx
+            ent, pos = g.needed(idx, fl, W, H, k, run, lat[0][0] if lat else None)
+            self.last_cast += len(ent)
+            lat.append((ent, *self._lattice_cast(o, d, ent, W, H, turn, cast, k, run)))
+            dd, ts, ps = (np.concatenate([x[n] for x in lat]) if len(lat) > 1
+                          else lat[0][n] for n in range(2, 5))
+            args = (g.weights, g.row_j, g.grid_j, g.grid_i, g.sub, g.rows, pos, H, ss, r, e,
+                    ts, ps, dd, sop, mop, nrm, self.refl, surf, n_m, self.R_NEAR,
+                    m.range_resolution_m, self.ORDERS[m.return_order], *echoes)
             if k is not None:
                 run(k.footprint_echoes, [(idx, fl, a, b, *args)
                                          for a, b in _parts(len(idx), 1, 8)])
             else:
                 self._echoes_np(idx, fl, *args)
+            # the centre's no longer read: the sampled pixels' echoes go in its place
+            e1[idx], r1[idx], s1[idx] = echoes[:3]
+            if dual:
+                e2[idx], r2[idx], s2[idx] = echoes[3:]
         # 3. detection, noise, the words
         q = self.quantum_mm
-        out: dict[str, Any] = {"NEAR_IR": np.ascontiguousarray(
-            nir.reshape(W, H).T).astype(np.uint32)}
+        # the images are (H, W) views of column-major (W, H) arrays, as the packets hold them
+        out: dict[str, Any] = {"NEAR_IR": nir.reshape(W, H).T}
+        flat: dict[str, Any] = {}
+        # above s_sure ln(s) / width > 9.5, more than any draw under 9; above s_floor the
+        # noise is sigma_min: neither is computed there (the same bits)
+        s_sure = math.exp(9.5 * m.detection_width)
+        s_floor = ((m.range_sigma_m / m.range_sigma_min_m) ** (1.0 / m.range_sigma_exponent)
+                   * 1.001 if m.range_sigma_min_m > 0 and m.range_sigma_exponent > 0
+                   else math.inf)
         for n_ret, (ee, rr, sd) in enumerate(((e1, r1, s1), (e2, r2, s2))):
             if n_ret == 1 and not dual:
                 break
-            u = rng.random(N)
-            z = rng.standard_normal(N)
-            words = [np.empty((H, W), np.uint32) for _ in range(3)]
+            u, z, jobs, pending = draws[n_ret]
+            if pending:
+                for f in pending:
+                    f.result()
+            else:
+                run(_draw, jobs)
+            words = [np.empty(N, np.uint32) for _ in range(3)]
             sid_out = np.empty(N, np.int32)
             args2 = (ee, rr, sd, u, z)
             consts: tuple[Any, ...] = (
-                H, self.scale, self.gain, self.sg, m.detection_width, m.range_sigma_min_m,
-                m.range_sigma_m, m.range_sigma_exponent, m.min_range_m, self.carried_m,
-                self.photons, self.R_NEAR, q, *words, sid_out)
+                self.scale, self.gain, self.sg, m.detection_width, s_sure,
+                m.range_sigma_min_m, m.range_sigma_m, m.range_sigma_exponent, s_floor,
+                m.min_range_m, self.carried_m, self.photons, self.R_NEAR, q, *words, sid_out)
             if k is not None:
                 run(k.detect, [(*args2, a, b, *consts) for a, b in parts])
             else:
                 self._detect_np(*args2, *consts)
             sfx = "2" if n_ret else ""
-            out["RANGE" + sfx], out["SIGNAL" + sfx], out["REFLECTIVITY" + sfx] = words
+            for name, w in zip(("RANGE", "SIGNAL", "REFLECTIVITY"), words, strict=True):
+                flat[name + sfx] = w
+                out[name + sfx] = w.reshape(W, H).T
             out["sid" + sfx] = sid_out.reshape(W, H)
         # ambient false returns, where no return was detected
         if m.false_positive_rate > 0:
-            empty = np.flatnonzero(out["RANGE"].reshape(-1) == 0)
+            empty = np.flatnonzero(flat["RANGE"] == 0)
             n_fp = int(rng.binomial(len(empty), m.false_positive_rate))
             if n_fp:
                 at = empty[rng.choice(len(empty), n_fp, replace=False)]
@@ -431,13 +504,37 @@ class Physics:
                                                              65535.0))),
                                 ("REFLECTIVITY", np.clip(np.rint(
                                     self.threshold * (rn * rn) / self.sg * 100.0), 0.0, 255.0))):
-                    out[name].reshape(-1)[at] = v.astype(np.uint32)
+                    flat[name][at] = v.astype(np.uint32)
         return out
+
+    def _lattice_cast(self, o: NDArray[np.float32], d: NDArray[np.float32],
+                      ent: NDArray[np.intp], W: int, H: int, turn: float, cast: Any,
+                      k: Any, run: Any) -> tuple[NDArray[np.float32], NDArray[np.float32],
+                                                 FloatArray, NDArray[np.int32]]:
+        """The lattice rays ``ent`` (flat lattice indices, see :meth:`FootprintGrid.needed`)
+        made and cast: their origins, directions, distances and triangles hit."""
+        g = self.grid
+        n_sub = len(ent)
+        oo = np.empty((n_sub, 3), np.float32)
+        dd = np.empty((n_sub, 3), np.float32)
+        NR = 2 * g.rows + 1
+        xs, rest = np.divmod(ent, H * NR)
+        pix = (xs // g.sub) * H + rest // NR
+        ra = (xs % g.sub) * (g.step * turn)
+        rb = (rest % NR - g.rows) * g.b_step
+        if k is not None:
+            run(k.lattice_rays, [(o, d, pix, ra, rb, a, b, oo, dd)
+                                 for a, b in _parts(n_sub, 1, 8)])
+        else:
+            self._rays_np(o, d, pix, ra, rb, oo, dd)
+        ts, ps = cast(oo, dd) if n_sub else (np.empty(0), np.empty(0, np.int32))
+        return (oo, dd, np.ascontiguousarray(ts, np.float64),
+                np.ascontiguousarray(ps, np.int32))
 
     # ---- the numpy path: what the kernels of emulators.lidar._footprint compute -------
     def _centre_np(self, prim: NDArray[np.int32], t: FloatArray, d: NDArray[np.float32],
                    sop: Any, mop: Any, nrm: Any, surf: bool, n_m: float, ss: Any, r: Any,
-                   e: Any, mat: Any, cosi: Any, nir: Any) -> None:
+                   e: Any, nir: Any) -> None:
         sid, mt, cos = _surface_np(prim, d, sop, mop, nrm, surf)
         hit = np.isfinite(t) & (sid >= 0)
         rr = np.where(hit, t + n_m, np.inf)
@@ -445,8 +542,6 @@ class Physics:
         ss[:] = np.where(hit, sid, -1)
         r[:] = rr
         e[:] = np.where(hit, self.refl[mt] * cos / (rn * rn), 0.0)
-        mat[:] = mt
-        cosi[:] = cos
         amb = self.model.ambient
         nir[:] = np.where(hit, np.minimum(amb * self.refl[mt], 65535.0),
                           min(amb * 0.05, 65535.0))
@@ -461,10 +556,10 @@ class Physics:
         beams = np.broadcast_to(np.arange(1, H)[None, :], cols.shape)
         lo, hi = ss[:, :-1], ss[cols, beams]  # beam h, and h + 1 nearest in angle
         up = (lo != hi) & (lo != ss[(cols - 1) % W, beams]) & (lo != ss[(cols + 1) % W, beams])
-        out[:, :-1][up] |= 3
+        out[:, :-1][up] |= 2
         down = ((hi != lo) & (hi != np.roll(ss, 1, axis=0)[:, :-1])
                 & (hi != np.roll(ss, -1, axis=0)[:, :-1]))
-        out[cols[down], beams[down]] |= 3
+        out[cols[down], beams[down]] |= 4
 
     def _rays_np(self, o: NDArray[np.float32], d: NDArray[np.float32], pix: NDArray[np.intp],
                  ra: FloatArray, rb: FloatArray, oo: NDArray[np.float32],
@@ -482,11 +577,11 @@ class Physics:
         v = (dx + ra[:, None] * ex) + rb[:, None] * fx
         n = np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
         dd[:] = v / n[:, None]
-        oo[:] = o[pix]
+        oo[:] = o[pix // (len(d) // len(o))]
 
     def _echoes_np(self, idx: NDArray[np.intp], fl: NDArray[np.uint8], wt: FloatArray,
                    row_j: Any, grid_j: Any, grid_i: Any, S: int, V: int, pos: Any, H: int,
-                   ss: Any, r: Any, mat: Any, cosi: Any, ts: FloatArray,
+                   ss: Any, r: Any, e: Any, ts: FloatArray,
                    ps: NDArray[np.int32], dd: NDArray[np.float32], sop: Any, mop: Any,
                    nrm: Any, refl: FloatArray, surf: bool, n_m: float, r_near: float,
                    resolution: float, order: int, e1: Any, r1: Any, s1: Any, e2: Any,
@@ -517,10 +612,9 @@ class Physics:
         use = src >= 0
         sr = np.where(use, src, 0)
         hit = use & (ss[sr] >= 0)
-        rn = np.maximum(r[sr], r_near)
         rk = np.where(hit, r[sr], rk)
         with np.errstate(invalid="ignore"):
-            ek = np.where(hit, w * refl[mat[sr]] * cosi[sr] / (rn * rn), ek)
+            ek = np.where(hit, w * e[sr], ek)
         sk = np.where(hit, ss[sr], sk)
         at = np.flatnonzero(row.reshape(-1) >= 0)
         if len(at):
@@ -568,32 +662,27 @@ class Physics:
         rows = np.arange(M)[:, None]
         for n_ret, (ea, ra, sa) in enumerate(((e1, r1, s1), (e2, r2, s2))):
             pick = rank[:, n_ret:n_ret + 1]
-            ea[idx], ra[idx], sa[idx] = ge2[rows, pick][:, 0], gr[rows, pick][:, 0], \
+            ea[:], ra[:], sa[:] = ge2[rows, pick][:, 0], gr[rows, pick][:, 0], \
                 gs2[rows, pick][:, 0]
 
     def _detect_np(self, e: FloatArray, r: FloatArray, sid: NDArray[np.int32], u: FloatArray,
-                   z: FloatArray, H: int, scale: float, gain: float, sg: float, width: float,
-                   sigma_min: float, sigma0: float, exponent: float, min_r: float,
-                   max_r: float, photons: float, r_near: float, q: int,
-                   w_range: NDArray[np.uint32], w_signal: NDArray[np.uint32],
+                   z: FloatArray, scale: float, gain: float, sg: float, width: float,
+                   s_sure: float, sigma_min: float, sigma0: float, exponent: float,
+                   s_floor: float, min_r: float, max_r: float, photons: float, r_near: float,
+                   q: int, w_range: NDArray[np.uint32], w_signal: NDArray[np.uint32],
                    w_refl: NDArray[np.uint32], sid_out: NDArray[np.int32]) -> None:
-        W = len(e) // H
         s = e * scale * gain
         with np.errstate(divide="ignore"):
             ls = np.log(np.where(s > 0, s, 1.0))
-        ok = (s > 0) & (u < _norm_cdf(ls / width))
+        ok = (s > 0) & (ls / width > u)
         sigma = np.maximum(sigma_min, sigma0 * np.where(ok, s, 1.0) ** -exponent)
         rr = np.where(ok, r + z * sigma, 0.0)
         ok &= (rr >= min_r) & (rr <= max_r)
         rn = np.maximum(rr, r_near)
-
-        def img(v: FloatArray) -> NDArray[np.uint32]:
-            return np.ascontiguousarray(np.where(ok, v, 0.0).reshape(W, H).T).astype(np.uint32)
-
-        w_range[:] = img(np.rint(rr * (1000.0 / q)) * q)
-        w_signal[:] = img(np.minimum(s * photons, 65535.0))
-        w_refl[:] = img(np.minimum(np.maximum(np.rint(s * (rn * rn) / sg * 100.0), 0.0),
-                                   255.0))
+        w_range[:] = np.where(ok, np.rint(rr * (1000.0 / q)) * q, 0.0)
+        w_signal[:] = np.where(ok, np.minimum(s * photons, 65535.0), 0.0)
+        w_refl[:] = np.where(ok, np.minimum(np.maximum(np.rint(s * (rn * rn) / sg * 100.0),
+                                                       0.0), 255.0), 0.0)
         sid_out[:] = np.where(ok, sid, -1)
 
 
@@ -610,10 +699,35 @@ def _column_turn(d: NDArray[np.float32], W: int, H: int) -> float:
     return 1.0 if float(np.median(side)) >= 0.0 else -1.0
 
 
-def _parts(n: int, align: int, k: int) -> list[tuple[int, int]]:
-    """``n`` items in up to ``k`` contiguous parts, each a multiple of ``align`` long."""
+def _row_turn(d: NDArray[np.float32], W: int, H: int, step: NDArray[np.int64]) -> int:
+    """+1 where the next beam's pixel nearest in angle lies along the lattice's vertical
+    ``rb`` (the perpendicular to the ray with z >= 0: up), -1 where it lies below (the
+    OS0's beams count downwards), from this frame's centre rays: the median over the
+    beam pairs of column 0."""
+    dd = d.reshape(W, H, 3)
+    if H < 2:
+        return -1
+    c2 = step % W
+    dz = dd[c2, np.arange(1, H), 2].astype(np.float64) - dd[0, :-1, 2].astype(np.float64)
+    return 1 if float(np.median(dz)) > 0.0 else -1
+
+
+PART_MIN = 4096  # items: fewer go in one part (handing a part to a thread costs ~40 us)
+
+
+def _draw(g: np.random.Generator, v: FloatArray, z: FloatArray) -> None:
+    """A pixel block's standard normal draws of detection (detected where ln(signal) /
+    width exceeds it: the log-normal threshold, with no normal CDF to compute) and range
+    noise, without the GIL."""
+    g.standard_normal(out=v)
+    g.standard_normal(out=z)
+
+
+def _parts(n: int, align: int, k: int, size: int = 1) -> list[tuple[int, int]]:
+    """``n`` items (of ``size`` pixels each) in up to ``k`` contiguous parts, each a
+    multiple of ``align`` long and, but for the last, at least :data:`PART_MIN` pixels."""
     units = -(-n // align)
-    step = max(1, -(-units // k)) * align
+    step = max(1, -(-units // k), -(-PART_MIN // (align * size))) * align
     return [(a, min(a + step, n)) for a in range(0, n, step)]
 
 
@@ -661,12 +775,6 @@ def _kernels() -> _Kernels | None:
 
         _kernels_built.append(_Kernels(_footprint))
     return _kernels_built[0]
-
-
-def _norm_cdf(x: FloatArray) -> FloatArray:
-    from scipy.special import ndtr
-
-    return np.asarray(ndtr(x), np.float64)
 
 
 def _norm_ppf(p: float) -> float:
