@@ -68,6 +68,10 @@ def points(fr, meta_mode: str = "2048x10") -> tuple[np.ndarray, np.ndarray]:
 
 
 def apparent_dbh(sensor: SensorModel | None, dist: float, dbh: float = 0.3) -> float:
+    """The circle fit's diameter; ambient false returns left out (one landing near the
+    stem would throw the fit: the curve is the footprint's)."""
+    if sensor is not None:
+        sensor = dataclasses.replace(sensor, false_positive_rate=0.0)
     frs = emulate(scene(dist, dbh), sensor, frames=range(3))
     xy = []
     for fr in frs:
