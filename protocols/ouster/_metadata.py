@@ -74,6 +74,81 @@ def _mat(v: Any, name: str) -> NDArray[np.float64]:
     return np.asarray(flat, dtype=np.float64).reshape(4, 4)
 
 
+# ouster-sdk 1.0.1's defaults where metadata leaves a key out (ouster_core/src/metadata.cpp,
+# data_format.cpp, sensor_info.cpp)
+DEFAULT_COLUMNS_PER_PACKET = 16
+DEFAULT_IMU_TO_SENSOR = (1, 0, 0, 6.253, 0, 1, 0, -11.775, 0, 0, 1, 7.645, 0, 0, 0, 1)
+DEFAULT_LIDAR_TO_SENSOR = (-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 36.18, 0, 0, 0, 1)
+_LEGACY_SECTIONS: dict[str, tuple[str, ...]] = {  # the flat keys each nested section takes
+    "config_params": ("udp_port_imu", "udp_port_lidar", "lidar_mode"),
+    "beam_intrinsics": ("lidar_origin_to_beam_origin_mm", "beam_altitude_angles",
+                        "beam_azimuth_angles", "beam_to_lidar_transform"),
+    "sensor_info": ("prod_line", "status", "prod_pn", "prod_sn", "initialization_id",
+                    "build_rev", "build_date", "image_rev"),
+}
+
+
+def nested_metadata(doc: Any) -> dict[str, Any]:
+    """``doc`` in the nested format: as it is where it has all seven sections; the legacy
+    flat format (none of them) moved into them key by key as ouster-sdk does
+    (``convert_legacy_to_nonlegacy``: ``data_format`` becomes ``lidar_data_format``, the
+    transforms their intrinsics, and so on); some sections but not all: MetadataError,
+    as ouster-sdk refuses it."""
+    if not isinstance(doc, dict):
+        raise MetadataError(f"metadata is a {type(doc).__name__}; expected a JSON object")
+    present = [s for s in SECTIONS if s in doc]
+    if len(present) == len(SECTIONS):
+        return doc
+    if present:
+        missing = [s for s in SECTIONS if s not in doc]
+        raise MetadataError(f"metadata lacks section(s) {', '.join(missing)}; the nested "
+                            f"format has all seven ({', '.join(SECTIONS)}), the legacy flat "
+                            "one none")
+    out: dict[str, Any] = {name: {} for name in SECTIONS}
+    taken = set()
+    for key, section in (("lidar_to_sensor_transform", "lidar_intrinsics"),
+                         ("imu_to_sensor_transform", "imu_intrinsics")):
+        if key in doc:
+            out[section][key] = doc[key]
+            taken.add(key)
+    if "data_format" in doc:
+        out["lidar_data_format"] = doc["data_format"]
+        taken.add("data_format")
+    for section, keys in _LEGACY_SECTIONS.items():
+        for key in keys:
+            if key in doc:
+                out[section][key] = doc[key]
+                taken.add(key)
+    for key, value in doc.items():
+        if key not in taken and key not in out:
+            out[key] = value
+    return out
+
+
+def default_pixel_shifts(columns: int, pixels: int) -> list[int]:
+    """ouster-sdk's pixel shifts where metadata has none (``default_data_format``: 16
+    repeats of four staggers, for 64 beams; resized to ``pixels`` with zeros)."""
+    step = {512: 3, 1024: 6, 2048: 12, 4096: 24}.get(columns, 0)
+    shifts = [3 * step, 2 * step, step, 0] * 16
+    return (shifts + [0] * pixels)[:pixels]
+
+
+def beams_of_prod_line(prod_line: str) -> int | None:
+    """The beam count a product line names (``OS-1-16-A0``: 16), or None."""
+    parts = prod_line.split("-")
+    if len(parts) >= 3 and parts[0] == "OS" and parts[2].isdecimal() and len(parts[2]) < 5:
+        return int(parts[2])
+    return None
+
+
+def default_lidar_origin_to_beam_origin_mm(prod_line: str) -> float:
+    """ouster-sdk's ``default_lidar_origin_to_beam_origin`` by product line."""
+    for prefix, mm in (("OS-0-", 27.67), ("OS-1-", 15.806), ("OS-2-", 13.762)):
+        if prod_line.startswith(prefix):
+            return mm
+    return 12.163  # the first generation's
+
+
 @dataclass(frozen=True)
 class SensorMetadata:
     """What tcf-hil needs of a sensor's metadata (all angles in degrees, lengths in mm)."""
@@ -236,48 +311,56 @@ class SensorMetadata:
 
     @classmethod
     def from_json(cls, doc: Any) -> SensorMetadata:
-        """Read the nested (7-section) metadata format; MetadataError names the field."""
-        if not isinstance(doc, dict):
-            raise MetadataError(f"metadata is a {type(doc).__name__}; expected a JSON object")
-        missing = [s for s in SECTIONS if s not in doc]
-        if missing:
-            raise MetadataError(f"metadata lacks section(s) {', '.join(missing)}; all seven "
-                                f"are needed: {', '.join(SECTIONS)}")
+        """Read sensor metadata as ouster-sdk 1.0.1 reads it: the nested format (firmware
+        2.0 on: seven sections) or the legacy flat one (firmware 1.12 to 2.x, and what
+        ouster-sdk wrote beside recordings), with ouster-sdk's defaults where a key is
+        missing (:func:`nested_metadata`); MetadataError names the field."""
+        doc = nested_metadata(doc)
+        sec = {name: (doc[name] if isinstance(doc[name], dict) else {}) for name in SECTIONS}
+        si, cp, ldf, bi = (sec["sensor_info"], sec["config_params"], sec["lidar_data_format"],
+                           sec["beam_intrinsics"])
 
-        def get(section: str, key: str, kind: type | tuple[type, ...]) -> Any:
-            sec = doc[section]
-            if not isinstance(sec, dict) or key not in sec:
+        def get(section: str, key: str, kind: type | tuple[type, ...], default: Any = None
+                ) -> Any:
+            if key not in sec[section]:
+                if default is not None:
+                    return default
                 raise MetadataError(f"{section}.{key} is missing")
-            v = sec[key]
+            v = sec[section][key]
             if not isinstance(v, kind) or (isinstance(v, bool) and kind is not bool):
-                raise MetadataError(f"{section}.{key} = {v!r}; expected {kind}")
+                raise MetadataError(f"{section}.{key} = {_short(v)}; expected {kind}")
             return v
 
-        ldf = "lidar_data_format"
-        w = get(ldf, "columns_per_frame", int)
+        ldf_name = "lidar_data_format"
+        mode = cp.get("lidar_mode")
+        mode_w = parse_mode(mode)[0] if isinstance(mode, str) and mode in MODES else None
+        if "columns_per_frame" not in ldf and mode_w is None:
+            raise MetadataError(f"{ldf_name}.columns_per_frame is missing, and "
+                                f"config_params.lidar_mode {_short(mode)} gives none")
+        w = get(ldf_name, "columns_per_frame", int, mode_w)
         if w not in {parse_mode(m)[0] for m in MODES}:
-            raise MetadataError(f"{ldf}.columns_per_frame = {_short(w)}; expected the columns "
-                                f"of a lidar_mode ({', '.join(MODES)})")
-        for section in SECTIONS[:-1]:  # calibration_status is not read
-            if not isinstance(doc[section], dict):
-                raise MetadataError(f"{section} = {_short(doc[section])}; expected a JSON "
-                                    "object")
-        mode = doc["config_params"].get("lidar_mode")
-        if not isinstance(mode, str) or parse_mode(mode)[0] != w:
+            raise MetadataError(f"{ldf_name}.columns_per_frame = {_short(w)}; expected the "
+                                f"columns of a lidar_mode ({', '.join(MODES)})")
+        if not isinstance(mode, str) or mode not in MODES or parse_mode(mode)[0] != w:
             mode = f"{w}x10" if f"{w}x10" in MODES else f"{w}x5"
         alt = get("beam_intrinsics", "beam_altitude_angles", list)
         az = get("beam_intrinsics", "beam_azimuth_angles", list)
-        shift = get(ldf, "pixel_shift_by_row", list)
+        prod_line = str(si.get("prod_line", ""))
+        h = get(ldf_name, "pixels_per_column", int, beams_of_prod_line(prod_line) or len(alt))
+        for name, arr in (("beam_altitude_angles", alt), ("beam_azimuth_angles", az)):
+            if len(arr) != h:
+                raise MetadataError(f"beam_intrinsics.{name} has {len(arr)} angles; expected "
+                                    f"{h} (pixels_per_column)")
+        shift = get(ldf_name, "pixel_shift_by_row", list, default_pixel_shifts(w, h))
         for name, arr in (("beam_altitude_angles", alt), ("beam_azimuth_angles", az),
                           ("pixel_shift_by_row", shift)):
             for i, v in enumerate(arr):
                 if not _is_number(v):
                     raise MetadataError(f"{name}[{i}] = {_short(v)}; expected a finite number")
-        si = doc["sensor_info"]
-        cp = doc["config_params"]
+        shift = (list(shift) + [0] * h)[:h]  # as ouster-sdk resizes it to the beams
 
-        def integer(section: str, key: str, text_ok: bool = False) -> int:
-            v = doc[section].get(key, 0)
+        def integer(section: str, key: str, default: int = 0, text_ok: bool = False) -> int:
+            v = sec[section].get(key, default)
             if text_ok and isinstance(v, str) and v.isascii() and v.isdecimal() and \
                     len(v) < 40:
                 return int(v)
@@ -286,28 +369,41 @@ class SensorMetadata:
                                     + (" or a decimal string" if text_ok else ""))
             return int(v)
 
-        origin = doc["beam_intrinsics"].get("lidar_origin_to_beam_origin_mm", 0.0)
+        origin = bi.get("lidar_origin_to_beam_origin_mm",
+                        default_lidar_origin_to_beam_origin_mm(prod_line))
         if not _is_number(origin):
             raise MetadataError(f"beam_intrinsics.lidar_origin_to_beam_origin_mm = "
                                 f"{_short(origin)}; expected a finite number")
+        profile = get(ldf_name, "udp_profile_lidar", str, "LEGACY")
+        udp_dest = cp.get("udp_dest", SensorMetadata.udp_dest)
+        port = integer("config_params", "udp_port_lidar", SensorMetadata.udp_port_lidar)
+        if (isinstance(udp_dest, str) and not udp_dest) or port == 0:
+            raise MetadataError("config_params.udp_dest is empty or udp_port_lidar 0: the "
+                                "sensor's lidar profile is OFF (it sends no lidar data)")
+        transforms = []
+        for section, key, default in (("lidar_intrinsics", "lidar_to_sensor_transform",
+                                       DEFAULT_LIDAR_TO_SENSOR),
+                                      ("imu_intrinsics", "imu_to_sensor_transform",
+                                       DEFAULT_IMU_TO_SENSOR)):
+            v = get(section, key, list, list(default))
+            transforms.append(tuple(_mat(v, key).ravel()))
         return cls(
-            mode=mode, profile=get(ldf, "udp_profile_lidar", str),
-            columns_per_packet=get(ldf, "columns_per_packet", int),
-            prod_line=str(si.get("prod_line", "")),
+            mode=mode, profile=profile,
+            columns_per_packet=get(ldf_name, "columns_per_packet", int,
+                                   DEFAULT_COLUMNS_PER_PACKET),
+            prod_line=prod_line,
             prod_sn=integer("sensor_info", "prod_sn", text_ok=True),
             init_id=integer("sensor_info", "initialization_id"),
             prod_pn=str(si.get("prod_pn", "")), build_rev=str(si.get("build_rev", "")),
-            image_rev=str(si.get("image_rev", "")), udp_dest=str(cp.get("udp_dest", "")),
-            udp_port_lidar=integer("config_params", "udp_port_lidar"),
-            udp_port_imu=integer("config_params", "udp_port_imu"),
+            image_rev=str(si.get("image_rev", "")), udp_dest=str(udp_dest),
+            udp_port_lidar=port,
+            udp_port_imu=integer("config_params", "udp_port_imu",
+                                 SensorMetadata.udp_port_imu),
             beam_altitude_deg=tuple(float(v) for v in alt),
             beam_azimuth_deg=tuple(float(v) for v in az),
             pixel_shift_by_row=tuple(int(v) for v in shift),
             lidar_origin_to_beam_origin_mm=float(origin),
-            lidar_to_sensor=tuple(_mat(get("lidar_intrinsics", "lidar_to_sensor_transform",
-                                           list), "lidar_to_sensor_transform").ravel()),
-            imu_to_sensor=tuple(_mat(get("imu_intrinsics", "imu_to_sensor_transform", list),
-                                     "imu_to_sensor_transform").ravel()),
+            lidar_to_sensor=transforms[0], imu_to_sensor=transforms[1],
         )
 
     @classmethod

@@ -68,6 +68,86 @@ def test_sdk_validates_our_metadata_without_issues(mode: str, profile: str) -> N
     assert o.SensorMetadata.loads(m.dumps()) == m
 
 
+def _legacy(doc: dict) -> dict:
+    """A nested metadata document in the legacy flat format (firmware 1.12 to 2.x, and
+    ouster-sdk's own writes beside recordings): every section's keys at the top, the data
+    format under ``data_format``; no config_params but the mode and the ports."""
+    flat = {**doc["sensor_info"], **doc["beam_intrinsics"], **doc["lidar_intrinsics"],
+            **doc["imu_intrinsics"]}
+    flat.update({k: doc["config_params"][k] for k in ("lidar_mode", "udp_port_lidar",
+                                                       "udp_port_imu")})
+    flat["data_format"] = doc["lidar_data_format"]
+    return flat
+
+
+def _sdk_values(text: str) -> tuple:
+    info = core.SensorInfo(text)
+    f = info.format
+    return (f.columns_per_frame, f.pixels_per_column, f.columns_per_packet,
+            str(f.udp_profile_lidar), list(f.pixel_shift_by_row),
+            np.round(info.beam_altitude_angles, 9).tolist(),
+            np.round(info.beam_azimuth_angles, 9).tolist(),
+            round(info.lidar_origin_to_beam_origin_mm, 9),
+            np.asarray(info.lidar_to_sensor_transform).ravel().tolist(),
+            np.asarray(info.imu_to_sensor_transform).ravel().tolist(), info.init_id, info.sn,
+            info.prod_line)
+
+
+def _our_values(m: o.SensorMetadata) -> tuple:
+    return (m.columns, m.pixels, m.columns_per_packet, m.profile, list(m.pixel_shift_by_row),
+            np.round(m.beam_altitude_deg, 9).tolist(), np.round(m.beam_azimuth_deg, 9).tolist(),
+            round(m.lidar_origin_to_beam_origin_mm, 9), list(m.lidar_to_sensor),
+            list(m.imu_to_sensor), m.init_id, m.prod_sn, m.prod_line)
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("profile", PROFILES)
+def test_legacy_flat_metadata_reads_as_the_nested_and_as_the_sdk_reads_it(
+        mode: str, profile: str) -> None:
+    m = o.os0_64_metadata(mode, profile)
+    flat = _legacy(m.to_json())
+    got = o.SensorMetadata.from_json(flat)
+    assert _our_values(got) == _our_values(m)
+    assert _our_values(got) == _sdk_values(json.dumps(flat))
+
+
+@pytest.mark.parametrize("drop", ["data_format", "lidar_origin_to_beam_origin_mm",
+                                  "lidar_to_sensor_transform", "imu_to_sensor_transform",
+                                  "initialization_id", "udp_profile_lidar", "pixel_shift_by_row",
+                                  "columns_per_packet", "pixels_per_column",
+                                  "columns_per_frame"])
+def test_missing_keys_take_the_sdks_defaults(drop: str) -> None:
+    """What firmware before 2.0 left out, ouster-sdk defaults; so do we, to its values."""
+    flat = _legacy(o.os0_64_metadata("2048x10").to_json())
+    if drop in flat:
+        del flat[drop]
+    else:
+        del flat["data_format"][drop]
+    assert _our_values(o.SensorMetadata.from_json(flat)) == _sdk_values(json.dumps(flat))
+
+
+@pytest.mark.parametrize(("mutate", "needle"), [
+    # the beams a product line names decide the angles' count, as in ouster-sdk
+    (lambda d: (d.__setitem__("prod_line", "OS-1-16-A0"), d.pop("data_format")),
+     "beam_altitude_angles has 64 angles; expected 16"),
+    # a legacy document with one nested section is neither format
+    (lambda d: d.__setitem__("calibration_status", {}), "lacks section(s) sensor_info"),
+    (lambda d: (d.pop("data_format"), d.pop("lidar_mode")), "columns_per_frame is missing"),
+    (lambda d: d.__setitem__("udp_port_lidar", 0), "OFF"),
+])
+def test_legacy_metadata_the_sdk_refuses_is_one_line_naming_the_field(
+        mutate: object, needle: str) -> None:
+    flat = _legacy(o.os0_64_metadata().to_json())
+    mutate(flat)  # type: ignore[operator]
+    with pytest.raises(o.MetadataError, match=needle.replace("(", r"\(").replace(")", r"\)")
+                       ) as err:
+        o.SensorMetadata.from_json(flat)
+    assert "\n" not in str(err.value)
+    if needle != "OFF":  # ouster-sdk reads it, profile OFF: nothing to decode
+        with pytest.raises(RuntimeError, match="Critical"):
+            core.SensorInfo(json.dumps(flat))
+
+
 def test_pixel_shifts_scale_with_columns() -> None:
     a = o.os0_64_metadata("1024x10")
     b = o.os0_64_metadata("2048x10")
