@@ -346,7 +346,8 @@ class SensorMetadata:
         alt = get("beam_intrinsics", "beam_altitude_angles", list)
         az = get("beam_intrinsics", "beam_azimuth_angles", list)
         prod_line = str(si.get("prod_line", ""))
-        h = get(ldf_name, "pixels_per_column", int, beams_of_prod_line(prod_line) or len(alt))
+        # as ouster-sdk: the beams the product line names, else 64
+        h = get(ldf_name, "pixels_per_column", int, beams_of_prod_line(prod_line) or 64)
         for name, arr in (("beam_altitude_angles", alt), ("beam_azimuth_angles", az)):
             if len(arr) != h:
                 raise MetadataError(f"beam_intrinsics.{name} has {len(arr)} angles; expected "
