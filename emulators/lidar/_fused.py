@@ -43,6 +43,20 @@ def _fetch_add(typingctx: Any, counter: Any, index: Any, value: Any) -> Any:
 
 
 @numba.njit(cache=True, nogil=True)
+def _open_block(a: int, b: int, template: Any, packets: Any, ts_words: Any, ts: Any,
+                beams: Any, mt: Any, oc: Any, o: Any, d: Any) -> None:
+    """Columns a .. b (whole packets) begun: their packets copied from ``template``, their
+    column times written into ``ts_words``, their rays made into ``o``/``d``."""
+    C = ts_words.shape[1]
+    for p in range(a // C, b // C):  # element loops: numba's slice assignment is slower
+        for q in range(packets.shape[1]):
+            packets[p, q] = template[p, q]
+    for c in range(a, b):
+        ts_words[c // C, c % C] = ts[c]
+    _make_rays(beams, mt, oc, a, o, d)  # type: ignore[misc]  # compiled: this module needs numba
+
+
+@numba.njit(cache=True, nogil=True)
 def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: Any, oc: Any,
                        starts: Any, counter: Any, wait_all: bool, width: int, o_all: Any,
                        d_all: Any, template: Any, packets: Any, ts_words: Any, ts: Any,
@@ -85,12 +99,7 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
         a = starts[i]
         b = a + width
         p0, p1 = a // C, b // C
-        for p in range(p0, p1):  # element loops: numba's slice assignment is slower
-            for q in range(packets.shape[1]):
-                packets[p, q] = template[p, q]
-        for c in range(a, b):
-            ts_words[c // C, c % C] = ts[c]
-        _make_rays(beams, mt, oc, a, o, d)
+        _open_block(a, b, template, packets, ts_words, ts, beams, mt, oc, o, d)
         for c in range(width):
             for h in range(H):
                 t[c, h], prim = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
@@ -126,7 +135,6 @@ def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts
     (``t_all``, inf none or beyond ``reach`` from the lidar axis): the pixel words are the
     physics' to write."""
     H = beams.shape[0]
-    C = ts_words.shape[1]
     o = np.empty((width, H, 3), np.float32)
     d = np.empty((width, H, 3), np.float32)
     rf, ru, addr = new_rayhit()
@@ -141,13 +149,7 @@ def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts
             break
         a = starts[i]
         b = a + width
-        p0, p1 = a // C, b // C
-        for p in range(p0, p1):
-            for q in range(packets.shape[1]):
-                packets[p, q] = template[p, q]
-        for c in range(a, b):
-            ts_words[c // C, c % C] = ts[c]
-        _make_rays(beams, mt, oc, a, o, d)
+        _open_block(a, b, template, packets, ts_words, ts, beams, mt, oc, o, d)
         for c in range(width):
             for h in range(H):
                 t, prim = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
