@@ -43,6 +43,29 @@ def _fetch_add(typingctx: Any, counter: Any, index: Any, value: Any) -> Any:
 
 
 @numba.njit(cache=True, nogil=True)
+def _wait_go(counter: Any) -> bool:
+    """Spin (without the GIL) while ``counter[1]`` is 0; whether it then says go (1)."""
+    state = 0
+    while state == 0:
+        state = _fetch_add(counter, 1, 0)  # type: ignore[call-arg]  # numba: typingctx
+    return state == 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _next_block(counter: Any, starts: Any) -> int:
+    """The first column of the next block no thread has taken (``counter[0]``), or -1."""
+    i: int = _fetch_add(counter, 0, 1)  # type: ignore[call-arg]
+    return starts[i] if i < starts.shape[0] else -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _wait_blocks(counter: Any, nb: int) -> None:
+    """Spin until ``counter[2]`` says all ``nb`` blocks are done (the other threads')."""
+    while _fetch_add(counter, 2, 0) < nb:  # type: ignore[call-arg]
+        pass
+
+
+@numba.njit(cache=True, nogil=True)
 def _open_block(a: int, b: int, template: Any, packets: Any, ts_words: Any, ts: Any,
                 beams: Any, mt: Any, oc: Any, o: Any, d: Any) -> None:
     """Columns a .. b (whole packets) begun: their packets copied from ``template``, their
@@ -89,14 +112,11 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
     sid = np.empty((width, H), np.int32)
     rf, ru, addr = new_rayhit()
     nb = starts.shape[0]
-    state = 0
-    while state == 0:
-        state = _fetch_add(counter, 1, 0)  # type: ignore[call-arg]  # numba: typingctx
-    while state == 1:
-        i: int = _fetch_add(counter, 0, 1)  # type: ignore[call-arg]
-        if i >= nb:
+    go = _wait_go(counter)
+    while go:
+        a = _next_block(counter, starts)
+        if a < 0:
             break
-        a = starts[i]
         b = a + width
         p0, p1 = a // C, b // C
         _open_block(a, b, template, packets, ts_words, ts, beams, mt, oc, o, d)
@@ -109,14 +129,15 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
                     for q in range(3):
                         o_all[a + c, h, q] = o[c, h, q]
                         d_all[a + c, h, q] = d[c, h, q]
-        _answer_chunk(t, sid, noise[a:b] if noise.shape[0] > 0 else noise[:0], a, n_m, min_r,
-                      reach_ground, reach_bark, range_units, range_mult, luts, signal32,
-                      clamp_signal, w_range[p0:p1], w_refl[p0:p1], w_nir[p0:p1],
-                      w_signal[p0:p1] if w_signal.shape[0] > 0 else w_signal[:0],
-                      refl_in_range, sid_out, t_out, ok_out)
-        _fetch_add(counter, 2, 1)
-    while wait_all and state == 1 and _fetch_add(counter, 2, 0) < nb:  # type: ignore[call-arg]
-        pass  # the other threads' last blocks
+        _answer_chunk(  # type: ignore[misc]  # compiled: this module needs numba
+            t, sid, noise[a:b] if noise.shape[0] > 0 else noise[:0], a, n_m, min_r,
+            reach_ground, reach_bark, range_units, range_mult, luts, signal32, clamp_signal,
+            w_range[p0:p1], w_refl[p0:p1], w_nir[p0:p1],
+            w_signal[p0:p1] if w_signal.shape[0] > 0 else w_signal[:0], refl_in_range,
+            sid_out, t_out, ok_out)
+        _fetch_add(counter, 2, 1)  # type: ignore[call-arg]
+    if wait_all and go:
+        _wait_blocks(counter, nb)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -140,14 +161,11 @@ def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts
     rf, ru, addr = new_rayhit()
     nb = starts.shape[0]
     d_flat = d_all.reshape(-1, 3)
-    state = 0
-    while state == 0:
-        state = _fetch_add(counter, 1, 0)  # type: ignore[call-arg]  # numba: typingctx
-    while state == 1:
-        i: int = _fetch_add(counter, 0, 1)  # type: ignore[call-arg]
-        if i >= nb:
+    go = _wait_go(counter)
+    while go:
+        a = _next_block(counter, starts)
+        if a < 0:
             break
-        a = starts[i]
         b = a + width
         _open_block(a, b, template, packets, ts_words, ts, beams, mt, oc, o, d)
         for c in range(width):
@@ -164,9 +182,10 @@ def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts
                     d_all[a + c, h, q] = d[c, h, q]
             for q in range(3):  # a column's beams all start at its origin
                 o_all[a + c, 0, q] = o[c, 0, q]
-        _centre_echoes(prim_all, t_all, d_flat, stem_of_prim, material_of_prim, normals,
-                       refl, True, n_m, r_near, ambient, a * H, b * H, ss, r, e, nir)
-        _fetch_add(counter, 2, 1)
-    while wait_all and state == 1 and _fetch_add(counter, 2, 0) < nb:  # type: ignore[call-arg]
-        pass  # the other threads' last blocks
+        _centre_echoes(  # type: ignore[misc]  # compiled: this module needs numba
+            prim_all, t_all, d_flat, stem_of_prim, material_of_prim, normals, refl, True, n_m,
+            r_near, ambient, a * H, b * H, ss, r, e, nir)
+        _fetch_add(counter, 2, 1)  # type: ignore[call-arg]
+    if wait_all and go:
+        _wait_blocks(counter, nb)
 
