@@ -29,6 +29,7 @@ from emulators.jit import jit_enabled
 from emulators.lidar._kernel import answer_kernel, frames_kernel, fused_kernel, rays_kernel
 from emulators.lidar._physics import Physics, SensorModel, Surfaces
 from protocols.ouster import (
+    EMULATED_PROFILES,
     Field,
     PacketFormat,
     SensorMetadata,
@@ -315,6 +316,11 @@ class Os0Emulator:
                  sensor: SensorModel | None = None) -> None:
         """``sensor``: the physical sensor model (:mod:`emulators.lidar._physics`); None or an
         ideal one: one exact ray per pixel answered by ``model``."""
+        if meta.profile not in EMULATED_PROFILES or meta.header_type not in ("", "STANDARD"):
+            raise ValueError(f"udp_profile_lidar {meta.profile} (header_type "
+                             f"{meta.header_type or 'as the profile'}) is read and replayed, "
+                             f"not emulated; the emulator writes "
+                             f"{', '.join(EMULATED_PROFILES)}")
         self.meta = meta
         self.sensor = sensor
         if sensor is not None and sensor.ideal and model is None:

@@ -36,9 +36,11 @@ from protocols.ouster._packets import (
     frame_from_packets,
     shift_lidar_packet,
 )
-from protocols.ouster._profiles import PROFILES, Field, Profile
+from protocols.ouster._profiles import EMULATED_PROFILES, HEADERS, PROFILES, Field, Header, Profile
 
 __all__ = [
+    "EMULATED_PROFILES",
+    "HEADERS",
     "IMU_PACKET_BYTES",
     "MODES",
     "OS0_64_MODES",
@@ -46,6 +48,7 @@ __all__ = [
     "CrcError",
     "DecodedFrame",
     "Field",
+    "Header",
     "ImuPacket",
     "LidarPacket",
     "MeasurementIdError",

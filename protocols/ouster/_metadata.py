@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import numbers
+import re
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from typing import Any
@@ -172,6 +173,7 @@ class SensorMetadata:
     lidar_to_sensor: tuple[float, ...] = (-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 38.195, 0, 0, 0, 1)
     imu_to_sensor: tuple[float, ...] = (1, 0, 0, -2.441, 0, 1, 0, -9.725, 0, 0, 1, 7.533,
                                         0, 0, 0, 1)
+    header_type: str = ""  # lidar_data_format.header_type ("": the profile's, as the SDK)
     extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -180,7 +182,8 @@ class SensorMetadata:
         texts: tuple[tuple[str, object], ...] = (
             ("udp_profile_lidar", self.profile), ("udp_dest", self.udp_dest),
             ("prod_line", self.prod_line), ("prod_pn", self.prod_pn),
-            ("build_rev", self.build_rev), ("image_rev", self.image_rev))
+            ("build_rev", self.build_rev), ("image_rev", self.image_rev),
+            ("header_type", self.header_type))
         for name, text in texts:
             if not isinstance(text, str):
                 raise MetadataError(f"{name} {_short(text)}; expected a string")
@@ -220,6 +223,8 @@ class SensorMetadata:
         if self.profile not in PROFILES:
             raise MetadataError(f"udp_profile_lidar {self.profile!r}; expected one of "
                                 f"{', '.join(PROFILES)}")
+        if self.header_type not in ("", "STANDARD", "FUSA"):
+            raise MetadataError(f"header_type {self.header_type!r}; expected STANDARD or FUSA")
         n = len(self.beam_altitude_deg)
         if n == 0 or len(self.beam_azimuth_deg) != n or len(self.pixel_shift_by_row) != n:
             raise MetadataError(
@@ -250,9 +255,28 @@ class SensorMetadata:
         return len(self.beam_altitude_deg)
 
     @property
+    def firmware(self) -> tuple[int, int, int] | None:
+        """The firmware version in ``image_rev`` (else ``build_rev``), e.g. (3, 1, 0)."""
+        for text in (self.image_rev, self.build_rev):
+            m = re.search(r"v(\d+)\.(\d+)\.(\d+)", text)
+            if m:
+                return int(m[1]), int(m[2]), int(m[3])
+        return None
+
+    @property
     def packet_format(self) -> PacketFormat:
-        return PacketFormat(PROFILES[self.profile], self.pixels, self.columns_per_packet,
-                            self.columns)
+        """The lidar packets' layout. Their footer holds a CRC-64/XZ from firmware 2.5 on (or
+        where the firmware is not named): real packets of firmware 2.5.2 and 3.2.0 in
+        ouster-sdk's test data carry one (``same_ports_nonlegacy.pcap``, ``crc_test.pcap``);
+        those of 2.2 to 2.4 carry 0xdeadbeef0000c0de or zeros there (``duplicate_id.pcap``,
+        ``OS-0-32-U1_v2.2.0``, ``OS-2-128-U1_v2.3.0``); the FUSA header has none
+        (ouster-sdk reads none, and a firmware 3.1 FUSA packet's footer is zeros)."""
+        fw = self.firmware
+        fmt = PacketFormat.create(self.profile, self.pixels, self.columns_per_packet,
+                                  self.columns, self.header_type or None)
+        if fmt.crc and fw is not None and fw < (2, 5, 0):
+            fmt = replace(fmt, crc=False)
+        return fmt
 
     def with_changes(self, **kw: Any) -> SensorMetadata:
         """A copy with fields changed; pixel shifts rescale when the column count changes."""
@@ -293,6 +317,7 @@ class SensorMetadata:
                 "pixels_per_column": self.pixels, "column_window": [0, w - 1],
                 "pixel_shift_by_row": list(self.pixel_shift_by_row),
                 "udp_profile_lidar": self.profile, "udp_profile_imu": "LEGACY",
+                **({"header_type": self.header_type} if self.header_type else {}),
             },
             "beam_intrinsics": {
                 "beam_altitude_angles": list(self.beam_altitude_deg),
@@ -376,6 +401,7 @@ class SensorMetadata:
             raise MetadataError(f"beam_intrinsics.lidar_origin_to_beam_origin_mm = "
                                 f"{_short(origin)}; expected a finite number")
         profile = get(ldf_name, "udp_profile_lidar", str, "LEGACY")
+        header_type = get(ldf_name, "header_type", str, "") if "header_type" in ldf else ""
         udp_dest = cp.get("udp_dest", SensorMetadata.udp_dest)
         port = integer("config_params", "udp_port_lidar", SensorMetadata.udp_port_lidar)
         if (isinstance(udp_dest, str) and not udp_dest) or port == 0:
@@ -405,6 +431,7 @@ class SensorMetadata:
             pixel_shift_by_row=tuple(int(v) for v in shift),
             lidar_origin_to_beam_origin_mm=float(origin),
             lidar_to_sensor=transforms[0], imu_to_sensor=transforms[1],
+            header_type=header_type,
         )
 
     @classmethod

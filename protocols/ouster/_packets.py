@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import cast
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,7 +23,7 @@ from protocols.ouster._errors import (
     PacketSizeError,
     PacketTypeError,
 )
-from protocols.ouster._profiles import PROFILES, Field, Profile
+from protocols.ouster._profiles import HEADERS, PROFILES, Field, Header, Profile
 
 __all__ = ["LidarPacket", "PacketBatch", "PacketFormat", "decode_lidar_packet",
            "decode_lidar_packets", "encode_lidar_columns", "encode_lidar_frame",
@@ -36,24 +36,85 @@ LEGACY_ENCODER_TICKS = 90112  # encoder counts per revolution (legacy column hea
 
 @dataclass(frozen=True, slots=True)
 class PacketFormat:
-    """Layout of one sensor's lidar packets, derived once from profile and frame geometry."""
+    """Layout of one sensor's lidar packets, derived once from profile and frame geometry.
+
+    ``header``: the packet and column header layout (:data:`HEADERS`; default the profile's,
+    as ouster-sdk assumes when the metadata names no ``header_type``). ``crc``: whether the
+    packet footer's last 8 bytes are a CRC-64/XZ that writers write and readers check
+    (default: the header's; firmware before 3.1 wrote a placeholder there, see
+    :attr:`SensorMetadata.packet_format`)."""
 
     profile: Profile
     pixels_per_column: int = 64
     columns_per_packet: int = 16
     columns_per_frame: int = 1024
+    header: Header = None  # type: ignore[assignment]  # (None: the profile's)
+    crc: bool = None  # type: ignore[assignment]  # (None: the header's)
 
     def __post_init__(self) -> None:
-        if self.columns_per_frame % self.columns_per_packet:
+        if self.columns_per_packet <= 0 or self.columns_per_frame % self.columns_per_packet:
             raise ValueError(f"columns_per_frame {self.columns_per_frame} is not a multiple "
                              f"of columns_per_packet {self.columns_per_packet}")
+        if self.header is None:
+            object.__setattr__(self, "header", HEADERS[self.profile.header])
+        if self.profile.legacy != (self.header.name == "LEGACY"):
+            raise ValueError(f"header {self.header.name} with profile {self.profile.name}: "
+                             "LEGACY packets have LEGACY headers, and only they")
+        if self.crc is None:
+            object.__setattr__(self, "crc", self.header.crc)
 
     @classmethod
     def create(cls, profile: str, pixels_per_column: int = 64, columns_per_packet: int = 16,
-               columns_per_frame: int = 1024) -> PacketFormat:
+               columns_per_frame: int = 1024, header_type: str | None = None,
+               crc: bool | None = None) -> PacketFormat:
         if profile not in PROFILES:
             raise KeyError(f"unknown lidar profile {profile!r}; known: {', '.join(PROFILES)}")
-        return cls(PROFILES[profile], pixels_per_column, columns_per_packet, columns_per_frame)
+        p = PROFILES[profile]
+        if header_type is not None and header_type not in HEADERS:
+            raise KeyError(f"unknown header_type {header_type!r}; known: STANDARD, FUSA")
+        header = HEADERS[p.header if p.legacy or header_type is None else header_type]
+        return cls(p, pixels_per_column, columns_per_packet, columns_per_frame, header,
+                   header.crc if crc is None else crc)
+
+    @property
+    def frame_id_modulus(self) -> int:
+        """Frame ids count modulo this (2**16; 2**32 with the FUSA header)."""
+        f = self.header.field("frame_id")
+        assert f is not None
+        return 1 << f.bits
+
+    def header_field(self, packets: NDArray[np.uint8], name: str) -> NDArray[np.uint64]:
+        """A packet header field (``frame_id``, ``init_id``, ``prod_sn``, ``packet_type``,
+        ``alert_flags``, ...) of each of an (n, packet_bytes) array's packets, as
+        :data:`HEADERS` places it (LEGACY: the first column's frame_id; 0 for what the
+        header has not)."""
+        h = self.header
+        if h.name == "LEGACY":
+            if name != "frame_id":
+                return np.zeros(packets.shape[0], np.uint64)
+            return self.column_field(packets, "frame_id")[:, 0]
+        f = h.field(name)
+        if f is None or f not in h.packet:
+            raise KeyError(f"a {h.name} packet header has no field {name!r}")
+        return _read(f, packets)
+
+    def column_field(self, packets: NDArray[np.uint8], name: str) -> NDArray[np.uint64]:
+        """A column header or footer field (``timestamp``, ``measurement_id``, ``status``;
+        LEGACY also ``frame_id``, ``encoder_count``) as a (packets, columns) array."""
+        f, cols = self._column_word(packets, name)
+        return _read(f, cols)
+
+    def _column_word(self, packets: NDArray[np.uint8], name: str
+                     ) -> tuple[Field, NDArray[np.uint8]]:
+        h = self.header
+        cols = self._columns(packets)
+        for f in h.column:
+            if f.name == name:
+                return f, cols
+        for f in h.column_footer:
+            if f.name == name:
+                return f, cols[..., self.col_bytes - self.profile.col_footer_bytes:]
+        raise KeyError(f"a {h.name} column has no field {name!r}")
 
     @property
     def packet_bytes(self) -> int:
@@ -97,22 +158,46 @@ class PacketFormat:
         """The (packets, columns) view of the column time stamps (ns) of an (n, packet_bytes)
         array: the one column header word that changes from frame to frame (a writer may
         copy the rest from packets encoded once, :func:`encode_lidar_columns`)."""
-        return _word_view(self._columns(packets), 0, "<u8")
+        f, cols = self._column_word(packets, "timestamp")
+        return _word_view(cols, f.offset, f.dtype)
 
     def pixel_fields(self, packets: NDArray[np.uint8], names: Sequence[str] | None = None
                      ) -> dict[str, NDArray[np.uint32]]:
         """The (H, n * columns_per_packet) image of each named field (default: all of the
-        profile's) in an (n, packet_bytes) array of packets, in packet order; no checks."""
+        profile's; ``RAW32_WORD1`` ... name a pixel's 32-bit words, as ouster-sdk's) in an
+        (n, packet_bytes) array of packets, in packet order; no checks."""
         pix = self._pixels(self._columns(packets))
         n = packets.shape[0] * self.columns_per_packet
+        p = self.profile
+        want = [f for f in p.fields if names is None or f.name in names] + [
+            p.field(x) for x in names or () if x.startswith("RAW32_WORD")]
         return {f.name: _decode_value(f, _word_view(pix, f.offset, f.dtype)).reshape(
-            n, self.pixels_per_column).T
-            for f in self.profile.fields if names is None or f.name in names}
+            n, self.pixels_per_column).T for f in want}
 
 
 def _word_view(pix: NDArray[np.uint8], offset: int, dtype: str) -> NDArray[np.generic]:
     size = np.dtype(dtype).itemsize
     return pix[..., offset:offset + size].view(dtype)[..., 0]
+
+
+def _read(f: Field, block: NDArray[np.uint8]) -> NDArray[np.uint64]:
+    """Field ``f`` of each block (the last axis: the block's bytes), as uint64."""
+    v = _word_view(block, f.offset, f.dtype).astype(np.uint64) & np.uint64(f.mask)
+    return v >> np.uint64(f.shift) if f.shift >= 0 else v << np.uint64(-f.shift)
+
+
+def _write(f: Field, block: NDArray[np.uint8], value: Any) -> None:
+    """Write field ``f`` of each block, keeping the other bits of its word."""
+    word = _word_view(block, f.offset, f.dtype)
+    dt = word.dtype.type
+    v = np.asarray(value).astype(np.uint64)
+    v = v << np.uint64(f.shift) if f.shift >= 0 else v >> np.uint64(-f.shift)
+    v = (v & np.uint64(f.mask)).astype(dt)
+    full = (1 << (8 * word.dtype.itemsize)) - 1
+    if f.mask == full:
+        word[...] = v
+    else:
+        word[...] = np.bitwise_or(np.bitwise_and(word, dt(~f.mask & full)), v)
 
 
 def _encode_value(f: Field, value: NDArray[np.integer]) -> NDArray[np.uint32]:
@@ -150,7 +235,7 @@ def encode_lidar_frame(fmt: PacketFormat, fields: Mapping[str, NDArray[np.intege
             emulator passes a compiled one).
         out: reuse this array (must have the right shape and dtype).
     """
-    _check_ids(frame_id, init_id, prod_sn)
+    _check_ids(fmt, frame_id, init_id, prod_sn)
     arr = out if out is not None else np.empty((fmt.packets_per_frame, fmt.packet_bytes),
                                                dtype=np.uint8)
     encode_lidar_columns(fmt, arr, 0, fields, timestamps_ns, status)
@@ -164,10 +249,11 @@ def _check_frame(fmt: PacketFormat, frame: NDArray[np.uint8]) -> None:
                          f"expected ({fmt.packets_per_frame}, {fmt.packet_bytes}) uint8")
 
 
-def _check_ids(frame_id: int, init_id: int, prod_sn: int) -> None:
-    if not 0 <= frame_id <= 0xFFFF or not 0 <= init_id < 1 << 24 or not 0 <= prod_sn < 1 << 40:
-        raise ValueError(f"frame_id {frame_id} (16 bit), init_id {init_id} (24 bit) or prod_sn "
-                         f"{prod_sn} (40 bit) out of range")
+def _check_ids(fmt: PacketFormat, frame_id: int, init_id: int, prod_sn: int) -> None:
+    fids = fmt.frame_id_modulus
+    if not 0 <= frame_id < fids or not 0 <= init_id < 1 << 24 or not 0 <= prod_sn < 1 << 40:
+        raise ValueError(f"frame_id {frame_id} ({fids.bit_length() - 1} bit), init_id "
+                         f"{init_id} (24 bit) or prod_sn {prod_sn} (40 bit) out of range")
 
 
 def encode_lidar_columns(fmt: PacketFormat, frame: NDArray[np.uint8], first_column: int,
@@ -205,18 +291,17 @@ def encode_lidar_columns(fmt: PacketFormat, frame: NDArray[np.uint8], first_colu
     P = n // C
     arr = frame[first_column // C:first_column // C + P]
     arr[...] = 0
-    cols = fmt._columns(arr)
     mid = np.arange(first_column, first_column + n, dtype=np.uint16).reshape(P, C)
     fmt.column_timestamps(arr)[...] = ts.reshape(P, C)
-    _word_view(cols, 8, "<u2")[...] = mid
+    _write(*fmt._column_word(arr, "measurement_id"), mid)
     if p.legacy:
         st = (np.full(n, 0xFFFFFFFF, np.uint32) if status is None
               else np.asarray(status, np.uint32))
-        _word_view(cols, 12, "<u4")[...] = (mid.astype(np.uint64) * LEGACY_ENCODER_TICKS // W)
-        _word_view(cols, fmt.col_bytes - 4, "<u4")[...] = st.reshape(P, C)
+        _write(*fmt._column_word(arr, "encoder_count"),
+               mid.astype(np.uint64) * LEGACY_ENCODER_TICKS // W)
     else:
         st = np.ones(n, np.uint16) if status is None else np.asarray(status, np.uint16)
-        _word_view(cols, 10, "<u2")[...] = st.reshape(P, C)
+    _write(*fmt._column_word(arr, "status"), st.reshape(P, C))
     _write_fields(fmt, arr, fields)
 
 
@@ -259,18 +344,20 @@ def finish_lidar_packets(fmt: PacketFormat, frame: NDArray[np.uint8], *, frame_i
                          ) -> NDArray[np.uint8]:
     """Write the packet headers (LEGACY: the frame_id of every column) and the CRC footers
     of a frame whose columns :func:`encode_lidar_columns` wrote; returns ``frame``."""
-    _check_ids(frame_id, init_id, prod_sn)
+    _check_ids(fmt, frame_id, init_id, prod_sn)
     arr = frame
     _check_frame(fmt, arr)
     if fmt.profile.legacy:
-        _word_view(fmt._columns(arr), 10, "<u2")[...] = frame_id
+        _write(*fmt._column_word(arr, "frame_id"), frame_id)
         return arr
-    arr[:, 0:2].view("<u2")[:, 0] = 1  # packet_type: lidar
-    arr[:, 2:4].view("<u2")[:, 0] = frame_id
-    arr[:, 4:7] = np.frombuffer(init_id.to_bytes(3, "little"), np.uint8)
-    arr[:, 7:12] = np.frombuffer(prod_sn.to_bytes(5, "little"), np.uint8)
-    crc = (crc_rows or crc64_xz_rows)(arr[:, :-8])
-    arr[:, -8:].view("<u8")[:, 0] = crc
+    h = fmt.header
+    for name, v in (("packet_type", 1), ("frame_id", frame_id), ("init_id", init_id),
+                    ("prod_sn", prod_sn)):  # packet_type 1: lidar
+        f = h.field(name)
+        assert f is not None
+        _write(f, arr, v)
+    if fmt.crc:
+        arr[:, -8:].view("<u8")[:, 0] = (crc_rows or crc64_xz_rows)(arr[:, :-8])
     return arr
 
 
@@ -281,16 +368,18 @@ def shift_lidar_packet(fmt: PacketFormat, payload: bytes, frames: int, dt_ns: in
     if len(payload) != fmt.packet_bytes or (frames == 0 and dt_ns == 0):
         return payload
     arr = np.frombuffer(payload, np.uint8).copy().reshape(1, -1)
-    cols = fmt._columns(arr)
-    ts = cast(NDArray[np.uint64], _word_view(cols, 0, "<u8"))
-    ts += np.uint64(dt_ns % (1 << 64))
+    ts = fmt.column_timestamps(arr)
+    ts[...] = ts.astype(np.uint64) + np.uint64(dt_ns % (1 << 64))
+    m = fmt.frame_id_modulus
     if fmt.profile.legacy:
-        fid = _word_view(cols, 10, "<u2")
-        fid[...] = (fid.astype(np.int64) + frames) % 65536
+        f, cols = fmt._column_word(arr, "frame_id")
+        _write(f, cols, (_read(f, cols) + np.uint64(frames % m)) % np.uint64(m))
         return arr.tobytes()
-    fid = arr[:, 2:4].view("<u2")
-    fid[...] = (fid.astype(np.int64) + frames) % 65536
-    arr[:, -8:].view("<u8")[:, 0] = crc64_xz_rows(arr[:, :-8])
+    fid = fmt.header.field("frame_id")
+    assert fid is not None
+    _write(fid, arr, (_read(fid, arr) + np.uint64(frames % m)) % np.uint64(m))
+    if fmt.crc:
+        arr[:, -8:].view("<u8")[:, 0] = crc64_xz_rows(arr[:, :-8])
     return arr.tobytes()
 
 
@@ -316,7 +405,8 @@ def decode_lidar_packet(fmt: PacketFormat, buf: bytes | bytearray | memoryview, 
     """Decode and validate one lidar packet.
 
     ``init_id``/``prod_sn``: the metadata's values; a packet must match unless either side is
-    0 (as ouster-sdk). Raises a :class:`ProtocolError` subclass naming expected and actual.
+    0 (as ouster-sdk). The CRC is checked where the format carries one (``fmt.crc``) and
+    ``check_crc``. Raises a :class:`ProtocolError` subclass naming expected and actual.
     """
     p = fmt.profile
     data = np.frombuffer(buf, dtype=np.uint8)
@@ -325,41 +415,64 @@ def decode_lidar_packet(fmt: PacketFormat, buf: bytes | bytearray | memoryview, 
             f"lidar packet of {len(data)} bytes; {p.name} with {fmt.pixels_per_column} pixels "
             f"and {fmt.columns_per_packet} columns per packet is {fmt.packet_bytes} bytes")
     arr = data.reshape(1, -1)
-    cols = fmt._columns(arr)
-    ts = _word_view(cols, 0, "<u8")[0].astype(np.uint64)
-    mid = _word_view(cols, 8, "<u2")[0].astype(np.uint16)
-    crc = None
-    if p.legacy:
-        frame_id = int(_word_view(cols, 10, "<u2")[0, 0])
-        status = _word_view(cols, fmt.col_bytes - 4, "<u4")[0].astype(np.uint32)
-        ptype, pid, psn = 1, 0, 0
-    else:
-        ptype = int(data[0:2].view("<u2")[0])
-        if ptype != 1:
-            raise PacketTypeError(f"packet_type {ptype}; a lidar packet carries 1")
-        frame_id = int(data[2:4].view("<u2")[0])
-        pid = int.from_bytes(data[4:7].tobytes(), "little")
-        psn = int.from_bytes(data[7:12].tobytes(), "little")
-        status = _word_view(cols, 10, "<u2")[0].astype(np.uint32)
-        crc = int(data[-8:].view("<u8")[0])
-        if check_crc:
-            want = int((crc_rows or crc64_xz_rows)(arr[:, :-8])[0])
-            if want != crc:
-                raise CrcError(f"CRC-64/XZ footer 0x{crc:016x}; the packet's bytes give "
-                               f"0x{want:016x}")
-        if init_id and pid and pid != init_id:
-            raise PacketIdError(f"init_id {pid}; the metadata says {init_id}")
-        if prod_sn and psn and psn != prod_sn:
-            raise PacketIdError(f"prod_sn {psn}; the metadata says {prod_sn}")
-    bad = mid >= fmt.columns_per_frame
-    if bad.any():
-        raise MeasurementIdError(
-            f"measurement_id {int(mid[bad][0])}; must be below columns_per_frame "
-            f"{fmt.columns_per_frame}")
-    pix = fmt._pixels(cols)
+    ptype, frame_id, pid, psn, crc = _check_packets(fmt, arr, init_id, prod_sn, check_crc,
+                                                    crc_rows, "")
+    ts = fmt.column_field(arr, "timestamp")[0]
+    mid = fmt.column_field(arr, "measurement_id")[0].astype(np.uint16)
+    status = fmt.column_field(arr, "status")[0].astype(np.uint32)
+    _check_mid(fmt, mid.reshape(1, -1), "")
+    pix = fmt._pixels(fmt._columns(arr))
     out = {f.name: _decode_value(f, _word_view(pix, f.offset, f.dtype))[0].T
            for f in p.fields}
-    return LidarPacket(frame_id, pid, psn, ptype, ts, mid, status, out, crc)
+    return LidarPacket(int(frame_id[0]), int(pid[0]), int(psn[0]), int(ptype[0]), ts, mid,
+                       status, out, None if crc is None else int(crc[0]))
+
+
+def _check_packets(fmt: PacketFormat, arr: NDArray[np.uint8], init_id: int | None,
+                   prod_sn: int | None, check_crc: bool, crc_rows: CrcRows | None, at: str
+                   ) -> tuple[NDArray[np.uint64], NDArray[np.uint64], NDArray[np.uint64],
+                              NDArray[np.uint64], NDArray[np.uint64] | None]:
+    """packet_type, frame_id, init_id, prod_sn and the footer CRC (None where the format
+    has none) of each packet, checked as ouster-sdk reads them, and the CRC; ``at``:
+    how an error names the packet ("" for one, "packet {i}: " for many)."""
+    n = arr.shape[0]
+    frame_id = fmt.header_field(arr, "frame_id")
+    if fmt.profile.legacy:
+        ones, zeros = np.ones(n, np.uint64), np.zeros(n, np.uint64)
+        return ones, frame_id, zeros, zeros, None
+    ptype = fmt.header_field(arr, "packet_type")
+    bad = np.flatnonzero(ptype != 1)
+    if len(bad):
+        raise PacketTypeError(f"{at.format(i=bad[0])}packet_type {ptype[bad[0]]}; a lidar "
+                              "packet carries 1")
+    pid = fmt.header_field(arr, "init_id")
+    psn = fmt.header_field(arr, "prod_sn")
+    crc = None
+    if fmt.crc:
+        crc = arr[:, -8:].copy().view("<u8")[:, 0].astype(np.uint64)
+        if check_crc:
+            want = (crc_rows or crc64_xz_rows)(arr[:, :-8])
+            bad = np.flatnonzero(want != crc)
+            if len(bad):
+                i = bad[0]
+                raise CrcError(f"{at.format(i=i)}CRC-64/XZ footer 0x{int(crc[i]):016x}; the "
+                               f"packet's bytes give 0x{int(want[i]):016x}")
+    for name, have, want_id in (("init_id", pid, init_id), ("prod_sn", psn, prod_sn)):
+        if want_id:
+            bad = np.flatnonzero((have != 0) & (have != want_id))
+            if len(bad):
+                raise PacketIdError(f"{at.format(i=bad[0])}{name} {have[bad[0]]}; the "
+                                    f"metadata says {want_id}")
+    return ptype, frame_id, pid, psn, crc
+
+
+def _check_mid(fmt: PacketFormat, mid: NDArray[np.uint16], at: str) -> None:
+    bad_mid = mid >= fmt.columns_per_frame
+    if bad_mid.any():
+        i, j = np.argwhere(bad_mid)[0]
+        raise MeasurementIdError(
+            f"{at.format(i=i)}measurement_id {int(mid[i, j])}; must be below "
+            f"columns_per_frame {fmt.columns_per_frame}")
 
 
 @dataclass(frozen=True)
@@ -396,7 +509,7 @@ class PacketBatch:
     per column ``timestamps_ns``, ``measurement_id`` and ``status`` (n, columns), and the
     asked-for fields as (H, n * columns) images in packet order."""
 
-    frame_id: NDArray[np.uint16]
+    frame_id: NDArray[np.uint16] | NDArray[np.uint32]  # (uint32 with the FUSA header)
     timestamps_ns: NDArray[np.uint64]
     measurement_id: NDArray[np.uint16]
     status: NDArray[np.uint32]
@@ -417,41 +530,12 @@ def decode_lidar_packets(fmt: PacketFormat, packets: NDArray[np.uint8], *,
             f"lidar packets of shape {arr.shape}; {p.name} with {fmt.pixels_per_column} "
             f"pixels and {fmt.columns_per_packet} columns per packet is {fmt.packet_bytes} "
             "bytes each")
-    cols = fmt._columns(arr)
-    ts = _word_view(cols, 0, "<u8").astype(np.uint64)
-    mid = _word_view(cols, 8, "<u2").astype(np.uint16)
-    if p.legacy:
-        frame_id = _word_view(cols, 10, "<u2")[:, 0].astype(np.uint16)
-        status = _word_view(cols, fmt.col_bytes - 4, "<u4").astype(np.uint32)
-    else:
-        ptype = arr[:, 0:2].copy().view("<u2")[:, 0]
-        bad = np.flatnonzero(ptype != 1)
-        if len(bad):
-            raise PacketTypeError(f"packet {bad[0]}: packet_type {ptype[bad[0]]}; a lidar "
-                                  "packet carries 1")
-        frame_id = arr[:, 2:4].copy().view("<u2")[:, 0]
-        weights = np.uint64(1) << (np.arange(5, dtype=np.uint64) * np.uint64(8))
-        pid = arr[:, 4:7].astype(np.uint64) @ weights[:3]
-        psn = arr[:, 7:12].astype(np.uint64) @ weights
-        status = _word_view(cols, 10, "<u2").astype(np.uint32)
-        if check_crc:
-            crc = arr[:, -8:].copy().view("<u8")[:, 0]
-            want = (crc_rows or crc64_xz_rows)(arr[:, :-8])
-            bad = np.flatnonzero(want != crc)
-            if len(bad):
-                i = bad[0]
-                raise CrcError(f"packet {i}: CRC-64/XZ footer 0x{int(crc[i]):016x}; the "
-                               f"packet's bytes give 0x{int(want[i]):016x}")
-        for name, have, want_id in (("init_id", pid, init_id), ("prod_sn", psn, prod_sn)):
-            if want_id:
-                bad = np.flatnonzero((have != 0) & (have != want_id))
-                if len(bad):
-                    raise PacketIdError(f"packet {bad[0]}: {name} {have[bad[0]]}; the metadata "
-                                        f"says {want_id}")
-    bad_mid = mid >= fmt.columns_per_frame
-    if bad_mid.any():
-        i, j = np.argwhere(bad_mid)[0]
-        raise MeasurementIdError(
-            f"packet {i}: measurement_id {int(mid[i, j])}; must be below columns_per_frame "
-            f"{fmt.columns_per_frame}")
+    _ptype, fid, _pid, _psn, _crc = _check_packets(fmt, arr, init_id, prod_sn, check_crc,
+                                                   crc_rows, "packet {i}: ")
+    frame_id: NDArray[np.uint16] | NDArray[np.uint32] = (
+        fid.astype(np.uint32) if fmt.frame_id_modulus > 65536 else fid.astype(np.uint16))
+    ts = fmt.column_field(arr, "timestamp")
+    mid = fmt.column_field(arr, "measurement_id").astype(np.uint16)
+    status = fmt.column_field(arr, "status").astype(np.uint32)
+    _check_mid(fmt, mid, "packet {i}: ")
     return PacketBatch(frame_id, ts, mid, status, fmt.pixel_fields(arr, fields))

@@ -24,7 +24,7 @@ from rich.progress import (
 )
 from rich.progress import Progress as _RichProgress
 
-from protocols.ouster import OS0_64_MODES, PROFILES
+from protocols.ouster import EMULATED_PROFILES, OS0_64_MODES
 from tcf_hil.errors import ConfigError
 from tcf_hil.sic import PRESETS
 
@@ -44,7 +44,7 @@ class Group(click.Group):
 # ------------------------------------------------------------------------------ options
 MODES: tuple[str, ...] = OS0_64_MODES
 PROFILE_NAMES: tuple[str, ...] = ("RNG19_RFL8_SIG16_NIR16", *sorted(
-    p for p in PROFILES if p != "RNG19_RFL8_SIG16_NIR16"))
+    p for p in EMULATED_PROFILES if p != "RNG19_RFL8_SIG16_NIR16"))
 BACKEND_CHOICES: tuple[str, ...] = ("auto", "embree", "open3d", "trimesh")
 """Ray backends by name (:data:`tcf_hil.scene.BACKENDS` and ``auto``; a test holds the two
 together without importing the scene here, which would slow every command's start)."""

@@ -114,11 +114,12 @@ def _expected_error(fmt: o.PacketFormat, buf: bytes, init_id: int, prod_sn: int,
     if len(buf) != fmt.packet_bytes:
         return o.PacketSizeError
     if not p.legacy:
-        if _u(buf, 0, 2) != 1:
+        fusa = fmt.header.name == "FUSA"  # (a byte of packet_type, a 32-bit frame_id, no CRC)
+        if _u(buf, 0, 1 if fusa else 2) != 1:
             return o.PacketTypeError
-        if check_crc and o.crc64_xz(buf[:-8]) != _u(buf, len(buf) - 8, 8):
+        if check_crc and not fusa and o.crc64_xz(buf[:-8]) != _u(buf, len(buf) - 8, 8):
             return o.CrcError
-        pid, psn = _u(buf, 4, 3), _u(buf, 7, 5)
+        pid, psn = _ids(fmt, buf)[1:]
         if (init_id and pid and pid != init_id) or (prod_sn and psn and psn != prod_sn):
             return o.PacketIdError
     for c in range(fmt.columns_per_packet):
@@ -146,9 +147,15 @@ def _check_against_reference(fmt: o.PacketFormat, buf: bytes, pkt: o.LidarPacket
     if p.legacy:
         assert pkt.frame_id == _u(buf, p.header_bytes + 10, 2)
     else:
-        assert (pkt.frame_id, pkt.init_id, pkt.prod_sn) == (_u(buf, 2, 2), _u(buf, 4, 3),
-                                                            _u(buf, 7, 5))
-        assert pkt.crc == _u(buf, len(buf) - 8, 8)
+        assert (pkt.frame_id, pkt.init_id, pkt.prod_sn) == _ids(fmt, buf)
+        assert pkt.crc == (None if fmt.header.name == "FUSA" else _u(buf, len(buf) - 8, 8))
+
+
+def _ids(fmt: o.PacketFormat, buf: bytes) -> tuple[int, int, int]:
+    """frame_id, init_id and prod_sn where the STANDARD and FUSA headers put them."""
+    if fmt.header.name == "FUSA":
+        return _u(buf, 4, 4), _u(buf, 1, 3), _u(buf, 11, 5)
+    return _u(buf, 2, 2), _u(buf, 4, 3), _u(buf, 7, 5)
 
 
 @FUZZ
