@@ -1,6 +1,12 @@
 """Ouster OS0-64 wire formats (sans-IO): lidar packet profiles, LEGACY IMU packets, the
 CRC-64/XZ footer, metadata JSON and the SDK's ray model. Checked against ouster-sdk 1.0.1."""
 
+from protocols.ouster._assembler import (
+    AssembledFrame,
+    AssemblerStats,
+    FrameAssembler,
+    window_places,
+)
 from protocols.ouster._crc import crc64_xz, crc64_xz_rows
 from protocols.ouster._errors import (
     CrcError,
@@ -36,7 +42,14 @@ from protocols.ouster._packets import (
     frame_from_packets,
     shift_lidar_packet,
 )
-from protocols.ouster._profiles import EMULATED_PROFILES, HEADERS, PROFILES, Field, Header, Profile
+from protocols.ouster._profiles import (
+    EMULATED_PROFILES,
+    HEADERS,
+    PROFILES,
+    Field,
+    Header,
+    Profile,
+)
 
 __all__ = [
     "EMULATED_PROFILES",
@@ -45,9 +58,12 @@ __all__ = [
     "MODES",
     "OS0_64_MODES",
     "PROFILES",
+    "AssembledFrame",
+    "AssemblerStats",
     "CrcError",
     "DecodedFrame",
     "Field",
+    "FrameAssembler",
     "Header",
     "ImuPacket",
     "LidarPacket",
@@ -77,5 +93,6 @@ __all__ = [
     "os0_64_metadata",
     "parse_mode",
     "shift_lidar_packet",
+    "window_places",
     "xyz_from_range",
 ]

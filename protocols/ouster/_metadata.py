@@ -174,6 +174,9 @@ class SensorMetadata:
     imu_to_sensor: tuple[float, ...] = (1, 0, 0, -2.441, 0, 1, 0, -9.725, 0, 0, 1, 7.533,
                                         0, 0, 0, 1)
     header_type: str = ""  # lidar_data_format.header_type ("": the profile's, as the SDK)
+    # lidar_data_format.column_window: the first and last columns sent (inclusive; it wraps
+    # past the frame's end where first > last); None: all
+    column_window: tuple[int, int] | None = None
     extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -223,6 +226,11 @@ class SensorMetadata:
         if self.profile not in PROFILES:
             raise MetadataError(f"udp_profile_lidar {self.profile!r}; expected one of "
                                 f"{', '.join(PROFILES)}")
+        cw = self.column_window
+        if cw is not None and (not isinstance(cw, tuple) or len(cw) != 2 or not all(
+                _is_int(c) and 0 <= c < self.columns for c in cw)):
+            raise MetadataError(f"column_window {_short(cw)}; expected two columns in "
+                                f"0 .. {self.columns - 1}")
         if self.header_type not in ("", "STANDARD", "FUSA"):
             raise MetadataError(f"header_type {self.header_type!r}; expected STANDARD or FUSA")
         n = len(self.beam_altitude_deg)
@@ -285,6 +293,8 @@ class SensorMetadata:
             scale = parse_mode(new_mode)[0] / self.columns
             kw["pixel_shift_by_row"] = tuple(round(s * scale)
                                              for s in self.pixel_shift_by_row)
+        if new_mode != self.mode and "column_window" not in kw:
+            kw["column_window"] = None  # (a sensor's new mode sends every column)
         return replace(self, **kw)
 
     def to_json(self) -> dict[str, Any]:
@@ -314,7 +324,8 @@ class SensorMetadata:
             "config_params": cfg,
             "lidar_data_format": {
                 "columns_per_frame": w, "columns_per_packet": self.columns_per_packet,
-                "pixels_per_column": self.pixels, "column_window": [0, w - 1],
+                "pixels_per_column": self.pixels,
+                "column_window": list(self.column_window or (0, w - 1)),
                 "pixel_shift_by_row": list(self.pixel_shift_by_row),
                 "udp_profile_lidar": self.profile, "udp_profile_imu": "LEGACY",
                 **({"header_type": self.header_type} if self.header_type else {}),
@@ -402,6 +413,10 @@ class SensorMetadata:
                                 f"{_short(origin)}; expected a finite number")
         profile = get(ldf_name, "udp_profile_lidar", str, "LEGACY")
         header_type = get(ldf_name, "header_type", str, "") if "header_type" in ldf else ""
+        window = get(ldf_name, "column_window", list, [0, w - 1])
+        if len(window) != 2 or not all(_is_int(c) and 0 <= c < w for c in window):
+            raise MetadataError(f"{ldf_name}.column_window = {_short(window)}; expected two "
+                                f"columns in 0 .. {w - 1}")
         udp_dest = cp.get("udp_dest", SensorMetadata.udp_dest)
         port = integer("config_params", "udp_port_lidar", SensorMetadata.udp_port_lidar)
         if (isinstance(udp_dest, str) and not udp_dest) or port == 0:
@@ -432,6 +447,8 @@ class SensorMetadata:
             lidar_origin_to_beam_origin_mm=float(origin),
             lidar_to_sensor=transforms[0], imu_to_sensor=transforms[1],
             header_type=header_type,
+            column_window=None if tuple(window) == (0, w - 1) else (int(window[0]),
+                                                                     int(window[1])),
         )
 
     @classmethod

@@ -38,6 +38,9 @@ from numpy.typing import NDArray
 
 from protocols.harvester import DATUM, MOUNT, TIME_WRAP_US, eds_path, unwrap_time_us
 from protocols.ouster import (
+    AssembledFrame,
+    AssemblerStats,
+    FrameAssembler,
     PacketIdError,
     ProtocolError,
     SensorMetadata,
@@ -334,10 +337,10 @@ class LidarReceiver(threading.Thread):
     """Receives lidar packets and hands whole frames (an (n, packet_bytes) uint8 array, in
     packet order) to a bounded queue; a full queue drops the oldest frame (counted).
 
-    Packets are assembled by frame_id and by their place in the frame (first measurement_id
-    over columns per packet), with up to two frames open: a packet that arrives twice is
-    counted and skipped, a packet overtaken by the next frame's still lands in its own frame,
-    and a frame is handed on when it is whole or when a third frame begins (then as it is,
+    Packets are assembled by :class:`protocols.ouster.FrameAssembler`, with up to two
+    frames open: a packet that arrives twice is counted and skipped, a packet overtaken by
+    the next frame's still lands in its own frame, and a frame is handed on when it holds
+    every packet of the sensor's column window or when a third frame begins (then as it is,
     counted incomplete). Frames go out in the order they began."""
 
     OPEN_FRAMES = 2
@@ -364,17 +367,11 @@ class LidarReceiver(threading.Thread):
         self.stop = threading.Event()
 
     def run(self) -> None:
-        pb = self.fmt.packet_bytes
-        legacy = self.fmt.profile.legacy
-        head = self.fmt.profile.header_bytes
-        fid_at = head + 10 if legacy else 2
-        mid_at = head + 8  # the first column's measurement_id
-        cpp = self.fmt.columns_per_packet
-        ppf = self.fmt.packets_per_frame
+        asm = FrameAssembler(self.fmt, column_window=self.meta.column_window,
+                             open_frames=self.OPEN_FRAMES)
+        a, st = asm.stats, self.stats
         buf = bytearray(65536)
-        frames: dict[int, dict[int, bytes]] = {}  # open frames: frame_id -> place -> packet
-        newest: int | None = None  # the newest frame_id begun
-        st = self.stats
+        view = memoryview(buf)
         while not self.stop.is_set():
             try:
                 n = self.sock.recv_into(buf)
@@ -383,45 +380,22 @@ class LidarReceiver(threading.Thread):
             except OSError:
                 break
             st.last_packet = time.monotonic()
-            if n != pb:
-                st.bad_packets += 1
-                continue
-            st.packets += 1
-            fid = buf[fid_at] | (buf[fid_at + 1] << 8)
-            place = (buf[mid_at] | (buf[mid_at + 1] << 8)) // cpp
-            parts = frames.get(fid)
-            if parts is None:
-                if newest is not None:
-                    if (newest - fid) % 65536 < 8:  # a frame already handed on: late or again
-                        st.duplicates += 1
-                        continue
-                    ahead = (fid - newest) % 65536
-                    if ahead < 1000:  # (further off: the sensor restarted its count)
-                        st.frames_lost += ahead - 1  # frame ids never begun
-                newest = fid
-                parts = frames[fid] = {}
-                while len(frames) > self.OPEN_FRAMES:
-                    old = next(iter(frames))
-                    self._push(old, frames.pop(old), ppf)
-            if place in parts:
-                st.duplicates += 1
-                continue
-            parts[place] = bytes(buf[:n])
-            if len(parts) == ppf:
-                for old in list(frames):  # older frames first, as they are
-                    self._push(old, frames.pop(old), ppf)
-                    if old == fid:
-                        break
-        for old in list(frames):
-            self._push(old, frames.pop(old), ppf)
+            for frame in asm.feed(view[:n]):
+                self._push(frame)
+            self._count(a)
+        for frame in asm.flush():
+            self._push(frame)
+        self._count(a)
         self._put(None)
 
-    def _push(self, fid: int, parts: dict[int, bytes], ppf: int) -> None:
-        if len(parts) < ppf:
-            self.stats.incomplete += 1
-        arr = np.frombuffer(b"".join(parts[k] for k in sorted(parts)), dtype=np.uint8
-                            ).reshape(len(parts), -1)
-        self._put((fid, arr))
+    def _count(self, a: AssemblerStats) -> None:
+        st = self.stats
+        st.packets, st.bad_packets = a.packets, a.bad_size + a.bad_place
+        st.duplicates, st.incomplete = a.duplicates + a.late, a.incomplete
+        st.frames_lost = a.frames_lost + st.frames_dropped
+
+    def _push(self, frame: AssembledFrame) -> None:
+        self._put((frame.frame_id, frame.packets))
 
     def _put(self, item: tuple[int, NDArray[np.uint8]] | None) -> None:
         while True:
@@ -432,7 +406,6 @@ class LidarReceiver(threading.Thread):
                 with contextlib.suppress(queue.Empty):
                     if self.frames.get_nowait() is not None:
                         self.stats.frames_dropped += 1
-                        self.stats.frames_lost += 1
 
     def close(self) -> None:
         self.stop.set()

@@ -18,6 +18,7 @@ import protocols.ouster as o
 
 MODES = ["512x10", "1024x10", "2048x10", "512x20", "1024x20"]
 PROFILES = list(o.PROFILES)
+PROFILES_HEADER = {name: p.header for name, p in o.PROFILES.items()}
 
 
 def _random_fields(fmt: o.PacketFormat, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -90,14 +91,16 @@ def _sdk_values(text: str) -> tuple:
             round(info.lidar_origin_to_beam_origin_mm, 9),
             np.asarray(info.lidar_to_sensor_transform).ravel().tolist(),
             np.asarray(info.imu_to_sensor_transform).ravel().tolist(), info.init_id, info.sn,
-            info.prod_line)
+            info.prod_line, str(f.header_type), tuple(f.column_window))
 
 
 def _our_values(m: o.SensorMetadata) -> tuple:
     return (m.columns, m.pixels, m.columns_per_packet, m.profile, list(m.pixel_shift_by_row),
             np.round(m.beam_altitude_deg, 9).tolist(), np.round(m.beam_azimuth_deg, 9).tolist(),
             round(m.lidar_origin_to_beam_origin_mm, 9), list(m.lidar_to_sensor),
-            list(m.imu_to_sensor), m.init_id, m.prod_sn, m.prod_line)
+            list(m.imu_to_sensor), m.init_id, m.prod_sn, m.prod_line,
+            "STANDARD" if m.profile == "LEGACY" else m.packet_format.header.name,
+            m.column_window or (0, m.columns - 1))
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -109,6 +112,19 @@ def test_legacy_flat_metadata_reads_as_the_nested_and_as_the_sdk_reads_it(
     got = o.SensorMetadata.from_json(flat)
     assert _our_values(got) == _our_values(m)
     assert _our_values(got) == _sdk_values(json.dumps(flat))
+
+
+@pytest.mark.parametrize("header", ["", "STANDARD", "FUSA"])
+@pytest.mark.parametrize("window", [None, (0, 255), (900, 100)])
+@pytest.mark.parametrize("profile", ["RNG19_RFL8_SIG16_NIR16_DUAL", "FUSA_RNG15_RFL8_NIR8_DUAL",
+                                     "RNG15_RFL8_WIN8"])
+def test_header_type_and_column_window_read_and_write_as_the_sdk(
+        header: str, window: tuple[int, int] | None, profile: str) -> None:
+    m = o.os0_64_metadata("1024x10", profile, header_type=header, column_window=window)
+    for doc in (m.to_json(), _legacy(m.to_json())):
+        got = o.SensorMetadata.from_json(doc)
+        assert _our_values(got) == _our_values(m) == _sdk_values(json.dumps(doc))
+        assert got.packet_format == m.packet_format
 
 
 @pytest.mark.parametrize("drop", ["data_format", "lidar_origin_to_beam_origin_mm",
@@ -243,9 +259,11 @@ def test_packets_are_byte_identical_to_the_sdks(profile: str, mode: str) -> None
 
 
 @pytest.mark.parametrize("profile", PROFILES)
-@pytest.mark.parametrize("cpp", [8, 16, 32])
-def test_sdk_parser_reads_our_packets(profile: str, cpp: int) -> None:
-    m = o.os0_64_metadata("1024x10", profile, columns_per_packet=cpp)
+@pytest.mark.parametrize(("cpp", "header"), [(8, ""), (16, ""), (32, ""), (16, "FUSA")])
+def test_sdk_parser_reads_our_packets(profile: str, cpp: int, header: str) -> None:
+    if header and profile == "LEGACY":
+        pytest.skip("LEGACY packets have no header type")
+    m = o.os0_64_metadata("1024x10", profile, columns_per_packet=cpp, header_type=header)
     pf = core.PacketFormat(core.SensorInfo(m.dumps()))
     fmt = m.packet_format
     assert pf.lidar_packet_size == fmt.packet_bytes
@@ -253,6 +271,7 @@ def test_sdk_parser_reads_our_packets(profile: str, cpp: int) -> None:
     ts = np.arange(1024, dtype=np.uint64) * 97_656 + 123
     arr = o.encode_lidar_frame(fmt, fields, ts, frame_id=4242, init_id=m.init_id,
                                prod_sn=m.prod_sn)
+    assert fmt.header.name == (header or PROFILES_HEADER[profile])
     for i in (0, arr.shape[0] - 1):
         buf = arr[i]
         assert pf.frame_id(buf) == 4242
