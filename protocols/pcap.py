@@ -6,18 +6,21 @@ fragments as a real 1500-byte link would carry a sensor's 12.5 kB packets. Time 
 from the caller (the simulation clock), never from a clock read here.
 
 Reading: libpcap (either byte order, µs or ns) and pcapng (SHB, IDB, EPB, SPB, with per-
-interface time resolution); Ethernet (with 802.1Q tags) + IPv4 + UDP; fragments reassembled.
+interface time resolution); Ethernet (with 802.1Q tags) + IPv4 + UDP; fragments reassembled;
+from bytes or streamed from a binary file (:class:`UdpReader`: memory stays one record).
 """
 
 from __future__ import annotations
 
+import io
 import struct
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import BinaryIO
 
 import numpy as np
 
-__all__ = ["PcapError", "PcapWriter", "UdpDatagram", "read_udp"]
+__all__ = ["PcapError", "PcapWriter", "UdpDatagram", "UdpReader", "read_udp"]
 
 LINKTYPE_ETHERNET = 1
 _ETH = struct.Struct("!6s6sH")
@@ -187,58 +190,92 @@ class PcapWriter:
         return self.header() + b"".join(self.records(d) for d in datagrams)
 
 
-def _frames(data: bytes) -> Iterator[tuple[int, bytes]]:
-    """(timestamp_ns, link-layer frame) of every Ethernet record, pcap or pcapng."""
-    if len(data) < 4:
-        raise PcapError(f"capture of {len(data)} bytes is too short for a header")
-    magic = data[:4]
+class _Stream:
+    """Exact reads from a binary stream, with the byte position for error messages."""
+
+    def __init__(self, f: BinaryIO) -> None:
+        self.f = f
+        self.pos = 0
+
+    def read(self, n: int, what: str) -> bytes:
+        """``n`` bytes; b"" at a clean end (nothing left); PcapError when cut short."""
+        b = self.f.read(n)
+        if len(b) != n:
+            if not b:
+                return b""
+            raise PcapError(f"{what} at byte {self.pos} is truncated: {n} bytes expected, "
+                            f"{len(b)} remain")
+        self.pos += n
+        return b
+
+
+def _frames(f: BinaryIO) -> Iterator[tuple[int, bytes]]:
+    """(timestamp_ns, link-layer frame) of every Ethernet record, pcap or pcapng, read from
+    a binary stream as they come (memory: one record)."""
+    src = _Stream(f)
+    magic = src.f.read(4)
+    src.pos = len(magic)
+    if len(magic) < 4:
+        raise PcapError(f"capture of {len(magic)} bytes is too short for a header")
     if magic == b"\x0a\x0d\x0d\x0a":
-        yield from _pcapng_frames(data)
+        yield from _pcapng_frames(src, magic)
         return
     table = {b"\xd4\xc3\xb2\xa1": ("<", 1000), b"\xa1\xb2\xc3\xd4": (">", 1000),
              b"\x4d\x3c\xb2\xa1": ("<", 1), b"\xa1\xb2\x3c\x4d": (">", 1)}
     if magic not in table:
         raise PcapError(f"magic {magic.hex()} is neither libpcap nor pcapng")
     end, scale = table[magic]
-    if len(data) < 24:
+    head = src.read(20, "libpcap global header")
+    if len(head) < 20:
         raise PcapError("libpcap global header is truncated (24 bytes expected)")
-    linktype = struct.unpack(end + "I", data[20:24])[0] & 0x0FFFFFFF
+    linktype = struct.unpack(end + "I", head[16:20])[0] & 0x0FFFFFFF
     if linktype != LINKTYPE_ETHERNET:
         raise PcapError(f"link type {linktype}; only Ethernet (1) is supported")
     rec = struct.Struct(end + "IIII")
-    pos = 24
-    while pos < len(data):
-        if pos + 16 > len(data):
-            raise PcapError(f"record header at byte {pos} is truncated")
-        sec, frac, incl, _orig = rec.unpack_from(data, pos)
-        pos += 16
-        if pos + incl > len(data):
-            raise PcapError(f"record at byte {pos - 16} claims {incl} bytes; "
-                            f"{len(data) - pos} remain")
-        yield sec * 1_000_000_000 + frac * scale, data[pos:pos + incl]
-        pos += incl
+    while True:
+        at = src.pos
+        hdr = src.read(16, "record header")
+        if not hdr:
+            return
+        sec, frac, incl, _orig = rec.unpack(hdr)
+        body = src.read(incl, f"record at byte {at} (claims {incl} bytes)") if incl else b""
+        if len(body) != incl:
+            raise PcapError(f"record at byte {at} claims {incl} bytes; none remain")
+        yield sec * 1_000_000_000 + frac * scale, body
 
 
-def _pcapng_frames(data: bytes) -> Iterator[tuple[int, bytes]]:
-    pos = 0
+def _pcapng_frames(src: _Stream, first: bytes) -> Iterator[tuple[int, bytes]]:
     end = "<"
     ifaces: list[tuple[int, int]] = []  # (linktype, ns per tick)
-    while pos < len(data):
-        if pos + 12 > len(data):
+    head = first
+    while True:
+        pos = src.pos - len(head)
+        head += src.read(8 - len(head), "pcapng block")
+        if not head:
+            return
+        if len(head) < 8:
             raise PcapError(f"pcapng block at byte {pos} is truncated")
-        btype = struct.unpack_from(end + "I", data, pos)[0]
+        btype = struct.unpack_from(end + "I", head, 0)[0]
         if btype == 0x0A0D0D0A:
-            bom = data[pos + 8:pos + 12]
+            rest = src.read(4, "pcapng section header")
+            bom = rest
             end = "<" if bom == b"\x4d\x3c\x2b\x1a" else ">" if bom == b"\x1a\x2b\x3c\x4d" \
                 else ""
             if not end:
                 raise PcapError(f"pcapng section at byte {pos} has byte-order magic "
                                 f"{bom.hex()}")
             ifaces = []
-        blen = struct.unpack_from(end + "I", data, pos + 4)[0]
-        if blen < 12 or blen % 4 or pos + blen > len(data):
+        else:
+            rest = b""
+        blen = struct.unpack_from(end + "I", head, 4)[0]
+        if blen < 12 or blen % 4:
             raise PcapError(f"pcapng block at byte {pos} has length {blen}")
-        body = data[pos + 8:pos + blen - 4]
+        tail = src.read(blen - 8 - len(rest), f"pcapng block of {blen} bytes")
+        if len(tail) != blen - 8 - len(rest):
+            raise PcapError(f"pcapng block at byte {pos} has length {blen}")
+        block = head + rest + tail
+        head = b""
+        body = block[8:blen - 4]
         least = {1: 8, 6: 20, 3: 4}.get(btype, 0)  # IDB, EPB, SPB fixed fields
         if len(body) < least:
             raise PcapError(f"pcapng block type {btype} at byte {pos} has {len(body)} body "
@@ -273,28 +310,54 @@ def _pcapng_frames(data: bytes) -> Iterator[tuple[int, bytes]]:
             link, tick = ifaces[iid]
             if link == LINKTYPE_ETHERNET:
                 yield int(((hi << 32) | lo) * tick), payload
-        pos += blen
 
 
 def read_udp(data: bytes) -> Iterator[UdpDatagram]:
     """Every IPv4/UDP datagram in a capture, fragments reassembled, in capture order (a
     fragmented datagram appears at its last fragment's position, with its first fragment's
     time stamp). Non-IPv4 and non-UDP frames are skipped."""
-    pending: dict[tuple[bytes, bytes, int], tuple[int, dict[int, bytes], int | None]] = {}
-    for ts, frame in _frames(data):
+    return iter(UdpReader(io.BytesIO(data)))
+
+
+class UdpReader:
+    """The datagrams of a capture read from a binary stream as they come (memory: one
+    record and the fragments of datagrams not yet whole), as :func:`read_udp` gives them;
+    ``skipped`` counts the frames that were not IPv4/UDP (other traffic)."""
+
+    def __init__(self, f: BinaryIO) -> None:
+        self.f = f
+        self.skipped = 0
+
+    def __iter__(self) -> Iterator[UdpDatagram]:
+        return self._read()
+
+    def _read(self) -> Iterator[UdpDatagram]:
+        pending: dict[tuple[bytes, bytes, int], tuple[int, dict[int, bytes], int | None]] = {}
+        for ts, frame in _frames(self.f):
+            d = self._datagram(ts, frame, pending)
+            if d is not None:
+                yield d
+
+    def _datagram(self, ts: int, frame: bytes,
+                  pending: dict[tuple[bytes, bytes, int],
+                                tuple[int, dict[int, bytes], int | None]]
+                  ) -> UdpDatagram | None:
         if len(frame) < 14:
-            continue
+            self.skipped += 1
+            return None
         etype = struct.unpack_from("!H", frame, 12)[0]
         off = 14
         while etype == 0x8100 and len(frame) >= off + 4:  # 802.1Q
             etype = struct.unpack_from("!H", frame, off + 2)[0]
             off += 4
         if etype != 0x0800 or len(frame) < off + 20:
-            continue
+            self.skipped += 1
+            return None
         vihl, _tos, total, ident, ff, _ttl, proto, _cs, src, dst = _IP.unpack_from(frame, off)
         ihl = (vihl & 0x0F) * 4
         if vihl >> 4 != 4 or ihl < 20 or proto != 17:
-            continue
+            self.skipped += 1
+            return None
         body = frame[off + ihl:off + total]
         if len(body) != total - ihl:
             raise PcapError(f"IPv4 datagram says {total} bytes; the frame holds "
@@ -308,14 +371,14 @@ def read_udp(data: bytes) -> Iterator[UdpDatagram]:
                 last = frag + len(body)
             pending[key] = (t0, parts, last)
             if last is None:
-                continue
+                return None
             buf = bytearray()
             for o in sorted(parts):
                 if o != len(buf):
                     break
                 buf += parts[o]
             if len(buf) != last:
-                continue
+                return None
             del pending[key]
             ts, body = t0, bytes(buf)
         if len(body) < 8:
@@ -323,5 +386,5 @@ def read_udp(data: bytes) -> Iterator[UdpDatagram]:
         sport, dport, ulen, _ = _UDP.unpack_from(body, 0)
         if ulen < 8 or ulen > len(body):
             raise PcapError(f"UDP length {ulen}; the datagram holds {len(body)} bytes")
-        yield UdpDatagram(ts, ".".join(map(str, src)), ".".join(map(str, dst)), sport, dport,
+        return UdpDatagram(ts, ".".join(map(str, src)), ".".join(map(str, dst)), sport, dport,
                           body[8:ulen])

@@ -1,23 +1,35 @@
-"""A recorded run's traffic: its pcap (lidar and IMU) and CAN log read onto one time line and
-sent back on the wire with their original relative timing (scaled by ``speed``), and the
-harvester node's SDO answers. The session that serves it (the HTTP API with the recorded
-metadata, the SIC, the score) is :class:`tcf_hil.run.ReplayTraffic`'s.
+"""Recorded traffic sent again: a tcf-hil run directory, or a field recording (an Ouster pcap
+as ouster-cli or ouster-ros write it, with its metadata JSON, and optionally a CAN log in
+candump .log, .asc, .blf or .trc), read onto one time line and sent back on the wire byte
+for byte with the original relative timing (scaled by ``speed``), and the harvester node's
+SDO answers. The session that serves it (the HTTP API with the recorded metadata, the SIC,
+the score) is :class:`tcf_hil.run.ReplayTraffic`'s.
 
-Both recordings are put on one time line: pcap records carry simulation time; the CAN log's
-wall-clock time stamps are mapped onto it through the run manifest's clock
-(``unix_ns_at_sim_t0``). With ``loop``, each pass shifts frame_id (16 bits, continuing where
-the last pass ended, which ouster-sdk's own replay does not do), the column time stamps and
-the pose time on CAN by the recording's length, so that a consumer sees one continuous drive.
+Recordings are streamed from disk, never read whole: a first pass checks that every lidar
+packet fits the metadata (the first that does not is one error naming it) and counts
+frames, IMU packets and other traffic; each pass of the replay then reads the pcap and the
+CAN log again as it sends them (memory stays flat whatever the recording's length).
+
+Both recordings are put on one time line: a run's pcap records carry simulation time and its
+CAN log's wall-clock time stamps are mapped onto it through the run manifest's clock
+(``unix_ns_at_sim_t0``); a field recording's pcap and CAN log both carry wall-clock time
+(``can_offset_s`` moves the CAN log where the two clocks differ). With ``loop``, each pass
+shifts frame_id (continuing where the last pass ended, which ouster-sdk's own replay does
+not do), the column time stamps and the pose time on CAN by the recording's length, so that a
+consumer sees one continuous drive.
 """
 
 from __future__ import annotations
 
 import contextlib
+import heapq
+import os
 import socket
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,33 +39,110 @@ import numpy as np
 from emulators.harvester import BusSpec
 from emulators.lidar import Route
 from protocols.harvester import HARVESTER_OD, POSE, TIME_WRAP_US, decode_pdo, encode_pdo
-from protocols.ouster import IMU_PACKET_BYTES, SensorMetadata, shift_lidar_packet
-from protocols.pcap import read_udp
+from protocols.ouster import (
+    IMU_PACKET_BYTES,
+    FrameAssembler,
+    MetadataError,
+    ProtocolError,
+    SensorMetadata,
+    decode_lidar_packet,
+    decode_lidar_packets,
+    shift_lidar_packet,
+)
+from protocols.pcap import PcapError, UdpReader
+from tcf_hil._crc import fast_crc_rows
 from tcf_hil._io import read_json
 from tcf_hil.errors import InputError
 
 _TIME_KEY = (POSE, 8)
+CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc")
+_CHECK_BATCH = 256  # lidar packets checked at once
+
+
+def find_metadata(pcap: Path) -> Path:
+    """The metadata JSON beside ``pcap``, found as ouster-cli finds it: the ``.json`` file in
+    the same directory whose name shares the longest prefix with the pcap's (at least one
+    character); a tcf-hil run's ``metadata.json`` where none does."""
+    names = [f for f in os.listdir(pcap.parent or ".") if f.lower().endswith(".json")
+             and (pcap.parent / f).is_file()]
+    score = {f: _common(f, pcap.name) for f in names}
+    best = max(score.values(), default=0)
+    found = sorted(f for f, n in score.items() if n == best and n > 0)
+    if len(found) > 1:
+        raise InputError(str(pcap), "", f"{len(found)} metadata files beside it share its "
+                         f"name's prefix ({', '.join(found)}); give one with --meta")
+    if found:
+        return pcap.parent / found[0]
+    if (pcap.parent / "metadata.json").is_file():
+        return pcap.parent / "metadata.json"
+    raise InputError(str(pcap), "", "no metadata JSON beside it shares its name's prefix "
+                     "(as ouster-cli looks for one); give it with --meta")
+
+
+def _common(a: str, b: str) -> int:
+    """The length of the common prefix of two names, character by character."""
+    n = 0
+    for x, y in zip(a, b, strict=False):
+        if x != y:
+            break
+        n += 1
+    return n
 
 
 @dataclass
 class Recording:
-    """A run directory's traffic on one simulation time line."""
+    """Recorded traffic on one time line, streamed from its files (see the module's doc).
+
+    ``meta`` describes the pcap (its ports are the recorded ones); ``meta_text`` is the
+    document as recorded; ``port_map`` sends a recorded port to the port used now."""
 
     meta: SensorMetadata
-    lidar: list[tuple[int, int, bytes]]  # (sim ns, dst port, payload)
-    can: list[tuple[int, can.Message]]  # (sim ns, frame)
-    frames: int
-    span_ns: int
+    meta_text: str
+    pcap: Path
+    can_log: Path | None = None
+    can_clock: tuple[int, int, float] = (0, 0, 1.0)  # sim_t0_ns, unix_ns_at_sim_t0, speed
+    manifest: dict[str, Any] | None = None
+    frames: int = 0
+    span_ns: int = 0
+    lidar_start_ns: int = 0
+    frame_span: int = 0  # frame ids from the first frame to the last (what a loop adds)
+    counts: Counter[str] = field(default_factory=Counter)
+    port_map: dict[int, int] = field(default_factory=dict)
+    can_frames: int = 0
+
+    @property
+    def is_run(self) -> bool:
+        return self.manifest is not None
 
     @classmethod
-    def load(cls, run_dir: Path) -> Recording:
+    def load(cls, path: Path, *, meta: Path | None = None, can_log: Path | None = None,
+             can_offset_s: float = 0.0,
+             progress: Callable[[int, int], None] | None = None) -> Recording:
+        """A run directory (its ``lidar.pcap``, ``metadata.json``, ``manifest.json`` and
+        ``can.log``) or an Ouster pcap (``meta``: its metadata, found beside it when None;
+        ``can_log``: a CAN log to put on the bus), checked in one streaming pass
+        (``progress(bytes read, bytes)``)."""
+        if path.is_dir():
+            rec = cls._run_dir(path, meta, can_log)
+        else:
+            if not path.is_file():
+                raise InputError(str(path), "", "no such file or directory")
+            meta_path = meta or find_metadata(path)
+            rec = cls(*_read_meta(meta_path), path, can_log)
+            rec.can_clock = (0, -round(can_offset_s * 1e9), 1.0)
+        if rec.can_log is not None:
+            _check_can_log(rec.can_log)
+        rec._scan(progress)
+        return rec
+
+    @classmethod
+    def _run_dir(cls, run_dir: Path, meta: Path | None, can_log: Path | None) -> Recording:
         for name in ("lidar.pcap", "metadata.json", "manifest.json"):
             if not (run_dir / name).exists():
                 why = "missing: not a tcf-hil run directory"
                 if name == "lidar.pcap" and (run_dir / "manifest.json").exists():
                     why = "missing: this run did not record its lidar traffic (a soak run)"
                 raise InputError(str(run_dir / name), "", why)
-        meta = SensorMetadata.loads((run_dir / "metadata.json").read_text(encoding="utf-8"))
         man = read_json(run_dir / "manifest.json")
         try:
             clock = man["clock"]
@@ -62,25 +151,150 @@ class Recording:
         except (KeyError, TypeError, ValueError) as err:
             raise InputError(str(run_dir / "manifest.json"), "clock",
                              f"missing or malformed ({err})") from err
-        lidar = [(d.timestamp_ns, d.dst_port, d.payload)
-                 for d in read_udp((run_dir / "lidar.pcap").read_bytes())
-                 if d.dst_port in (meta.udp_port_lidar, meta.udp_port_imu)]
-        frames: list[tuple[int, can.Message]] = []
-        if (run_dir / "can.log").exists():
-            for m in can.LogReader(str(run_dir / "can.log")):
-                frames.append((t0 + round((m.timestamp * 1e9 - unix0) * speed), m))
-        lt = [t for t, p, _b in lidar if p == meta.udp_port_lidar]
-        n_frames = len(lt) // max(1, meta.packet_format.packets_per_frame)
+        # can.log from a run; a replayed field recording's log keeps its own format
+        own = [run_dir / f"can{x}" for x in CAN_LOG_SUFFIXES if (run_dir / f"can{x}").exists()]
+        return cls(*_read_meta(meta or run_dir / "metadata.json"), run_dir / "lidar.pcap",
+                   can_log or (own[0] if own else None), (t0, unix0, speed), man)
+
+    # ------------------------------------------------------------------------- reading
+    def datagrams(self) -> Iterator[tuple[int, int, bytes]]:
+        """(time ns, recorded destination port, payload) of every lidar and IMU datagram, in
+        capture order, read from the file as they come."""
+        lidar, imu = self.meta.udp_port_lidar, self.meta.udp_port_imu
+        with open(self.pcap, "rb") as f:
+            for d in UdpReader(f):
+                if d.dst_port == lidar or (d.dst_port == imu and
+                                           len(d.payload) == IMU_PACKET_BYTES):
+                    yield d.timestamp_ns, d.dst_port, d.payload
+
+    def can_messages(self) -> Iterator[tuple[int, can.Message]]:
+        """(time ns on the pcap's time line, frame) of every frame of the CAN log."""
+        if self.can_log is None:
+            return
+        t0, unix0, speed = self.can_clock
+        for m in _can_reader(self.can_log):
+            if m.is_error_frame:
+                continue
+            yield t0 + round((m.timestamp * 1e9 - unix0) * speed), m
+
+    def _scan(self, progress: Callable[[int, int], None] | None) -> None:
+        """Check every lidar packet against the metadata (size, packet type, ids, CRC where
+        the firmware writes one) and count frames, IMU packets and other traffic."""
+        meta, fmt = self.meta, self.meta.packet_format
+        lidar, imu = meta.udp_port_lidar, meta.udp_port_imu
+        asm = FrameAssembler(fmt, column_window=meta.column_window)
+        crc = fast_crc_rows()
+        batch: list[tuple[int, bytes]] = []
+        ids: list[int] = []
+        first = last = None
+        n = self.counts
+        size = self.pcap.stat().st_size
+
+        def check() -> None:
+            arr = np.frombuffer(b"".join(b for _i, b in batch), np.uint8).reshape(
+                len(batch), fmt.packet_bytes)
+            try:
+                decode_lidar_packets(fmt, arr, init_id=meta.init_id, prod_sn=meta.prod_sn,
+                                     crc_rows=crc, fields=())
+            except ProtocolError:
+                for i, b in batch:  # the first that does not fit, with its own message
+                    try:
+                        decode_lidar_packet(fmt, b, init_id=meta.init_id,
+                                            prod_sn=meta.prod_sn, crc_rows=crc)
+                    except ProtocolError as err:
+                        raise self._bad(i, str(err)) from err
+            batch.clear()
+
+        try:
+            with open(self.pcap, "rb") as f:
+                reader = UdpReader(f)
+                for i, d in enumerate(reader, 1):
+                    if d.dst_port == imu and len(d.payload) == IMU_PACKET_BYTES:
+                        n["imu"] += 1  # (first: a sensor may send both to one port)
+                    elif d.dst_port == lidar:
+                        if len(d.payload) != fmt.packet_bytes:
+                            raise self._bad(i, (
+                                f"a lidar packet of {len(d.payload)} bytes; {fmt.profile.name} "
+                                f"with {fmt.pixels_per_column} pixels and "
+                                f"{fmt.columns_per_packet} columns per packet is "
+                                f"{fmt.packet_bytes} bytes"))
+                        n["lidar"] += 1
+                        first = d.timestamp_ns if first is None else first
+                        last = d.timestamp_ns
+                        batch.append((i, d.payload))
+                        if len(batch) == _CHECK_BATCH:
+                            check()
+                        ids += [fr.frame_id for fr in asm.feed(d.payload)]
+                    else:
+                        n["other"] += 1
+                        n[f"port {d.dst_port}"] += 1
+                    if progress is not None and i % 4096 == 0:
+                        progress(f.tell(), size)
+                if batch:
+                    check()
+                n["not udp"] += reader.skipped
+        except PcapError as err:
+            raise InputError(str(self.pcap), "", str(err)) from err
+        except OSError as err:
+            raise InputError(str(self.pcap), "", err.strerror or str(err)) from err
+        ids += [fr.frame_id for fr in asm.flush()]
+        self.frames = len(ids)
+        if ids:
+            self.frame_span = (ids[-1] - ids[0]) % fmt.frame_id_modulus + 1
+        if not n["lidar"]:
+            ports = ", ".join(f"{k[5:]} ({v})" for k, v in n.most_common() if
+                              k.startswith("port ")) or "none"
+            raise InputError(str(self.pcap), "", (
+                f"no lidar packet to port {lidar} (the metadata's udp_port_lidar); UDP "
+                f"ports in the capture: {ports}"))
         # a pass of a loop lasts the lidar recording plus one frame period, so that the
         # next pass's first frame follows the last at the sensor's own rate
         period = 1_000_000_000 // meta.frequency_hz
-        span = (max(lt) - min(lt) + period) if lt else 0
-        return cls(meta, lidar, frames, n_frames, span)
+        assert first is not None and last is not None
+        self.lidar_start_ns, self.span_ns = first, last - first + period
+        self.can_frames = sum(1 for _ in self.can_messages())
+        if progress is not None:
+            progress(size, size)
 
-    @property
-    def lidar_start_ns(self) -> int:
-        lt = [t for t, p, _b in self.lidar if p == self.meta.udp_port_lidar]
-        return min(lt) if lt else 0
+    def _bad(self, i: int, why: str) -> InputError:
+        return InputError(str(self.pcap), f"datagram {i}", f"{why}: the capture does not fit "
+                          f"its metadata")
+
+
+def _read_meta(path: Path) -> tuple[SensorMetadata, str]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(str(path), "", f"cannot read the metadata: {err}") from err
+    try:
+        return SensorMetadata.loads(text), text
+    except MetadataError as err:
+        raise InputError(str(path), "", str(err)) from err
+
+
+def _can_reader(path: Path) -> Any:
+    """python-can's reader for a CAN log by its suffix; ASC files read with absolute time
+    stamps (their header's date), as the other formats carry them."""
+    suffix = path.suffix.lower()
+    if suffix == ".asc":
+        return can.ASCReader(str(path), relative_timestamp=False)
+    return can.LogReader(str(path))
+
+
+def _check_can_log(path: Path) -> None:
+    if path.suffix.lower() not in CAN_LOG_SUFFIXES:
+        raise InputError(str(path), "", f"a CAN log must be one of "
+                         f"{', '.join(CAN_LOG_SUFFIXES)} (candump, Vector ASC or BLF, PCAN "
+                         "TRC)")
+    if not path.is_file():
+        raise InputError(str(path), "", "no such file")
+    try:
+        for _m in _can_reader(path):
+            break
+    except Exception as err:  # python-can's readers raise what their parsers raise
+        raise InputError(str(path), "", f"not a readable CAN log: "
+                         f"{str(err).splitlines()[0] if str(err) else type(err).__name__}"
+                         ) from err
 
 
 def _shift_imu(payload: bytes, dt_ns: int) -> bytes:
@@ -102,31 +316,36 @@ def _shift_can(msg: can.Message, node_id: int, dt_ns: int) -> can.Message:
     return msg
 
 
-def events(rec: Recording, loop: bool, node_id: int) -> Iterator[tuple[int, str, Any]]:
-    """(sim ns, "udp"/"can", item) in time order, forever when ``loop``."""
-    merged = sorted([(t, 0, i) for i, (t, _p, _b) in enumerate(rec.lidar)]
-                    + [(t, 1, i) for i, (t, _m) in enumerate(rec.can)])
-    # after the first pass, only the frames of one span: the run's lead (the pose before
-    # the first lidar frame) and its tail are not driven again
+def events(rec: Recording, loop: bool, node_id: int | None
+           ) -> Iterator[tuple[int, str, Any]]:
+    """(ns, "udp"/"can", item) in time order (the pcap's datagrams in capture order, the CAN
+    log's frames between them), forever when ``loop``; read from the files as they go.
+    ``node_id``: the harvester node whose recorded SDO exchanges are left out (a responder
+    answers them now; None: every frame is sent)."""
     lo = rec.lidar_start_ns
-    again = [e for e in merged if lo <= e[0] < lo + rec.span_ns]
+    fmt = rec.meta.packet_format
+    lidar = rec.meta.udp_port_lidar
+    sdo = () if node_id is None else (0x580 + node_id, 0x600 + node_id)
     k = 0
     while True:
         dt = k * rec.span_ns
-        dframe = k * rec.frames
-        for t, kind, i in merged if k == 0 else again:
+        dframe = k * rec.frame_span
+        udp: Iterator[tuple[int, int, Any]] = (
+            (t, 0, (port, payload)) for t, port, payload in rec.datagrams())
+        bus: Iterator[tuple[int, int, Any]] = ((t, 1, m) for t, m in rec.can_messages())
+        item: Any
+        for t, kind, item in heapq.merge(udp, bus, key=lambda e: (e[0], e[1])):
+            # after the first pass, only the frames of one span: the run's lead (the pose
+            # before the first lidar frame) and its tail are not driven again
+            if k and not lo <= t < lo + rec.span_ns:
+                continue
             if kind == 0:
-                _t, port, payload = rec.lidar[i]
-                if port == rec.meta.udp_port_lidar:
-                    payload = shift_lidar_packet(rec.meta.packet_format, payload, dframe, dt)
-                else:
-                    payload = _shift_imu(payload, dt)
-                yield t + dt, "udp", (port, payload)
-            else:
-                msg = rec.can[i][1]
-                if msg.arbitration_id in (0x580 + node_id, 0x600 + node_id):
-                    continue  # the recorded SDO exchanges answer nobody now
-                yield t + dt, "can", _shift_can(msg, node_id, dt)
+                port, payload = item
+                payload = (shift_lidar_packet(fmt, payload, dframe, dt) if port == lidar
+                           else _shift_imu(payload, dt))
+                yield t + dt, "udp", (rec.port_map.get(port, port), payload)
+            elif item.arbitration_id not in sdo:  # recorded SDO exchanges answer nobody now
+                yield t + dt, "can", _shift_can(item, node_id, dt) if node_id else item
         if not loop:
             return
         k += 1
@@ -134,7 +353,7 @@ def events(rec: Recording, loop: bool, node_id: int) -> Iterator[tuple[int, str,
 
 def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
            sensor_ip: str = "127.0.0.1", dest: str | None = None,
-           spec: BusSpec | None = None, node_id: int = 10,
+           spec: BusSpec | None = None, node_id: int | None = 10,
            stop: threading.Event | None = None,
            on_progress: Callable[[int, int], None] | None = None,
            rec: Recording | None = None, route: Route | None = None) -> dict[str, int]:
@@ -146,9 +365,9 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
     sock.bind((sensor_ip, 0))
-    bus = spec.open() if spec is not None and rec.can else None
+    bus = spec.open() if spec is not None and rec.can_frames else None
     sent = {"udp": 0, "can": 0, "refused": 0}
-    total = len(rec.lidar) + len(rec.can)
+    total = rec.counts["lidar"] + rec.counts["imu"] + rec.can_frames
     start: tuple[int, float] | None = None
     try:
         for n, (t, kind, item) in enumerate(events(rec, loop, node_id)):

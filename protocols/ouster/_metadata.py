@@ -3,6 +3,7 @@ read and validate; and the SDK's ray model (shared/research/ouster-wire.md §3, 
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import numbers
@@ -26,6 +27,22 @@ MODES: tuple[str, ...] = ("512x10", "1024x10", "2048x10", "512x20", "1024x20", "
 # the modes tcf-hil's OS0-64 emulation offers (4096x5 metadata, which other Ouster sensors
 # write, is read but not emulated)
 OS0_64_MODES: tuple[str, ...] = MODES[:5]
+#: the keys of each section that SensorMetadata models (what :meth:`SensorMetadata.to_json`
+#: writes over a recorded document's)
+MODELLED: dict[str, tuple[str, ...]] = {
+    "sensor_info": ("prod_line", "prod_sn", "initialization_id", "prod_pn", "build_rev",
+                    "image_rev"),
+    "config_params": ("lidar_mode", "udp_dest", "udp_port_lidar", "udp_port_imu",
+                      "udp_profile_lidar", "columns_per_packet"),
+    "lidar_data_format": ("columns_per_frame", "columns_per_packet", "pixels_per_column",
+                          "column_window", "pixel_shift_by_row", "udp_profile_lidar",
+                          "header_type"),
+    "beam_intrinsics": ("beam_altitude_angles", "beam_azimuth_angles",
+                        "lidar_origin_to_beam_origin_mm"),
+    "lidar_intrinsics": ("lidar_to_sensor_transform",),
+    "imu_intrinsics": ("imu_to_sensor_transform",),
+    "calibration_status": (),
+}
 SECTIONS: tuple[str, ...] = ("sensor_info", "config_params", "lidar_data_format",
                              "beam_intrinsics", "lidar_intrinsics", "imu_intrinsics",
                              "calibration_status")
@@ -298,7 +315,24 @@ class SensorMetadata:
         return replace(self, **kw)
 
     def to_json(self) -> dict[str, Any]:
-        """All seven sections, as ouster-sdk 1.0.1 validates them without issues."""
+        """All seven sections, as ouster-sdk 1.0.1 validates them without issues. Metadata
+        read from a document (:meth:`from_json`) writes that document in the nested format,
+        every key it had kept, with the values modelled here (:data:`MODELLED`) put in."""
+        doc = self._own_json()
+        recorded = self.extra.get("document")
+        if not isinstance(recorded, dict):
+            return doc
+        out: dict[str, Any] = {}
+        for name in SECTIONS:
+            ours, theirs = doc[name], recorded.get(name)
+            theirs = theirs if isinstance(theirs, dict) else {}
+            out[name] = {**ours, **copy.deepcopy(theirs),
+                         **{k: ours[k] for k in MODELLED[name] if k in ours}}
+        for k, v in recorded.items():  # keys beside the sections, as they were
+            out.setdefault(k, copy.deepcopy(v))
+        return out
+
+    def _own_json(self) -> dict[str, Any]:
         w = self.columns
         cfg = {
             "lidar_mode": self.mode, "udp_dest": self.udp_dest,
@@ -449,6 +483,7 @@ class SensorMetadata:
             header_type=header_type,
             column_window=None if tuple(window) == (0, w - 1) else (int(window[0]),
                                                                      int(window[1])),
+            extra={"document": copy.deepcopy(doc)},
         )
 
     @classmethod

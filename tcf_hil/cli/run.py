@@ -31,6 +31,22 @@ from tcf_hil.cli._shared import (
 _STOP_RUN = "stopping the run: closing the recording and scoring what was published"
 
 
+def _recording_options(f: Any) -> Any:
+    """--meta, --can-log and --can-offset: what goes with a field recording's pcap."""
+    f = click.option("--can-offset", type=float, default=0.0, show_default=True,
+                     help="Seconds added to the CAN log's time stamps (where its clock and "
+                          "the pcap's differ).")(f)
+    f = click.option("--can-log", type=click.Path(dir_okay=False, exists=True,
+                                                  path_type=Path), default=None,
+                     help="A CAN log to put on the bus with a pcap: candump .log, .asc, "
+                          ".blf or .trc (read by python-can).")(f)
+    return click.option("--meta", type=click.Path(dir_okay=False, exists=True,
+                                                  path_type=Path), default=None,
+                        help="The pcap's metadata JSON [default: the .json beside it that "
+                             "shares the longest prefix with its name, as ouster-cli "
+                             "finds it].")(f)
+
+
 def _session(start: Any, out: Path) -> int:
     """Drive a run session (``start(stop, announce, progress)`` returns its result) with a
     progress bar and the graceful stop (the partial recording is kept and scored); prints
@@ -128,14 +144,16 @@ def demo(out: Path | None, seed: int | None, preset: str) -> None:
               show_default=True,
               help="The clock starts when the SIC listens on the lidar UDP port, or after "
                    "this many seconds (0: at once).")
-@click.option("--replay", "replay_dir", type=click.Path(file_okay=False, exists=True,
-                                                         path_type=Path), default=None,
-              help="Send a recorded run's traffic instead of the live emulators.")
+@click.option("--replay", "replay_dir", type=click.Path(exists=True, path_type=Path),
+              default=None, help="Send recorded traffic instead of the live emulators: a "
+                                 "run directory, or an Ouster pcap (with --meta, --can-log).")
+@_recording_options
 @fault_option
 @sensor_option
 def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, profile: str,
             seed: int | None, out: Path | None, speed: float, duration: float | None,
             can_spec: str, grace: float, ready_s: float, replay_dir: Path | None,
+            meta: Path | None, can_log: Path | None, can_offset: float,
             faults: tuple[str, ...], sensor: str | None) -> None:
     """A hardware-in-the-loop run of an onboard SIC program against SCENARIO.
 
@@ -171,12 +189,15 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     out = run_dir(out)
     if replay_dir is not None:
         src = replay_dir
-        finish(_session(lambda stop, say, _step: replay_run(
+        finish(_session(lambda stop, say, step: replay_run(
             src, command, out, speed=speed, shell=shell, can_spec=can_spec, grace_s=grace,
-            ready_s=ready_s, stop=stop, announce=say), out))
+            ready_s=ready_s, stop=stop, announce=say, meta=meta, can_log=can_log,
+            can_offset_s=can_offset,
+            progress=lambda done, total: step(done >> 20, total >> 20)), out))
         return
     if scenario_name is None:
-        raise click.UsageError("give a SCENARIO (a preset name or TOML file) or --replay RUN_DIR")
+        raise click.UsageError("give a SCENARIO (a preset name or TOML file) or --replay "
+                               "RECORDING")
     scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     announce_backend()
     finish(_session(lambda stop, say, step: run_bridge(
@@ -186,8 +207,9 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
 
 
 @click.command("replay")
-@click.argument("run_dir_", metavar="RUN_DIR",
-                type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.argument("recording", metavar="RECORDING",
+                type=click.Path(exists=True, path_type=Path))
+@_recording_options
 @click.option("--speed", type=click.FloatRange(min=0.05, max=20), default=1.0,
               show_default=True, help="Playback speed (1 = the original timing).")
 @click.option("--loop", is_flag=True, help="Start over at the end (frame_id, column time "
@@ -197,29 +219,53 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
                    "loopback address of its own (127.0.0.2, ...), the API on port 80.")
 @click.option("--dest", default=None, help="Where packets go (default: the recorded "
                                            "udp_dest).")
+@click.option("--lidar-port", type=click.IntRange(1, 65535), default=None,
+              help="Send the lidar packets to this port [default: the recorded one].")
+@click.option("--imu-port", type=click.IntRange(1, 65535), default=None,
+              help="Send the IMU packets to this port [default: the recorded one].")
 @click.option("--http-port", type=click.IntRange(0, 65535), default=None,
               help="Port of the HTTP API serving the recorded metadata [default: 80 with "
                    "--sensor-address auto where it may be bound, else a free one].")
 @click.option("--can", "can_spec", default="auto", show_default=True,
               help="CAN bus for the recorded frames (auto, socketcan:IFACE, "
                    "socketcand:HOST:PORT:CHANNEL).")
-def replay_cmd(run_dir_: Path, speed: float, loop: bool, sensor_address: str,
-               dest: str | None, http_port: int | None, can_spec: str) -> None:
-    """Send a recorded run's lidar, IMU and CAN traffic to live endpoints.
+def replay_cmd(recording: Path, meta: Path | None, can_log: Path | None, can_offset: float,
+               speed: float, loop: bool, sensor_address: str, dest: str | None,
+               lidar_port: int | None, imu_port: int | None, http_port: int | None,
+               can_spec: str) -> None:
+    """Send recorded lidar, IMU and CAN traffic to live endpoints.
 
     \b
-    The pcap and the CAN log go out with their original relative timing (times --speed),
-    from --sensor-address to the recorded ports; your program listens as in the run. To
-    score another SIC on this traffic use: tcf-hil run --replay RUN_DIR --sic "COMMAND".
+    RECORDING is a tcf-hil run directory, or a field recording: an Ouster pcap (pcap or
+    pcapng, as ouster-cli, ouster-ros or tcpdump write it) whose metadata JSON is found
+    beside it as ouster-cli finds it (or given with --meta), and a CAN log (--can-log:
+    candump .log, Vector .asc or .blf, PCAN .trc). The recording is checked first in one
+    pass (every lidar packet must fit the metadata; other traffic is skipped and counted),
+    then every lidar and IMU payload goes out byte for byte in recorded order and timing
+    (times --speed), from --sensor-address to --dest and the recorded ports (or --lidar-port,
+    --imu-port), the CAN frames on the bus between them; the sensor's HTTP API serves the
+    recorded metadata. Files are streamed: memory stays flat whatever their length.
+
+    \b
+    Examples:
+      tcf-hil replay runs/forest-v-20261125T101500Z
+      tcf-hil replay drive.pcap --can-log drive.log --dest 127.0.0.1
+      tcf-hil replay drive.pcap --meta sensor.json --loop --speed 0.5
+
+    To score a SIC on this traffic use: tcf-hil run --replay RECORDING --sic "COMMAND".
     """
     from tcf_hil.run import replay_run
 
-    with graceful_stop("stopping the replay") as stop:
+    with graceful_stop("stopping the replay") as stop, \
+            Progress("checking the recording (MB)") as bar:
         try:
-            r = replay_run(run_dir_, None, None, speed=speed, loop=loop, dest=dest,
+            r = replay_run(recording, None, None, speed=speed, loop=loop, dest=dest,
                            can_spec=can_spec, lead_s=0.0,
                            sensor_ip=None if sensor_address == "auto" else sensor_address,
-                           http_port=http_port, stop=stop, announce=console.print)
+                           http_port=http_port, stop=stop, announce=console.print, meta=meta,
+                           can_log=can_log, can_offset_s=can_offset,
+                           ports=(lidar_port, imu_port),
+                           progress=lambda done, total: bar.counter(done >> 20, total >> 20))
         except OSError as err:
             if err.errno is None:
                 raise

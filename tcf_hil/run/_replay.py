@@ -1,16 +1,21 @@
-"""A recorded run's traffic: its pcap (lidar and IMU) and CAN log back on the wire with their
-original timing (times ``speed``), the recorded metadata on the sensor's HTTP API and the
-harvester node's SDO server answering what it answered (:mod:`tcf_hil.replay`)."""
+"""Recorded traffic back on the wire with its original timing (times ``speed``): a tcf-hil
+run directory or a field recording (an Ouster pcap with its metadata, and a CAN log); the
+recorded metadata on the sensor's HTTP API and, for a run, the harvester node's SDO server
+answering what it answered (:mod:`tcf_hil.replay`)."""
 
 from __future__ import annotations
 
+import contextlib
+import ipaddress
+import os
 import shutil
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from protocols.ouster import SensorMetadata
-from tcf_hil._io import read_json, write_bytes_atomic
+from tcf_hil._io import write_bytes_atomic
 from tcf_hil.endpoints import SensorHost
 from tcf_hil.run._manifest import Manifest, SicRecord
 from tcf_hil.run._session import Announce, RunResult, RunSession, Wire, quiet
@@ -20,33 +25,66 @@ RECORDING_FILES = ("lidar.pcap", "can.log", "metadata.json", "ground_truth.json"
                    "visibility.json", "sensor_poses.csv")
 
 
+def _loopback(address: str) -> bool:
+    try:
+        return ipaddress.ip_address(address).is_loopback
+    except ValueError:
+        return address == "localhost"
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """``dst`` the same bytes as ``src``: a hard link where the file system allows (a day's
+    pcap is not copied for every replay of it), else a copy."""
+    with contextlib.suppress(FileNotFoundError):
+        dst.unlink()
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
 def copy_recording(src: Path, out: Path) -> None:
     """The replayed run's inputs beside its new SIC output (what was sent is what was
     recorded: the same bytes)."""
     for name in RECORDING_FILES:
         if (src / name).exists():
-            shutil.copyfile(src / name, out / name)
+            _link_or_copy(src / name, out / name)
 
 
 class ReplayTraffic:
-    """The recorded run ``src`` sent again. ``dest``: where the datagrams go (default: the
-    recorded ``udp_dest``); ``loop``: start over at the end (frame_id, column time stamps
-    and pose time continue) until stopped; ``lead_s``: the SIC's head start before the
-    first datagram (the recorded CAN lead comes on top)."""
+    """The recording ``src`` sent again: a run directory or an Ouster pcap (``meta``: its
+    metadata JSON, found beside it when None; ``can_log``: a CAN log to put on the bus,
+    ``can_offset_s`` added to its time stamps). ``dest``: where the datagrams go (default:
+    the recorded ``udp_dest``); ``loop``: start over at the end (frame_id, column time
+    stamps and pose time continue) until stopped; ``lead_s``: the SIC's head start before
+    the first datagram (the recorded CAN lead comes on top)."""
 
     noun = "replay"
 
     def __init__(self, src: Path, *, speed: float = 1.0, loop: bool = False,
-                 dest: str | None = None, lead_s: float = 3.0) -> None:
+                 dest: str | None = None, lead_s: float = 3.0, meta: Path | None = None,
+                 can_log: Path | None = None, can_offset_s: float = 0.0,
+                 progress: Callable[[int, int], None] | None = None,
+                 ports: tuple[int | None, int | None] = (None, None)) -> None:
         from tcf_hil.replay import Recording
 
         self.src, self.speed, self.loop, self.lead_s = src, speed, loop, lead_s
-        self.rec = Recording.load(src)
-        self.src_man: dict[str, Any] = read_json(src / "manifest.json")
+        self.ports = ports
+        self.rec = Recording.load(src, meta=meta, can_log=can_log, can_offset_s=can_offset_s,
+                                  progress=progress)
+        self.src_man: dict[str, Any] = dict(self.rec.manifest or {})
         self.node: dict[str, Any] = dict(self.src_man.get("can_node") or {})
-        self.node_id = int(self.node.get("node_id", 10))
+        # a run's harvester node answers its SDO reads again; a field log is sent as it is
+        self.node_id: int = int(self.node.get("node_id", 10))
+        self.sdo_node: int | None = self.node_id if self.rec.is_run else None
+        recorded = self.rec.meta.udp_dest
+        if dest is None and not _loopback(recorded):
+            dest = "127.0.0.1"  # a field recording's udp_dest is the field computer's
+        self.note = "" if dest is None or dest == recorded else \
+            f" (recorded udp_dest {recorded}: --dest to change)"
         if dest is not None:
             self.rec.meta = self.rec.meta.with_changes(udp_dest=dest)
+        self.meta_served = self.rec.meta
         self.sent: dict[str, int] = {}
         self.end = threading.Event()
         self.thread: threading.Thread | None = None
@@ -54,37 +92,55 @@ class ReplayTraffic:
         self.with_sic = False
 
     def preferred_ports(self) -> tuple[int, int]:
-        return self.rec.meta.udp_port_lidar, self.rec.meta.udp_port_imu
+        lidar, imu = self.ports
+        return lidar or self.rec.meta.udp_port_lidar, imu or self.rec.meta.udp_port_imu
 
     def bind(self, out: Path | None, host: SensorHost, ports: tuple[int, int]
              ) -> tuple[SensorMetadata, Path | None]:
         rec = self.rec
         self.sensor_ip = host.address
-        if out is None:
-            return rec.meta, None
-        copy_recording(self.src, out)  # metadata.json as recorded: it describes lidar.pcap
+        port_map = {rec.meta.udp_port_lidar: ports[0], rec.meta.udp_port_imu: ports[1]}
+        rec.port_map = port_map
         meta = rec.meta.with_changes(udp_port_lidar=ports[0], udp_port_imu=ports[1])
+        if out is None:
+            self.meta_served = meta
+            return meta, None
+        self._copy(out)  # metadata.json as recorded: it describes lidar.pcap
         path = out / "metadata.json"
         if meta != rec.meta:  # the recorded ports are taken: the SIC gets the ones used now
             path = out / "replay_metadata.json"
             write_bytes_atomic(path, meta.dumps().encode())
-        port_map = {rec.meta.udp_port_lidar: ports[0], rec.meta.udp_port_imu: ports[1]}
-        rec.lidar = [(t, port_map.get(p, p), b) for t, p, b in rec.lidar]
-        rec.meta = meta
+        self.meta_served = meta
         return meta, path
+
+    def _copy(self, out: Path) -> None:
+        rec = self.rec
+        if rec.is_run:
+            copy_recording(self.src, out)
+            return
+        _link_or_copy(rec.pcap, out / "lidar.pcap")
+        write_bytes_atomic(out / "metadata.json", rec.meta_text.encode())
+        if rec.can_log is not None:
+            _link_or_copy(rec.can_log, out / f"can{rec.can_log.suffix.lower()}")
 
     def manifest(self, sic: SicRecord | None) -> Manifest:
         m = self.src_man
         self.with_sic = sic is not None
-        return Manifest(scenario=m.get("scenario"), seed=m.get("seed"), mode=m.get("mode"),
-                        profile=m.get("profile"), speed=self.speed, sic=sic,
+        rec = self.rec
+        clock = m.get("clock") or {"sim_t0_ns": rec.can_clock[0],
+                                   "unix_ns_at_sim_t0": rec.can_clock[1],
+                                   "speed": rec.can_clock[2]}
+        return Manifest(scenario=m.get("scenario"), seed=m.get("seed"),
+                        mode=m.get("mode", rec.meta.mode),
+                        profile=m.get("profile", rec.meta.profile), speed=self.speed, sic=sic,
                         can_node=m.get("can_node"), replay_of=str(self.src.resolve()),
-                        clock=m.get("clock"))
+                        clock=clock)
 
     def prepare(self, wire: Wire) -> None:
         from tcf_hil.replay import SdoResponder
 
-        self.sdo = SdoResponder(wire.spec, {**self.node, "node_id": self.node_id})
+        if self.sdo_node is not None:
+            self.sdo = SdoResponder(wire.spec, {**self.node, "node_id": self.node_id})
 
     def start(self, wire: Wire, manifest: Manifest) -> None:
         from tcf_hil.replay import replay
@@ -92,7 +148,7 @@ class ReplayTraffic:
         def send() -> None:
             self.sent.update(replay(self.src, speed=self.speed, loop=self.loop,
                                     sensor_ip=self.sensor_ip, spec=wire.spec,
-                                    node_id=self.node_id, stop=self.end, rec=self.rec,
+                                    node_id=self.sdo_node, stop=self.end, rec=self.rec,
                                     route=wire.route))
 
         if self.with_sic and wire.stop.wait(self.lead_s):
@@ -101,12 +157,16 @@ class ReplayTraffic:
         self.thread.start()
 
     def describe(self, wire: Wire) -> str:
-        rec, port = self.rec, self.rec.meta.udp_port_lidar
+        rec, port = self.rec, self.meta_served.udp_port_lidar
         api = sensor_url(wire.api) if wire.api is not None else "off"
-        return (f"replaying {self.src}: {rec.frames} frames, {len(rec.can)} CAN frames at "
-                f"{self.speed:g}x from sensor {wire.host.address} (API {api}) to "
-                f"{wire.route.dest_ip}:{wire.route.port(port)}/"
-                f"{wire.route.port(rec.meta.udp_port_imu)}, CAN {wire.spec}"
+        n = rec.counts
+        other = n["other"] + n["not udp"]
+        return (f"replaying {self.src}: {rec.frames} frames ({n['lidar']} lidar, {n['imu']} "
+                f"IMU packets{f'; {other} other frames skipped' if other else ''}), "
+                f"{rec.can_frames} CAN frames at {self.speed:g}x from sensor "
+                f"{wire.host.address} (API {api}) to {wire.route.dest_ip}:"
+                f"{wire.route.port(port)}/{wire.route.port(self.meta_served.udp_port_imu)}"
+                f"{self.note}, CAN {wire.spec}"
                 + (" (looping; Ctrl-C stops)" if self.loop else ""))
 
     def alive(self, timeout_s: float) -> bool:
@@ -137,11 +197,17 @@ def replay_run(src: Path, sic: str | None, out: Path | None, *, speed: float = 1
                lead_s: float = 3.0, ready_s: float = 15.0, sensor_ip: str | None = None,
                http_port: int | None = 0, dest: str | None = None, loop: bool = False,
                stop: threading.Event | None = None, announce: Announce = quiet,
-               eval_cfg: Any = None) -> RunResult:
-    """``tcf-hil run --replay SRC --sic COMMAND``: another SIC scored on recorded traffic.
-    The new run directory holds the same recording (replayable in turn), this SIC's
-    publications and score. With ``sic`` None (``tcf-hil replay``) the traffic alone."""
-    traffic = ReplayTraffic(src, speed=speed, loop=loop, dest=dest, lead_s=lead_s)
+               eval_cfg: Any = None, meta: Path | None = None, can_log: Path | None = None,
+               can_offset_s: float = 0.0, ports: tuple[int | None, int | None] = (None, None),
+               progress: Callable[[int, int], None] | None = None) -> RunResult:
+    """``tcf-hil run --replay SRC --sic COMMAND``: another SIC scored on recorded traffic
+    (a run directory, or an Ouster pcap with ``meta`` and ``can_log``: see
+    :class:`ReplayTraffic`). The new run directory holds the same recording (replayable in
+    turn), this SIC's publications and score. With ``sic`` None (``tcf-hil replay``) the
+    traffic alone; ``progress(bytes, of bytes)`` while the recording is checked."""
+    traffic = ReplayTraffic(src, speed=speed, loop=loop, dest=dest, lead_s=lead_s, meta=meta,
+                            can_log=can_log, can_offset_s=can_offset_s, progress=progress,
+                            ports=ports)
     return RunSession(traffic, sic, out, shell=shell, can=can_spec, sensor_ip=sensor_ip,
                       http_port=http_port, grace_s=grace_s, ready_s=ready_s, stop=stop,
                       announce=announce, eval_cfg=eval_cfg).run()
