@@ -16,7 +16,7 @@ from typing import IO, Any
 from tcf_hil._io import ensure_dir, loads_json, write_bytes_atomic
 from tcf_hil.errors import InputError
 from tcf_hil.evaluation import EvalConfig, Evaluation, evaluate
-from tcf_hil.stems_json import StemTable, stem_table
+from tcf_hil.stems_json import Kind, StemTable, stem_table
 
 MAX_PUBLICATION_BYTES = 32 << 20
 
@@ -197,7 +197,10 @@ class FileWatcher(threading.Thread):
 
 # ------------------------------------------------------------------------------- scoring
 def seen_truth(gt_doc: dict[str, Any]) -> dict[str, Any]:
-    """The ground truth restricted to the stems with at least one lidar return."""
+    """The ground truth restricted to the stems with at least one lidar return; a field
+    inventory, which knows nothing of what the sensor saw, as it is."""
+    if "inventory" in gt_doc:
+        return gt_doc
     objs = [o for o in gt_doc["objects"] if int(o.get("returns", 0)) > 0]
     return {**gt_doc, "objects": objs, "total_objects_count": len(objs)}
 
@@ -215,9 +218,28 @@ class Scores:
 
 def score_forest(gt_doc: dict[str, Any], obs: StemTable, cfg: EvalConfig | None = None,
                  gt_source: str = "ground_truth.json") -> Scores:
-    gt_all = stem_table(gt_doc, gt_source, "ground_truth")
-    gt_seen = stem_table(seen_truth(gt_doc), gt_source, "ground_truth")
-    return Scores(evaluate(gt_all, obs, cfg), evaluate(gt_seen, obs, cfg), gt_all, gt_seen)
+    """``obs`` scored against a generated forest's ground truth or a field inventory
+    (:func:`tcf_hil.inventory.read_inventory`: the metrics it cannot give are None)."""
+    kind: Kind = "observed" if "inventory" in gt_doc else "ground_truth"
+    gt_all = stem_table(gt_doc, gt_source, kind)
+    gt_seen = stem_table(seen_truth(gt_doc), gt_source, kind)
+    scores = Scores(evaluate(gt_all, obs, cfg), evaluate(gt_seen, obs, cfg), gt_all, gt_seen)
+    for ev in (scores.all, scores.seen):
+        blank_absent(ev.metrics, gt_doc)
+    return scores
+
+
+def blank_absent(metrics: dict[str, Any], gt_doc: dict[str, Any]) -> None:
+    """Metrics whose inputs a field inventory lacks become None (absent, not zero): its
+    missing columns', and the errors no matched pair had both values for."""
+    from tcf_hil.inventory import absent_metrics
+
+    for key in absent_metrics(gt_doc):
+        metrics[key] = None
+    if "inventory" in gt_doc:
+        for name in ("height", "dbh", "maxcurve"):
+            if not metrics[f"{name}_pairs"]:
+                metrics[f"{name}_rmse_m"] = metrics[f"{name}_bias_m"] = None
 
 
 def empty_forest() -> StemTable:

@@ -109,6 +109,9 @@ class Recording:
     counts: Counter[str] = field(default_factory=Counter)
     port_map: dict[int, int] = field(default_factory=dict)
     can_frames: int = 0
+    # a field CAN log's SDO answers: the node that gave them and the values
+    sdo_node: int | None = None
+    sdo_values: dict[tuple[int, int], bytes] = field(default_factory=dict)
 
     @property
     def is_run(self) -> bool:
@@ -253,6 +256,8 @@ class Recording:
         assert first is not None and last is not None
         self.lidar_start_ns, self.span_ns = first, last - first + period
         self.can_frames = sum(1 for _ in self.can_messages())
+        if self.can_log is not None and not self.is_run:
+            self.sdo_node, self.sdo_values = recorded_sdo(m for _t, m in self.can_messages())
         if progress is not None:
             progress(size, size)
 
@@ -402,11 +407,48 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
     return sent
 
 
+def recorded_sdo(messages: Iterator[can.Message]) -> tuple[int | None,
+                                                          dict[tuple[int, int], bytes]]:
+    """The SDO uploads a CAN log recorded a node answering (expedited and segmented, as
+    CiA 301 frames them): (the node that answered most, {(index, subindex): data})."""
+    values: dict[int, dict[tuple[int, int], bytes]] = {}
+    pending: dict[int, tuple[int, int, int, bytearray]] = {}  # node -> index, sub, size, data
+    for m in messages:
+        node = m.arbitration_id - 0x580
+        if not 1 <= node <= 127 or m.is_extended_id or len(m.data) != 8:
+            continue
+        d = bytes(m.data)
+        scs = d[0] >> 5
+        if scs == 2:  # initiate upload response
+            index, sub = d[1] | d[2] << 8, d[3]
+            if d[0] & 0x2:  # expedited: up to 4 bytes in the frame
+                n = (d[0] >> 2) & 0x3 if d[0] & 0x1 else 0
+                values.setdefault(node, {})[(index, sub)] = d[4:8 - n]
+            else:
+                size = int.from_bytes(d[4:8], "little") if d[0] & 0x1 else -1
+                pending[node] = (index, sub, size, bytearray())
+        elif scs == 0 and node in pending:  # upload segment response
+            index, sub, size, buf = pending[node]
+            buf += d[1:8 - ((d[0] >> 1) & 0x7)]
+            if d[0] & 0x1:  # the last segment
+                del pending[node]
+                values.setdefault(node, {})[(index, sub)] = bytes(
+                    buf if size < 0 else buf[:size])
+    if not values:
+        return None, {}
+    node = max(values, key=lambda k: len(values[k]))
+    return node, values[node]
+
+
 class SdoResponder:
     """The harvester node's SDO server alone (datum and lidar mount as recorded), for
-    consumers that read them at start: the recorded TPDOs carry the poses."""
+    consumers that read them at start: the recorded TPDOs carry the poses. ``node``: a run
+    manifest's ``can_node`` (node_id, datum_mm, mount_mm, mount_cdeg); ``recorded``: the
+    object values a field CAN log shows the node answering (:func:`recorded_sdo`), put in
+    where the harvester's object dictionary has them."""
 
-    def __init__(self, spec: BusSpec, node: dict[str, Any]) -> None:
+    def __init__(self, spec: BusSpec, node: dict[str, Any],
+                 recorded: dict[tuple[int, int], bytes] | None = None) -> None:
         import canopen
 
         from protocols.harvester import DATUM, MOUNT, eds_path
@@ -420,6 +462,9 @@ class SdoResponder:
         for i, v in enumerate((*node.get("mount_mm", (0, 0, 2000)),
                                *node.get("mount_cdeg", (0, 0, 0))), 1):
             od[MOUNT][i].raw = int(v)
+        for (index, sub), data in (recorded or {}).items():
+            with contextlib.suppress(KeyError, ValueError, TypeError):
+                self.node.set_data(index, sub, data, check_writable=False)
         self.network.NOTIFIER_CYCLE = 0.1
         self.network.connect(**spec.kwargs())
 

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from tcf_hil._io import write_bytes_atomic
-from tcf_hil.evaluation import LABELS, ROWS
+from tcf_hil.evaluation import LABELS, ROWS, show_metric
 from tcf_hil.plots import _pyplot, em_heatmap, figure_png, matched_positions
 
 if TYPE_CHECKING:
@@ -27,8 +27,11 @@ def timeline_png(timeline: list[dict[str, Any]]) -> bytes:
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.0, 3.2))
     t = [r["arrival_s"] for r in timeline]
-    ax.plot(t, [r["wc_all"] for r in timeline], "o-", label="wc, all trees")
-    ax.plot(t, [r["wc_seen"] for r in timeline], "s-", label="wc, seen trees")
+    nan = float("nan")  # (no class in a field inventory: no wc)
+    ax.plot(t, [nan if r["wc_all"] is None else r["wc_all"] for r in timeline], "o-",
+            label="wc, all trees")
+    ax.plot(t, [nan if r["wc_seen"] is None else r["wc_seen"] for r in timeline], "s-",
+            label="wc, seen trees")
     ax.set_xlabel("publication arrival, s since the run started")
     ax.set_ylabel("evaluation score, %")
     ax.set_ylim(0, 100)
@@ -41,8 +44,8 @@ def timeline_png(timeline: list[dict[str, Any]]) -> bytes:
 def _metrics_rows(all_m: dict[str, Any], seen_m: dict[str, Any]) -> str:
     rows = []
     for key, label, fmt in ROWS:
-        rows.append(f"<tr><td>{html.escape(label)}</td><td>{fmt.format(all_m[key])}</td>"
-                    f"<td>{fmt.format(seen_m[key])}</td></tr>")
+        rows.append(f"<tr><td>{html.escape(label)}</td><td>{show_metric(fmt, all_m[key])}"
+                    f"</td><td>{show_metric(fmt, seen_m[key])}</td></tr>")
     rows.append(f"<tr><td>Ground-truth trees</td><td>{all_m['n_ground_truth']}</td>"
                 f"<td>{seen_m['n_ground_truth']}</td></tr>")
     return "\n".join(rows)
@@ -55,6 +58,9 @@ def _em_table(em: Any) -> str:
     return f"<table class=em><tr><th>gt \\ obs</th>{head}</tr>{body}</table>"
 
 
+WC = "{:.1f} %"
+
+
 def write_report(path: Path, result: RunResult) -> None:
     sc = result.scores
     assert sc is not None and result.out is not None
@@ -62,10 +68,19 @@ def write_report(path: Path, result: RunResult) -> None:
     all_m, seen_m = sc.all.metrics, sc.seen.metrics
     figs = [
         _img(em_heatmap(sc.all.em, LABELS, f"EM, all trees: wc = "
-                        f"{all_m['evaluation_score_percent']:.1f} %"), "EM all trees"),
+                        f"{show_metric(WC, all_m['evaluation_score_percent'])}"),
+             "EM all trees"),
         _img(em_heatmap(sc.seen.em, LABELS, f"EM, seen trees: wc = "
-                        f"{seen_m['evaluation_score_percent']:.1f} %"), "EM seen trees"),
+                        f"{show_metric(WC, seen_m['evaluation_score_percent'])}"),
+             "EM seen trees"),
     ]
+    ems = (f'<div style="display:flex;gap:2em">{_em_table(sc.all.em)}'
+           f'{_em_table(sc.seen.em)}</div>\n{figs[0]}{figs[1]}')
+    if all_m["evaluation_score_percent"] is None:
+        ems = "<p>The ground truth (a field inventory) has no classes: no EM.</p>"
+    inv_note = (" The ground truth here is a field inventory, which knows nothing of what the "
+                "sensor saw: both columns score against every tree."
+                if "inventory" in sc.gt_all.doc else "")
     latest = _latest_obs(result)
     pos = _img(matched_positions(sc.gt_all.xyz[:, :2], latest, sc.all.pairs,
                                  f"{len(sc.all.pairs)} matched of {len(sc.gt_all)} ground "
@@ -93,14 +108,13 @@ pre {{ background: #f6f6f6; padding: 1em; overflow-x: auto; }}
 <h2>Scores</h2>
 <p>"All trees" scores against every ground-truth stem; "seen trees" only against the stems
 the sensor returned at least one point from, so the difference is what the sensor could not
-see, and what remains is what the algorithm missed.</p>
+see, and what remains is what the algorithm missed.{inv_note}</p>
 <table><tr><th>metric</th><th>all trees</th><th>seen trees</th></tr>
 {_metrics_rows(all_m, seen_m)}
 </table>
 {faults}
 <h3>Evaluation matrix (rows ground truth, columns observed)</h3>
-<div style="display:flex;gap:2em">{_em_table(sc.all.em)}{_em_table(sc.seen.em)}</div>
-{figs[0]}{figs[1]}
+{ems}
 <h2>Matched positions</h2>
 {pos}
 <h2>Score timeline</h2>
@@ -125,8 +139,8 @@ def _faults_section(faults: dict[str, Any] | None, all_m: dict[str, Any],
     return f"""<h2>Injected faults</h2>
 <p>This run injected the faults below (every event is in <code>faults.jsonl</code>, with its
 time in seconds after the track start). With them the SIC scored wc =
-{all_m['evaluation_score_percent']:.1f} % (all trees) and
-{seen_m['evaluation_score_percent']:.1f} % (seen trees).</p>
+{show_metric(WC, all_m['evaluation_score_percent'])} (all trees) and
+{show_metric(WC, seen_m['evaluation_score_percent'])} (seen trees).</p>
 <table><tr><th>fault</th><th>count</th><th>first, s</th><th>last, s</th></tr>
 {rows or '<tr><td colspan=4>none happened (rates too low or times beyond the run)</td></tr>'}
 </table>"""

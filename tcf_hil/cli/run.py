@@ -67,7 +67,7 @@ def _session(start: Any, out: Path) -> int:
 
 
 def _print_run(r: Any) -> None:
-    from tcf_hil.evaluation import ROWS
+    from tcf_hil.evaluation import ROWS, show_metric
 
     m = r.manifest
     if r.scores is not None:
@@ -77,7 +77,7 @@ def _print_run(r: Any) -> None:
         t.add_column("seen trees", justify="right")
         a, b = r.scores.all.metrics, r.scores.seen.metrics
         for key, label, fmt in ROWS[:1] + ROWS[7:13] + ROWS[13:15]:
-            t.add_row(label, fmt.format(a[key]), fmt.format(b[key]))
+            t.add_row(label, show_metric(fmt, a[key]), show_metric(fmt, b[key]))
         t.add_row("Ground-truth trees", str(a["n_ground_truth"]), str(b["n_ground_truth"]))
         console.print(t)
     sent = (f"frames sent {(m.lidar or {}).get('frames_sent', 0)}" if m.replay_sent is None
@@ -148,12 +148,16 @@ def demo(out: Path | None, seed: int | None, preset: str) -> None:
               default=None, help="Send recorded traffic instead of the live emulators: a "
                                  "run directory, or an Ouster pcap (with --meta, --can-log).")
 @_recording_options
+@click.option("--truth", type=click.Path(dir_okay=False, exists=True, path_type=Path),
+              default=None, help="With --replay: the ground truth to score against, a "
+                                 "ground_truth.json or a field inventory CSV (id,x,y[,z,dbh_m,"
+                                 "height_m,class]) [default: the run directory's].")
 @fault_option
 @sensor_option
 def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, profile: str,
             seed: int | None, out: Path | None, speed: float, duration: float | None,
             can_spec: str, grace: float, ready_s: float, replay_dir: Path | None,
-            meta: Path | None, can_log: Path | None, can_offset: float,
+            meta: Path | None, can_log: Path | None, can_offset: float, truth: Path | None,
             faults: tuple[str, ...], sensor: str | None) -> None:
     """A hardware-in-the-loop run of an onboard SIC program against SCENARIO.
 
@@ -186,13 +190,15 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
         check_sic_command(command, shell)
     except ValueError as err:
         raise click.BadParameter(str(err), param_hint="--sic") from err
+    if replay_dir is None and (truth or meta or can_log):
+        raise click.UsageError("--truth, --meta and --can-log go with --replay RECORDING")
     out = run_dir(out)
     if replay_dir is not None:
         src = replay_dir
         finish(_session(lambda stop, say, step: replay_run(
             src, command, out, speed=speed, shell=shell, can_spec=can_spec, grace_s=grace,
             ready_s=ready_s, stop=stop, announce=say, meta=meta, can_log=can_log,
-            can_offset_s=can_offset,
+            can_offset_s=can_offset, truth=truth,
             progress=lambda done, total: step(done >> 20, total >> 20)), out))
         return
     if scenario_name is None:

@@ -72,7 +72,8 @@ def detect(cloud: Path, out: Path, preset: str, curve_threshold: float | None,
 
 
 @click.command()
-@click.argument("gt", metavar="GT.json", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("gt", metavar="GT.json|INVENTORY.csv",
+                type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("observed", metavar="OBSERVED.json",
                 type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--match", "match_method", type=click.Choice(["greedy", "optimal"]),
@@ -94,20 +95,30 @@ def score(gt: Path, observed: Path, match_method: str, max_distance: float,
     """Score an observed forest (SIC output) against the ground truth.
 
     Any document with objects[].cp and class (S/C/X) or quality (1/2/3) can be scored as
-    either side; h, dbh and maxcurve are used when present.
+    either side; h, dbh and maxcurve are used when present. The ground truth may be a field
+    inventory CSV instead (header row; id, x, y required; z, dbh_m, height_m, class
+    optional; coordinates in the frame the SIC publishes in): the metrics whose inputs it
+    lacks are absent, not zero.
     """
     from tcf_hil._io import write_json_atomic
     from tcf_hil.evaluation import EvalConfig, evaluate, metrics_table, write_plots
-    from tcf_hil.stems_json import load_stems
+    from tcf_hil.inventory import is_inventory, read_inventory
+    from tcf_hil.recorder import blank_absent
+    from tcf_hil.stems_json import load_stems, stem_table
 
     try:
         cfg = EvalConfig(match=match_method, max_distance_m=max_distance,  # type: ignore[arg-type]
                          weights=weights, credits=credits)  # type: ignore[arg-type]
     except ValueError as err:
         raise click.BadParameter(str(err)) from err
-    g = load_stems(gt, "observed")
+    if is_inventory(gt):
+        truth = read_inventory(gt)
+        g = stem_table(truth, str(gt), "observed")
+    else:
+        truth, g = {}, load_stems(gt, "observed")
     o = load_stems(observed, "observed")
     ev = evaluate(g, o, cfg)
+    blank_absent(ev.metrics, truth)
     console.print(metrics_table(ev, f"{observed.name} vs {gt.name} ({match_method}, "
                                     f"d = {max_distance:g} m)"))
     if json_out is not None:

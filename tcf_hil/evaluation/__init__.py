@@ -11,7 +11,7 @@ from tcf_hil.evaluation._metrics import (
     evaluation_matrix,
     weighted_score,
 )
-from tcf_hil.evaluation._report import ROWS, metrics_table, write_plots
+from tcf_hil.evaluation._report import ROWS, metrics_table, show_metric, write_plots
 
 __all__ = [
     "CASES",
@@ -25,6 +25,7 @@ __all__ = [
     "evaluation_matrix",
     "match",
     "metrics_table",
+    "show_metric",
     "weighted_score",
     "write_plots",
 ]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from rich.table import Table
 
@@ -31,15 +32,23 @@ ROWS: tuple[tuple[str, str, str], ...] = (
 )
 
 
+def show_metric(fmt: str, value: Any) -> str:
+    """A metric as the tables show it: "absent" where its inputs were (None)."""
+    return "absent" if value is None else fmt.format(value)
+
+
 def metrics_table(ev: Evaluation, title: str = "Evaluation") -> Table:
     """The main metrics and the EM as a rich table."""
     t = Table(title=title, show_header=True, header_style="bold")
     t.add_column("metric")
     t.add_column("value", justify="right")
     for key, label, fmt in ROWS:
-        t.add_row(label, fmt.format(ev.metrics[key]))
+        t.add_row(label, show_metric(fmt, ev.metrics[key]))
     em = ev.em
     t.add_section()
+    if ev.metrics["evaluation_score_percent"] is None:  # no ground-truth classes
+        t.add_row("EM rows=gt, cols=obs", "absent")
+        return t
     t.add_row("EM rows=gt, cols=obs", "  ".join(f"{c:>5}" for c in LABELS))
     for i, r in enumerate(LABELS):
         t.add_row(f"  {r}", "  ".join(f"{v:>5}" for v in em[i]))
@@ -54,7 +63,8 @@ def write_plots(ev: Evaluation, gt: StemTable, obs: StemTable, out_dir: str | Pa
     wc = ev.metrics["evaluation_score_percent"]
     head = f"{title}: " if title else ""
     a = out / "em_heatmap.png"
-    write_bytes_atomic(a, em_heatmap(ev.em, LABELS, f"{head}EM, wc = {wc:.1f} %"))
+    write_bytes_atomic(a, em_heatmap(ev.em, LABELS, f"{head}EM, wc = "
+                                                    f"{show_metric('{:.1f} %', wc)}"))
     b = out / "matched_positions.png"
     write_bytes_atomic(b, matched_positions(gt.xyz[:, :2], obs.xyz[:, :2], ev.pairs,
                                             f"{head}{len(ev.pairs)} matched of {len(gt)} "

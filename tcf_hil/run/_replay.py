@@ -21,8 +21,9 @@ from tcf_hil.run._manifest import Manifest, SicRecord
 from tcf_hil.run._session import Announce, RunResult, RunSession, Wire, quiet
 from tcf_hil.run._sic import sensor_url
 
-RECORDING_FILES = ("lidar.pcap", "can.log", "metadata.json", "ground_truth.json",
-                   "visibility.json", "sensor_poses.csv")
+RECORDING_FILES = ("lidar.pcap", "can.log", "can.asc", "can.blf", "can.trc",
+                   "metadata.json", "ground_truth.json", "inventory.csv", "visibility.json",
+                   "sensor_poses.csv")
 
 
 def _loopback(address: str) -> bool:
@@ -65,18 +66,27 @@ class ReplayTraffic:
                  dest: str | None = None, lead_s: float = 3.0, meta: Path | None = None,
                  can_log: Path | None = None, can_offset_s: float = 0.0,
                  progress: Callable[[int, int], None] | None = None,
-                 ports: tuple[int | None, int | None] = (None, None)) -> None:
+                 ports: tuple[int | None, int | None] = (None, None),
+                 truth: Path | None = None) -> None:
         from tcf_hil.replay import Recording
 
         self.src, self.speed, self.loop, self.lead_s = src, speed, loop, lead_s
         self.ports = ports
+        self.truth = truth
+        if truth is not None:  # read now: a bad inventory is an error before anything runs
+            from tcf_hil.inventory import load_truth
+
+            load_truth(truth)
         self.rec = Recording.load(src, meta=meta, can_log=can_log, can_offset_s=can_offset_s,
                                   progress=progress)
         self.src_man: dict[str, Any] = dict(self.rec.manifest or {})
         self.node: dict[str, Any] = dict(self.src_man.get("can_node") or {})
-        # a run's harvester node answers its SDO reads again; a field log is sent as it is
-        self.node_id: int = int(self.node.get("node_id", 10))
-        self.sdo_node: int | None = self.node_id if self.rec.is_run else None
+        # a run's harvester node answers its SDO reads again, as does a field log's node
+        # that the log shows answering SDO uploads (with the values it gave); any other
+        # field log is sent as it is
+        rec = self.rec
+        self.node_id: int = int(self.node.get("node_id", rec.sdo_node or 10))
+        self.sdo_node: int | None = self.node_id if rec.is_run or rec.sdo_node else None
         recorded = self.rec.meta.udp_dest
         if dest is None and not _loopback(recorded):
             dest = "127.0.0.1"  # a field recording's udp_dest is the field computer's
@@ -117,11 +127,19 @@ class ReplayTraffic:
         rec = self.rec
         if rec.is_run:
             copy_recording(self.src, out)
-            return
-        _link_or_copy(rec.pcap, out / "lidar.pcap")
-        write_bytes_atomic(out / "metadata.json", rec.meta_text.encode())
-        if rec.can_log is not None:
-            _link_or_copy(rec.can_log, out / f"can{rec.can_log.suffix.lower()}")
+        else:
+            _link_or_copy(rec.pcap, out / "lidar.pcap")
+            write_bytes_atomic(out / "metadata.json", rec.meta_text.encode())
+            if rec.can_log is not None:
+                _link_or_copy(rec.can_log, out / f"can{rec.can_log.suffix.lower()}")
+        if self.truth is not None:  # the ground truth given replaces the recorded one
+            from tcf_hil.inventory import is_inventory
+
+            for name in ("ground_truth.json", "inventory.csv", "visibility.json"):
+                with contextlib.suppress(FileNotFoundError):
+                    (out / name).unlink()
+            shutil.copyfile(self.truth, out / ("inventory.csv" if is_inventory(self.truth)
+                                               else "ground_truth.json"))
 
     def manifest(self, sic: SicRecord | None) -> Manifest:
         m = self.src_man
@@ -140,7 +158,8 @@ class ReplayTraffic:
         from tcf_hil.replay import SdoResponder
 
         if self.sdo_node is not None:
-            self.sdo = SdoResponder(wire.spec, {**self.node, "node_id": self.node_id})
+            self.sdo = SdoResponder(wire.spec, {**self.node, "node_id": self.node_id},
+                                    self.rec.sdo_values)
 
     def start(self, wire: Wire, manifest: Manifest) -> None:
         from tcf_hil.replay import replay
@@ -199,7 +218,8 @@ def replay_run(src: Path, sic: str | None, out: Path | None, *, speed: float = 1
                stop: threading.Event | None = None, announce: Announce = quiet,
                eval_cfg: Any = None, meta: Path | None = None, can_log: Path | None = None,
                can_offset_s: float = 0.0, ports: tuple[int | None, int | None] = (None, None),
-               progress: Callable[[int, int], None] | None = None) -> RunResult:
+               progress: Callable[[int, int], None] | None = None,
+               truth: Path | None = None) -> RunResult:
     """``tcf-hil run --replay SRC --sic COMMAND``: another SIC scored on recorded traffic
     (a run directory, or an Ouster pcap with ``meta`` and ``can_log``: see
     :class:`ReplayTraffic`). The new run directory holds the same recording (replayable in
@@ -207,7 +227,7 @@ def replay_run(src: Path, sic: str | None, out: Path | None, *, speed: float = 1
     traffic alone; ``progress(bytes, of bytes)`` while the recording is checked."""
     traffic = ReplayTraffic(src, speed=speed, loop=loop, dest=dest, lead_s=lead_s, meta=meta,
                             can_log=can_log, can_offset_s=can_offset_s, progress=progress,
-                            ports=ports)
+                            ports=ports, truth=truth)
     return RunSession(traffic, sic, out, shell=shell, can=can_spec, sensor_ip=sensor_ip,
                       http_port=http_port, grace_s=grace_s, ready_s=ready_s, stop=stop,
                       announce=announce, eval_cfg=eval_cfg).run()

@@ -353,8 +353,14 @@ class RunSession:
         from tcf_hil.report import write_report
 
         status, message, cfg = manifest.status, manifest.message or "", self.eval_cfg
-        gt_doc = read_json(out / "ground_truth.json") if (out / "ground_truth.json").exists() \
-            and status != RunStatus.CAN_CONFLICT else None  # mixed poses: no score
+        gt_doc = None
+        if status != RunStatus.CAN_CONFLICT:  # (mixed poses: no score)
+            if (out / "ground_truth.json").exists():
+                gt_doc = read_json(out / "ground_truth.json")
+            elif (out / "inventory.csv").exists():  # a field recording's
+                from tcf_hil.inventory import read_inventory
+
+                gt_doc = read_inventory(out / "inventory.csv")
         scores: Scores | None = None
         timeline: list[dict[str, Any]] = []
         valid = inbox.valid

@@ -110,6 +110,54 @@ def test_replay_reproduces_the_score(reference_run: Path, tmp_path: Path) -> Non
     assert (out / "lidar.pcap").read_bytes() == (reference_run / "lidar.pcap").read_bytes()
 
 
+def test_a_field_recording_scores_against_a_field_inventory(reference_run: Path,
+                                                            tmp_path: Path) -> None:
+    """The reference run made into what a harvester team brings from the field: the pcap
+    with its metadata beside it (the legacy flat format ouster-sdk writes), a candump log on
+    the capture's clock (with the node's SDO answers in it), and an inventory CSV of id, x,
+    y and DBH (no class, no height); `run --replay` scores the reference SIC on it, and what
+    the inventory cannot give is absent, not zero."""
+    import csv
+
+    field = tmp_path / "field"
+    field.mkdir()
+    (field / "drive.pcap").write_bytes((reference_run / "lidar.pcap").read_bytes())
+    doc = json.loads((reference_run / "metadata.json").read_text())
+    flat = {**doc["sensor_info"], **doc["beam_intrinsics"], **doc["lidar_intrinsics"],
+            **doc["imu_intrinsics"], "data_format": doc["lidar_data_format"],
+            **{k: doc["config_params"][k] for k in ("lidar_mode", "udp_port_lidar",
+                                                     "udp_port_imu")}}
+    (field / "drive.json").write_text(json.dumps(flat))
+    clock = json.loads((reference_run / "manifest.json").read_text())["clock"]
+    t0, unix0, speed = clock["sim_t0_ns"], clock["unix_ns_at_sim_t0"], clock["speed"]
+    with can.Logger(str(field / "drive.log")) as log:
+        for m in can.LogReader(str(reference_run / "can.log")):
+            m.timestamp = (t0 + (m.timestamp * 1e9 - unix0) * speed) / 1e9
+            log.on_message_received(m)
+    gt = json.loads((reference_run / "ground_truth.json").read_text())
+    with open(field / "inventory.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["id", "x", "y", "dbh_m", "species"])
+        for o in gt["objects"]:
+            w.writerow([f"T{o['id']}", o["cp"][0], o["cp"][1], o["dbh"], "pine"])
+    out = tmp_path / "scored"
+    p = tcf("run", "--replay", str(field / "drive.pcap"), "--can-log",
+            str(field / "drive.log"), "--truth", str(field / "inventory.csv"), "--speed", "2",
+            "--out", str(out))
+    assert p.returncode == 0, p.stdout + p.stderr
+    score = json.loads((out / "score.json").read_text())
+    a, s = score["all_trees"], score["seen_trees"]
+    assert a["f1"] >= 0.9 and a["dbh_rmse_m"] < 0.02, a
+    assert a["evaluation_score_percent"] is None and a["height_rmse_m"] is None
+    assert a["maxcurve_rmse_m"] is None and a["position_rmse_m"] < 0.1
+    assert s["n_ground_truth"] == a["n_ground_truth"] == 24  # no visibility: all are seen
+    assert "absent" in p.stdout and "absent" in (out / "report.html").read_text()
+    for name in ("lidar.pcap", "metadata.json", "can.log", "inventory.csv"):
+        assert (out / name).exists(), name  # the scored run replays in turn
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["replay_of"] == str((field / "drive.pcap").resolve())
+
+
 def test_sic_exiting_early_ends_the_run_with_a_clear_message(tmp_path: Path) -> None:
     out = tmp_path / "run"
     sic = "{python} -c \"import time, sys; time.sleep(2); sys.exit(7)\""
