@@ -39,6 +39,7 @@ from emulators.lidar import (
 from emulators.lidar import warm_up as warm_up_kernels
 from protocols.ouster import (
     IMU_PACKET_BYTES,
+    MetadataError,
     SensorMetadata,
     os0_64_metadata,
 )
@@ -75,8 +76,14 @@ def sensor_metadata(scn: Scenario, *, mode: str = "1024x10",
     """The run's metadata (init_id derived from the seed), without building any scene."""
     s = scn.seed if seed is None else seed
     init_id = (s * 2654435761 + 12345) % (1 << 24) or 1
-    return os0_64_metadata(mode, profile, init_id=init_id, udp_dest=udp_dest,
-                           udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
+    fw = scn.sensor.firmware
+    try:
+        return os0_64_metadata(mode, profile, firmware=None if fw == "3.1" else fw,
+                               init_id=init_id, udp_dest=udp_dest,
+                               udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
+    except MetadataError as err:
+        raise ConfigError("sensor.firmware", fw, f"a firmware with profile {profile} "
+                          f"({err})") from err
 
 
 class LidarRun:

@@ -105,6 +105,10 @@ class SensorModel:
         "minDistBetweenEchos; no Ouster figure found)", gt=0.0, le=10.0)
     min_range_m: float = _f(0.5, "returns nearer than this are not reported", ge=0.0,
                             le=10.0)
+    firmware: Literal["2.0", "2.1", "2.2", "2.3", "2.4", "2.5", "3.0", "3.1"] = _f(
+        "3.1", "the firmware the sensor runs (protocols.ouster.FIRMWARES): the profiles it "
+        "has, its packet footer (a CRC from 2.5), its revision strings and, before 3.0, the "
+        "legacy flat metadata file")
     return_order: Literal["STRONGEST_TO_WEAKEST", "NEAREST_TO_FARTHEST",
                           "FARTHEST_TO_NEAREST"] = _f(
         "STRONGEST_TO_WEAKEST", "which echo is the first return")

@@ -20,10 +20,14 @@ from protocols.ouster._errors import (
 )
 from protocols.ouster._imu import IMU_PACKET_BYTES, ImuPacket, decode_imu_packet, encode_imu_packet
 from protocols.ouster._metadata import (
+    FIRMWARES,
     MODES,
     OS0_64_MODES,
+    Firmware,
     SensorMetadata,
     beam_rays,
+    firmware_of,
+    legacy_metadata,
     os0_64_metadata,
     parse_mode,
     xyz_from_range,
@@ -53,6 +57,7 @@ from protocols.ouster._profiles import (
 
 __all__ = [
     "EMULATED_PROFILES",
+    "FIRMWARES",
     "HEADERS",
     "IMU_PACKET_BYTES",
     "MODES",
@@ -63,6 +68,7 @@ __all__ = [
     "CrcError",
     "DecodedFrame",
     "Field",
+    "Firmware",
     "FrameAssembler",
     "Header",
     "ImuPacket",
@@ -89,7 +95,9 @@ __all__ = [
     "encode_lidar_frame",
     "encode_pixel_fields",
     "finish_lidar_packets",
+    "firmware_of",
     "frame_from_packets",
+    "legacy_metadata",
     "os0_64_metadata",
     "parse_mode",
     "shift_lidar_packet",

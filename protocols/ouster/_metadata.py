@@ -20,8 +20,8 @@ from protocols.ouster._packets import PacketFormat
 from protocols.ouster._profiles import PROFILES
 from protocols.text import short_repr
 
-__all__ = ["MODES", "OS0_64_MODES", "SensorMetadata", "beam_rays", "os0_64_metadata",
-           "xyz_from_range"]
+__all__ = ["FIRMWARES", "MODES", "OS0_64_MODES", "Firmware", "SensorMetadata", "beam_rays",
+           "firmware_of", "legacy_metadata", "os0_64_metadata", "xyz_from_range"]
 
 MODES: tuple[str, ...] = ("512x10", "1024x10", "2048x10", "512x20", "1024x20", "4096x5")
 # the modes tcf-hil's OS0-64 emulation offers (4096x5 metadata, which other Ouster sensors
@@ -104,6 +104,21 @@ _LEGACY_SECTIONS: dict[str, tuple[str, ...]] = {  # the flat keys each nested se
     "sensor_info": ("prod_line", "status", "prod_pn", "prod_sn", "initialization_id",
                     "build_rev", "build_date", "image_rev"),
 }
+
+
+def legacy_metadata(doc: dict[str, Any]) -> dict[str, Any]:
+    """A nested document in the legacy flat format, as ouster-sdk wrote it beside recordings
+    of firmware 2.x (``tests/metadata/*_legacy.json``): the sensor_info, beam, lidar and
+    IMU keys at the top, the data format under ``data_format``, and of the configuration
+    the mode and the ports; the inverse of :func:`nested_metadata`."""
+    flat: dict[str, Any] = {}
+    for name in ("sensor_info", "beam_intrinsics", "lidar_intrinsics", "imu_intrinsics"):
+        flat.update(copy.deepcopy(doc[name]))
+    for key in _LEGACY_SECTIONS["config_params"]:
+        if key in doc["config_params"]:
+            flat[key] = doc["config_params"][key]
+    flat["data_format"] = copy.deepcopy(doc["lidar_data_format"])
+    return flat
 
 
 def nested_metadata(doc: Any) -> dict[str, Any]:
@@ -300,7 +315,8 @@ class SensorMetadata:
         fmt = PacketFormat.create(self.profile, self.pixels, self.columns_per_packet,
                                   self.columns, self.header_type or None)
         if fmt.crc and fw is not None and fw < (2, 5, 0):
-            fmt = replace(fmt, crc=False)
+            fmt = replace(fmt, crc=False, footer=FOOTER_PLACEHOLDER if fw >= (2, 3, 0)
+                          else b"")
         return fmt
 
     def with_changes(self, **kw: Any) -> SensorMetadata:
@@ -317,8 +333,14 @@ class SensorMetadata:
     def to_json(self) -> dict[str, Any]:
         """All seven sections, as ouster-sdk 1.0.1 validates them without issues. Metadata
         read from a document (:meth:`from_json`) writes that document in the nested format,
-        every key it had kept, with the values modelled here (:data:`MODELLED`) put in."""
+        every key it had kept, with the values modelled here (:data:`MODELLED`) put in.
+        Firmware before 2.2 had no lidar profiles: no ``udp_profile_lidar`` (LEGACY)."""
         doc = self._own_json()
+        fw = self.firmware
+        if fw is not None and fw < (2, 2, 0) and self.profile == "LEGACY":
+            for name in ("config_params", "lidar_data_format"):
+                doc[name].pop("udp_profile_lidar", None)
+                doc[name].pop("udp_profile_imu", None)
         recorded = self.extra.get("document")
         if not isinstance(recorded, dict):
             return doc
@@ -376,8 +398,15 @@ class SensorMetadata:
                                                     "timestamp": "2023-10-18T20:30:36"}},
         }
 
-    def dumps(self) -> str:
-        return json.dumps(self.to_json(), indent=1) + "\n"
+    def dumps(self, legacy: bool | None = None) -> str:
+        """The metadata file: nested (:meth:`to_json`), or the legacy flat format
+        (:func:`legacy_metadata`) that ouster-sdk wrote beside recordings of firmware before
+        3.0; ``legacy`` None: as the firmware named in ``image_rev`` had it."""
+        fw = self.firmware
+        if legacy is None:
+            legacy = fw is not None and fw < (3, 0, 0)
+        doc = legacy_metadata(self.to_json()) if legacy else self.to_json()
+        return json.dumps(doc, indent=1) + "\n"
 
     @classmethod
     def from_json(cls, doc: Any) -> SensorMetadata:
@@ -501,16 +530,72 @@ class SensorMetadata:
         return cls.from_json(doc)
 
 
+@dataclass(frozen=True)
+class Firmware:
+    """What a firmware version's sensor wrote, as far as ouster-sdk's test data shows it
+    (metadata written by firmware 1.12 to 3.2 and captures of 2.0 to 3.2; Ouster's release
+    notes were not at hand): the lidar profiles it had, how its packet footer ends, and the
+    revision strings it reports."""
+
+    version: str
+    profiles: tuple[str, ...]
+    footer: str  # "crc", "placeholder" (0xdeadbeef0000c0de) or "zeros"
+
+    @property
+    def image_rev(self) -> str:
+        family = "aries" if self.version < "3" else "bootes"
+        return f"ousteros-image-prod-{family}-v{self.version}.0"
+
+    @property
+    def build_rev(self) -> str:
+        return f"v{self.version}.0"
+
+
+_ALL = ("LEGACY", "RNG19_RFL8_SIG16_NIR16", "RNG19_RFL8_SIG16_NIR16_DUAL", "RNG15_RFL8_NIR8")
+#: firmware tcf-hil emulates on request (``[sensor] firmware``). Profiles: the metadata of
+#: 2.0 and 2.1 has no udp_profile_lidar (LEGACY only); 2.2 names it, and the three
+#: non-legacy profiles appear in 2.2 to 2.4 recordings. Footers: zeros in a 2.2 capture
+#: (OS-0-32-U1_v2.2.0), 0xdeadbeef0000c0de in 2.3 and 2.4 ones (OS-0-128-U1_v2.3.0,
+#: duplicate_id 2.4.0), a CRC-64/XZ from 2.5 (same_ports_nonlegacy 2.5.2, crc_test 3.2.0).
+FIRMWARES: dict[str, Firmware] = {f.version: f for f in (
+    Firmware("2.0", ("LEGACY",), "zeros"),
+    Firmware("2.1", ("LEGACY",), "zeros"),
+    Firmware("2.2", _ALL, "zeros"),
+    Firmware("2.3", _ALL, "placeholder"),
+    Firmware("2.4", _ALL, "placeholder"),
+    Firmware("2.5", _ALL, "crc"),
+    Firmware("3.0", _ALL, "crc"),
+    Firmware("3.1", _ALL, "crc"),
+)}
+FOOTER_PLACEHOLDER = bytes.fromhex("dec00000efbeadde")
+
+
+def firmware_of(meta: SensorMetadata) -> Firmware | None:
+    """The emulated firmware entry for the version ``meta`` names, if any."""
+    fw = meta.firmware
+    return None if fw is None else FIRMWARES.get(f"{fw[0]}.{fw[1]}")
+
+
 def os0_64_metadata(mode: str = "1024x10", profile: str = "RNG19_RFL8_SIG16_NIR16",
-                    **kw: Any) -> SensorMetadata:
-    """The shipped OS0-64 calibration (derived: every other beam of a real OS-0-128)."""
+                    firmware: str | None = None, **kw: Any) -> SensorMetadata:
+    """The shipped OS0-64 calibration (derived: every other beam of a real OS-0-128);
+    ``firmware`` (:data:`FIRMWARES`) sets the revisions that sensor reports, and the profile
+    must be one it had."""
+    if firmware is not None:
+        fw = FIRMWARES.get(firmware)
+        if fw is None:
+            raise MetadataError(f"firmware {firmware!r}; emulated: {', '.join(FIRMWARES)}")
+        if profile not in fw.profiles:
+            raise MetadataError(f"udp_profile_lidar {profile}: firmware {firmware} had "
+                                f"{', '.join(fw.profiles)}")
+        kw = {"image_rev": fw.image_rev, "build_rev": fw.build_rev, **kw}
     cal = json.loads((resources.files(__package__) / "os0_64_calibration.json")
                      .read_text("utf-8"))
     w = parse_mode(mode)[0]
     shift = tuple(round(s * w / 1024) for s in cal["pixel_shift_by_row_1024"])
+    kw = {"build_rev": cal["build_rev"], "image_rev": cal["image_rev"], **kw}
     return SensorMetadata(
         mode=mode, profile=profile, prod_line=cal["prod_line"], prod_pn=cal["prod_pn"],
-        build_rev=cal["build_rev"], image_rev=cal["image_rev"],
         beam_altitude_deg=tuple(cal["beam_altitude_angles"]),
         beam_azimuth_deg=tuple(cal["beam_azimuth_angles"]), pixel_shift_by_row=shift,
         lidar_origin_to_beam_origin_mm=cal["lidar_origin_to_beam_origin_mm"],

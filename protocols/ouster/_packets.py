@@ -50,6 +50,7 @@ class PacketFormat:
     columns_per_frame: int = 1024
     header: Header = None  # type: ignore[assignment]  # (None: the profile's)
     crc: bool = None  # type: ignore[assignment]  # (None: the header's)
+    footer: bytes = b""  # what the footer's last 8 bytes hold where there is no CRC
 
     def __post_init__(self) -> None:
         if self.columns_per_packet <= 0 or self.columns_per_frame % self.columns_per_packet:
@@ -358,6 +359,8 @@ def finish_lidar_packets(fmt: PacketFormat, frame: NDArray[np.uint8], *, frame_i
         _write(f, arr, v)
     if fmt.crc:
         arr[:, -8:].view("<u8")[:, 0] = (crc_rows or crc64_xz_rows)(arr[:, :-8])
+    elif fmt.footer:
+        arr[:, -len(fmt.footer):] = np.frombuffer(fmt.footer, np.uint8)
     return arr
 
 

@@ -402,3 +402,50 @@ def test_metadata_json_is_plain_json() -> None:
     doc = json.loads(o.os0_64_metadata().dumps())
     assert set(doc) == {"sensor_info", "config_params", "lidar_data_format", "beam_intrinsics",
                         "lidar_intrinsics", "imu_intrinsics", "calibration_status"}
+
+
+# ------------------------------------------------------------------- older firmware (22.4)
+
+
+@pytest.mark.parametrize(("version", "profile"), [
+    (v, p) for v, fw in o.FIRMWARES.items() for p in fw.profiles])
+def test_ouster_sdk_reads_what_each_emulated_firmware_writes(version: str, profile: str
+                                                             ) -> None:
+    m = o.os0_64_metadata("1024x10", profile, firmware=version)
+    text = m.dumps()
+    assert ("data_format" in json.loads(text)) == (version < "3.0")  # the legacy flat file
+    assert o.SensorMetadata.loads(text) == m
+    assert _our_values(o.SensorMetadata.loads(text)) == _sdk_values(text)
+    info = core.SensorInfo(text)
+    assert info.image_rev == m.image_rev and f"v{version}.0" in info.image_rev
+    fmt = m.packet_format
+    fields = _random_fields(fmt, np.random.default_rng(6))
+    ts = np.arange(1024, dtype=np.uint64) * 97_656 + 5
+    arr = o.encode_lidar_frame(fmt, fields, ts, frame_id=9, init_id=m.init_id,
+                               prod_sn=m.prod_sn)
+    pf = core.PacketFormat(info)
+    footer = arr[0, -8:].tobytes()
+    kind = o.FIRMWARES[version].footer
+    if profile != "LEGACY":
+        assert footer == {"crc": pf.calculate_crc(arr[0]).to_bytes(8, "little"),
+                          "placeholder": bytes.fromhex("dec00000efbeadde"),
+                          "zeros": bytes(8)}[kind]
+        assert o.decode_lidar_packet(fmt, arr[0].tobytes(), init_id=m.init_id).frame_id == 9
+    assert pf.frame_id(arr[0]) == 9
+    np.testing.assert_array_equal(pf.packet_field("RANGE", arr[1]), fields["RANGE"][:, 16:32])
+
+
+def test_a_firmware_refuses_the_profiles_it_did_not_have() -> None:
+    with pytest.raises(o.MetadataError, match=r"firmware 2\.1 had LEGACY"):
+        o.os0_64_metadata("1024x10", "RNG15_RFL8_NIR8", firmware="2.1")
+    with pytest.raises(o.MetadataError, match=r"firmware '1\.9'; emulated: 2\.0, 2\.1"):
+        o.os0_64_metadata(firmware="1.9")
+
+
+def test_the_sensor_key_offers_every_emulated_firmware() -> None:
+    import typing
+
+    from emulators.lidar import SensorModel
+
+    hints = typing.get_type_hints(SensorModel)
+    assert typing.get_args(hints["firmware"]) == tuple(o.FIRMWARES)

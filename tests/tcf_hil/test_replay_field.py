@@ -301,3 +301,22 @@ def test_a_pcap_inside_a_run_directory_finds_its_metadata(tmp_path: Path) -> Non
     assert Recording.load(run / "lidar.pcap").meta == m
     with pytest.raises(InputError, match="not a tcf-hil run directory"):
         Recording.load(run)
+
+
+def test_a_scenario_runs_older_firmware_and_says_which_profiles_it_had() -> None:
+    import dataclasses
+
+    from tcf_hil.errors import ConfigError
+    from tcf_hil.lidar import sensor_metadata
+    from tcf_hil.scenario import load_scenario
+
+    base = load_scenario("forest-ii")
+
+    def on(fw: str) -> object:
+        return dataclasses.replace(base, sensor=dataclasses.replace(base.sensor, firmware=fw))
+
+    m = sensor_metadata(on("2.3"), profile="RNG15_RFL8_NIR8")  # type: ignore[arg-type]
+    assert m.firmware == (2, 3, 0) and not m.packet_format.crc
+    assert "data_format" in json.loads(m.dumps())  # the legacy flat metadata file
+    with pytest.raises(ConfigError, match=r"sensor\.firmware = '2\.1'.*had LEGACY"):
+        sensor_metadata(on("2.1"), profile="RNG15_RFL8_NIR8")  # type: ignore[arg-type]
