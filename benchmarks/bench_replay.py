@@ -86,6 +86,8 @@ def measure(path: Path) -> dict[str, float]:
             except OSError:  # a full receive buffer nobody reads: the send is what counts
                 pass
     out["send_s"] = time.perf_counter() - t
+    rx.close()
+    tx.close()
     out["datagrams"] = n
     out["recorded_s"] = rec.span_ns / 1e9
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -23,6 +23,8 @@ import numpy as np
 __all__ = ["PcapError", "PcapWriter", "UdpDatagram", "UdpReader", "read_udp"]
 
 LINKTYPE_ETHERNET = 1
+MAX_RECORD = 1 << 18  # bytes: a record claiming more is damage (IPv4's largest is 64 KiB)
+MAX_PENDING = 256  # datagrams awaiting fragments: the oldest is dropped beyond this
 _ETH = struct.Struct("!6s6sH")
 _IP = struct.Struct("!BBHHHBBH4s4s")
 _UDP = struct.Struct("!HHHH")
@@ -238,6 +240,9 @@ def _frames(f: BinaryIO) -> Iterator[tuple[int, bytes]]:
         if not hdr:
             return
         sec, frac, incl, _orig = rec.unpack(hdr)
+        if incl > MAX_RECORD:
+            raise PcapError(f"record at byte {at} claims {incl} bytes; no frame is over "
+                            f"{MAX_RECORD}")
         body = src.read(incl, f"record at byte {at} (claims {incl} bytes)") if incl else b""
         if len(body) != incl:
             raise PcapError(f"record at byte {at} claims {incl} bytes; none remain")
@@ -268,7 +273,7 @@ def _pcapng_frames(src: _Stream, first: bytes) -> Iterator[tuple[int, bytes]]:
         else:
             rest = b""
         blen = struct.unpack_from(end + "I", head, 4)[0]
-        if blen < 12 or blen % 4:
+        if blen < 12 or blen % 4 or blen > MAX_RECORD + 64:
             raise PcapError(f"pcapng block at byte {pos} has length {blen}")
         tail = src.read(blen - 8 - len(rest), f"pcapng block of {blen} bytes")
         if len(tail) != blen - 8 - len(rest):
@@ -365,6 +370,11 @@ class UdpReader:
         more, frag = bool(ff & 0x2000), (ff & 0x1FFF) * 8
         if more or frag:
             key = (src, dst, ident)
+            if key in pending and frag in pending[key][1]:  # the ident came round again
+                del pending[key]  # (a datagram that lost a fragment, 65536 datagrams ago)
+            if key not in pending:
+                while len(pending) >= MAX_PENDING:  # a lost fragment: give its datagram up
+                    del pending[next(iter(pending))]
             t0, parts, last = pending.get(key, (ts, {}, None))
             parts[frag] = body
             if not more:

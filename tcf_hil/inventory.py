@@ -6,10 +6,10 @@ The CSV has a header row; ``id``, ``x`` and ``y`` are required, ``z``, ``dbh_m``
 is a value not measured. Coordinates are metres in the projected frame the onboard program
 publishes in (e.g. UTM: the harvester's CAN datum puts its map there); matching is in x-y, so
 ``z`` only describes. Metrics whose inputs the inventory lacks (DBH without ``dbh_m``, height
-without ``height_m``, every class metric without ``class``, maxcurve always) are absent from
-the score (``null`` in score.json, "absent" in tables), never zero. An inventory knows
-nothing of what the sensor saw: its trees all count as seen, so the seen/all split is the
-same table twice.
+without ``height_m``, every class metric and the EM without a class for every tree,
+maxcurve always) are absent from the score (``null`` in score.json, "absent" in tables),
+never zero. An inventory knows nothing of what the sensor saw: its trees all count as seen,
+so the seen/all split is the same table twice.
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def read_inventory(path: Path) -> dict[str, Any]:
         if cls and cls not in ("S", "C", "X"):
             raise InputError(src, f"line {line}, column class",
                              f"{cell('class')!r}; expected S, C or X")
-        o["class"] = cls or "S"  # (no class: the class metrics are absent, not judged)
+        o["class"] = cls
         for name, key in (("dbh_m", "dbh"), ("height_m", "h")):
             v = number(name, _MAX_SIZE)
             if v is not None and v < 0:
@@ -117,15 +117,15 @@ def read_inventory(path: Path) -> dict[str, Any]:
             if v is not None:
                 o[key] = v
         objects.append(o)
-    absent = [name for name in ("dbh_m", "height_m", "class") if name not in col
-              or not any(cell_present(r, col[name]) for r in rows[1:])]
+    absent = [name for name, key in (("dbh_m", "dbh"), ("height_m", "h"))
+              if not any(key in o for o in objects)]
+    if not all(o["class"] for o in objects):  # the EM needs every tree's class
+        absent.append("class")
+    for o in objects:
+        o["class"] = o["class"] or "S"  # (no class: the class metrics are absent, not judged)
     return {"objects": objects, "total_objects_count": len(objects),
             "inventory": {"source": src, "columns": [h for h in head if h in col],
                           "absent": absent + ["maxcurve"]}}
-
-
-def cell_present(row: list[str], i: int) -> bool:
-    return i < len(row) and bool(row[i].strip())
 
 
 def absent_metrics(truth: dict[str, Any]) -> list[str]:

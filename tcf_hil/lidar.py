@@ -78,6 +78,7 @@ def sensor_metadata(scn: Scenario, *, mode: str = "1024x10",
     init_id = (s * 2654435761 + 12345) % (1 << 24) or 1
     fw = scn.sensor.firmware
     try:
+        # (3.1: the shipped calibration's own revision strings, build date included)
         return os0_64_metadata(mode, profile, firmware=None if fw == "3.1" else fw,
                                init_id=init_id, udp_dest=udp_dest,
                                udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)

@@ -16,7 +16,7 @@ from typing import IO, Any
 from tcf_hil._io import ensure_dir, loads_json, write_bytes_atomic
 from tcf_hil.errors import InputError
 from tcf_hil.evaluation import EvalConfig, Evaluation, evaluate
-from tcf_hil.stems_json import Kind, StemTable, stem_table
+from tcf_hil.stems_json import StemTable, stem_table
 
 MAX_PUBLICATION_BYTES = 32 << 20
 
@@ -220,12 +220,14 @@ def score_forest(gt_doc: dict[str, Any], obs: StemTable, cfg: EvalConfig | None 
                  gt_source: str = "ground_truth.json") -> Scores:
     """``obs`` scored against a generated forest's ground truth or a field inventory
     (:func:`tcf_hil.inventory.read_inventory`: the metrics it cannot give are None)."""
-    kind: Kind = "observed" if "inventory" in gt_doc else "ground_truth"
-    gt_all = stem_table(gt_doc, gt_source, kind)
-    gt_seen = stem_table(seen_truth(gt_doc), gt_source, kind)
-    scores = Scores(evaluate(gt_all, obs, cfg), evaluate(gt_seen, obs, cfg), gt_all, gt_seen)
-    for ev in (scores.all, scores.seen):
+    if "inventory" in gt_doc:  # all trees count as seen: one evaluation serves both
+        gt = stem_table(gt_doc, gt_source, "observed")
+        ev = evaluate(gt, obs, cfg)
         blank_absent(ev.metrics, gt_doc)
+        return Scores(ev, ev, gt, gt)
+    gt_all = stem_table(gt_doc, gt_source, "ground_truth")
+    gt_seen = stem_table(seen_truth(gt_doc), gt_source, "ground_truth")
+    scores = Scores(evaluate(gt_all, obs, cfg), evaluate(gt_seen, obs, cfg), gt_all, gt_seen)
     return scores
 
 
@@ -236,6 +238,8 @@ def blank_absent(metrics: dict[str, Any], gt_doc: dict[str, Any]) -> None:
 
     for key in absent_metrics(gt_doc):
         metrics[key] = None
+    if metrics.get("evaluation_score_percent", 0) is None:  # no classes: no EM either
+        metrics["em"] = None
     if "inventory" in gt_doc:
         for name in ("height", "dbh", "maxcurve"):
             if not metrics[f"{name}_pairs"]:

@@ -63,7 +63,7 @@ def find_metadata(pcap: Path) -> Path:
     """The metadata JSON beside ``pcap``, found as ouster-cli finds it: the ``.json`` file in
     the same directory whose name shares the longest prefix with the pcap's (at least one
     character); a tcf-hil run's ``metadata.json`` where none does."""
-    names = [f for f in os.listdir(pcap.parent or ".") if f.lower().endswith(".json")
+    names = [f for f in os.listdir(pcap.parent) if f.lower().endswith(".json")
              and (pcap.parent / f).is_file()]
     score = {f: _common(f, pcap.name) for f in names}
     best = max(score.values(), default=0)
@@ -127,6 +127,8 @@ class Recording:
         (``progress(bytes read, bytes)``)."""
         if path.is_dir():
             rec = cls._run_dir(path, meta, can_log)
+            t0, unix0, speed = rec.can_clock
+            rec.can_clock = (t0, unix0 - round(can_offset_s * 1e9), speed)
         else:
             if not path.is_file():
                 raise InputError(str(path), "", "no such file or directory")
@@ -175,10 +177,11 @@ class Recording:
         if self.can_log is None:
             return
         t0, unix0, speed = self.can_clock
-        for m in _can_reader(self.can_log):
-            if m.is_error_frame:
-                continue
-            yield t0 + round((m.timestamp * 1e9 - unix0) * speed), m
+        with _can_reader(self.can_log) as reader:
+            for m in reader:
+                if m.is_error_frame:
+                    continue
+                yield t0 + round((m.timestamp * 1e9 - unix0) * speed), m
 
     def _scan(self, progress: Callable[[int, int], None] | None) -> None:
         """Check every lidar packet against the metadata (size, packet type, ids, CRC where
@@ -227,7 +230,8 @@ class Recording:
                         batch.append((i, d.payload))
                         if len(batch) == _CHECK_BATCH:
                             check()
-                        ids += [fr.frame_id for fr in asm.feed(d.payload)]
+                        ids.extend(fr.frame_id for fr in asm.feed(d.payload))
+                        del ids[1:-1]  # (the first and the last are what is needed)
                     else:
                         n["other"] += 1
                         n[f"port {d.dst_port}"] += 1
@@ -240,8 +244,8 @@ class Recording:
             raise InputError(str(self.pcap), "", str(err)) from err
         except OSError as err:
             raise InputError(str(self.pcap), "", err.strerror or str(err)) from err
-        ids += [fr.frame_id for fr in asm.flush()]
-        self.frames = len(ids)
+        ids.extend(fr.frame_id for fr in asm.flush())
+        self.frames = asm.stats.frames
         if ids:
             self.frame_span = (ids[-1] - ids[0]) % fmt.frame_id_modulus + 1
         if not n["lidar"]:
@@ -255,11 +259,32 @@ class Recording:
         period = 1_000_000_000 // meta.frequency_hz
         assert first is not None and last is not None
         self.lidar_start_ns, self.span_ns = first, last - first + period
-        self.can_frames = sum(1 for _ in self.can_messages())
-        if self.can_log is not None and not self.is_run:
-            self.sdo_node, self.sdo_values = recorded_sdo(m for _t, m in self.can_messages())
+        self._scan_can_log()
         if progress is not None:
             progress(size, size)
+
+    def _scan_can_log(self) -> None:
+        """Count the CAN log's frames and (a field log's) the SDO answers it recorded, in one
+        pass; a log that breaks off is one error naming it."""
+        if self.can_log is None:
+            return
+        frames: list[can.Message] = []
+
+        def counted() -> Iterator[can.Message]:
+            for _t, m in self.can_messages():
+                self.can_frames += 1
+                if 0x581 <= m.arbitration_id <= 0x5FF:
+                    frames.append(m)
+                yield m
+
+        try:
+            for _m in counted():
+                pass
+        except Exception as err:  # python-can's readers raise what their parsers raise
+            raise InputError(str(self.can_log), f"after frame {self.can_frames}",
+                             f"not a readable CAN log: {_first_line(err)}") from err
+        if not self.is_run:
+            self.sdo_node, self.sdo_values = recorded_sdo(iter(frames))
 
     def _bad(self, i: int, why: str) -> InputError:
         return InputError(str(self.pcap), f"datagram {i}", f"{why}: the capture does not fit "
@@ -294,12 +319,15 @@ def _check_can_log(path: Path) -> None:
     if not path.is_file():
         raise InputError(str(path), "", "no such file")
     try:
-        for _m in _can_reader(path):
-            break
+        with _can_reader(path) as reader:
+            next(iter(reader), None)
     except Exception as err:  # python-can's readers raise what their parsers raise
-        raise InputError(str(path), "", f"not a readable CAN log: "
-                         f"{str(err).splitlines()[0] if str(err) else type(err).__name__}"
+        raise InputError(str(path), "", f"not a readable CAN log: {_first_line(err)}"
                          ) from err
+
+
+def _first_line(err: BaseException) -> str:
+    return str(err).splitlines()[0] if str(err) else type(err).__name__
 
 
 def _shift_imu(payload: bytes, dt_ns: int) -> bytes:
@@ -321,16 +349,17 @@ def _shift_can(msg: can.Message, node_id: int, dt_ns: int) -> can.Message:
     return msg
 
 
-def events(rec: Recording, loop: bool, node_id: int | None
+def events(rec: Recording, loop: bool, node_id: int | None, *, answered: bool = True
            ) -> Iterator[tuple[int, str, Any]]:
     """(ns, "udp"/"can", item) in time order (the pcap's datagrams in capture order, the CAN
     log's frames between them), forever when ``loop``; read from the files as they go.
-    ``node_id``: the harvester node whose recorded SDO exchanges are left out (a responder
-    answers them now; None: every frame is sent)."""
+    ``node_id``: the harvester node, whose pose time a loop moves on; ``answered``: its
+    recorded SDO exchanges are left out (a responder answers them now)."""
     lo = rec.lidar_start_ns
     fmt = rec.meta.packet_format
-    lidar = rec.meta.udp_port_lidar
-    sdo = () if node_id is None else (0x580 + node_id, 0x600 + node_id)
+    lidar, imu = rec.meta.udp_port_lidar, rec.meta.udp_port_imu
+    sdo = (0x580 + node_id, 0x600 + node_id) if node_id is not None and answered else ()
+    crc = fast_crc_rows()
     k = 0
     while True:
         dt = k * rec.span_ns
@@ -346,8 +375,10 @@ def events(rec: Recording, loop: bool, node_id: int | None
                 continue
             if kind == 0:
                 port, payload = item
-                payload = (shift_lidar_packet(fmt, payload, dframe, dt) if port == lidar
-                           else _shift_imu(payload, dt))
+                if port == imu and len(payload) == IMU_PACKET_BYTES:  # (first: one port may
+                    payload = _shift_imu(payload, dt)                 # carry both)
+                elif port == lidar:
+                    payload = shift_lidar_packet(fmt, payload, dframe, dt, crc)
                 yield t + dt, "udp", (rec.port_map.get(port, port), payload)
             elif item.arbitration_id not in sdo:  # recorded SDO exchanges answer nobody now
                 yield t + dt, "can", _shift_can(item, node_id, dt) if node_id else item
@@ -358,7 +389,7 @@ def events(rec: Recording, loop: bool, node_id: int | None
 
 def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
            sensor_ip: str = "127.0.0.1", dest: str | None = None,
-           spec: BusSpec | None = None, node_id: int | None = 10,
+           spec: BusSpec | None = None, node_id: int | None = 10, answered: bool = True,
            stop: threading.Event | None = None,
            on_progress: Callable[[int, int], None] | None = None,
            rec: Recording | None = None, route: Route | None = None) -> dict[str, int]:
@@ -375,7 +406,7 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
     total = rec.counts["lidar"] + rec.counts["imu"] + rec.can_frames
     start: tuple[int, float] | None = None
     try:
-        for n, (t, kind, item) in enumerate(events(rec, loop, node_id)):
+        for n, (t, kind, item) in enumerate(events(rec, loop, node_id, answered=answered)):
             if stop.is_set():
                 break
             if start is None:

@@ -34,7 +34,7 @@ from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 from emulators.faults import next_init_id
-from protocols.ouster import EMULATED_PROFILES, MetadataError, SensorMetadata
+from protocols.ouster import EMULATED_PROFILES, MetadataError, SensorMetadata, firmware_of
 
 __all__ = ["SensorApi"]
 
@@ -230,10 +230,14 @@ class SensorApi:
             new = self.meta.with_changes(**kw)
         except (MetadataError, TypeError, ValueError) as err:
             raise _HttpError(HTTPStatus.BAD_REQUEST, f"config rejected: {err}") from err
-        if new.profile != self.meta.profile and new.profile not in EMULATED_PROFILES:
-            raise _HttpError(HTTPStatus.BAD_REQUEST, (
-                f"config rejected: udp_profile_lidar {new.profile} is read and replayed, not "
-                f"emulated; the emulator writes {', '.join(EMULATED_PROFILES)}"))
+        if new.profile != self.meta.profile:
+            fw = firmware_of(new)
+            offered = fw.profiles if fw is not None else EMULATED_PROFILES
+            if new.profile not in offered:
+                raise _HttpError(HTTPStatus.BAD_REQUEST, (
+                    f"config rejected: udp_profile_lidar {new.profile}; this sensor "
+                    f"(firmware {fw.version if fw else new.image_rev}) offers "
+                    f"{', '.join(offered)}"))
         self.meta = new
         self.staged = dict(new.to_json()["config_params"])
         if tell is not None:

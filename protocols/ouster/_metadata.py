@@ -106,6 +106,15 @@ _LEGACY_SECTIONS: dict[str, tuple[str, ...]] = {  # the flat keys each nested se
 }
 
 
+def _kept(doc: dict[str, Any]) -> dict[str, Any]:
+    """What :meth:`SensorMetadata.to_json` keeps of a document read: all of it, where it is
+    plain JSON (no NaN or infinity, which a strict writer refuses); else nothing."""
+    try:
+        return {"document": json.loads(json.dumps(doc, allow_nan=False))}
+    except (ValueError, TypeError, RecursionError):
+        return {}
+
+
 def legacy_metadata(doc: dict[str, Any]) -> dict[str, Any]:
     """A nested document in the legacy flat format, as ouster-sdk wrote it beside recordings
     of firmware 2.x (``tests/metadata/*_legacy.json``): the sensor_info, beam, lidar and
@@ -305,18 +314,19 @@ class SensorMetadata:
 
     @property
     def packet_format(self) -> PacketFormat:
-        """The lidar packets' layout. Their footer holds a CRC-64/XZ from firmware 2.5 on (or
-        where the firmware is not named): real packets of firmware 2.5.2 and 3.2.0 in
+        """The lidar packets' layout, their footer as :data:`FIRMWARES` says the firmware
+        ended it (a CRC-64/XZ from 2.5 on, or where the firmware is not named or not in the
+        table): real packets of firmware 2.5.2 and 3.2.0 in
         ouster-sdk's test data carry one (``same_ports_nonlegacy.pcap``, ``crc_test.pcap``);
         those of 2.2 to 2.4 carry 0xdeadbeef0000c0de or zeros there (``duplicate_id.pcap``,
         ``OS-0-32-U1_v2.2.0``, ``OS-2-128-U1_v2.3.0``); the FUSA header has none
         (ouster-sdk reads none, and a firmware 3.1 FUSA packet's footer is zeros)."""
-        fw = self.firmware
         fmt = PacketFormat.create(self.profile, self.pixels, self.columns_per_packet,
                                   self.columns, self.header_type or None)
-        if fmt.crc and fw is not None and fw < (2, 5, 0):
-            fmt = replace(fmt, crc=False, footer=FOOTER_PLACEHOLDER if fw >= (2, 3, 0)
-                          else b"")
+        fw = firmware_of(self)
+        if fmt.crc and fw is not None and fw.footer != "crc":
+            fmt = replace(fmt, crc=False,
+                          footer=FOOTER_PLACEHOLDER if fw.footer == "placeholder" else b"")
         return fmt
 
     def with_changes(self, **kw: Any) -> SensorMetadata:
@@ -475,7 +485,10 @@ class SensorMetadata:
             raise MetadataError(f"beam_intrinsics.lidar_origin_to_beam_origin_mm = "
                                 f"{_short(origin)}; expected a finite number")
         profile = get(ldf_name, "udp_profile_lidar", str, "LEGACY")
-        header_type = get(ldf_name, "header_type", str, "") if "header_type" in ldf else ""
+        header_type = ldf.get("header_type", "")
+        if not isinstance(header_type, str):
+            raise MetadataError(f"{ldf_name}.header_type = {_short(header_type)}; expected "
+                                "STANDARD or FUSA")
         window = get(ldf_name, "column_window", list, [0, w - 1])
         if len(window) != 2 or not all(_is_int(c) and 0 <= c < w for c in window):
             raise MetadataError(f"{ldf_name}.column_window = {_short(window)}; expected two "
@@ -512,7 +525,7 @@ class SensorMetadata:
             header_type=header_type,
             column_window=None if tuple(window) == (0, w - 1) else (int(window[0]),
                                                                      int(window[1])),
-            extra={"document": copy.deepcopy(doc)},
+            extra=_kept(doc),
         )
 
     @classmethod

@@ -41,8 +41,8 @@ class PacketFormat:
     ``header``: the packet and column header layout (:data:`HEADERS`; default the profile's,
     as ouster-sdk assumes when the metadata names no ``header_type``). ``crc``: whether the
     packet footer's last 8 bytes are a CRC-64/XZ that writers write and readers check
-    (default: the header's; firmware before 3.1 wrote a placeholder there, see
-    :attr:`SensorMetadata.packet_format`)."""
+    (default: the header's; firmware before 2.5 had none, see
+    :attr:`SensorMetadata.packet_format`); ``footer``: what they hold where there is none."""
 
     profile: Profile
     pixels_per_column: int = 64
@@ -71,11 +71,12 @@ class PacketFormat:
         if profile not in PROFILES:
             raise KeyError(f"unknown lidar profile {profile!r}; known: {', '.join(PROFILES)}")
         p = PROFILES[profile]
-        if header_type is not None and header_type not in HEADERS:
+        if header_type not in (None, "STANDARD", "FUSA"):
             raise KeyError(f"unknown header_type {header_type!r}; known: STANDARD, FUSA")
-        header = HEADERS[p.header if p.legacy or header_type is None else header_type]
-        return cls(p, pixels_per_column, columns_per_packet, columns_per_frame, header,
-                   header.crc if crc is None else crc)
+        header = None if p.legacy or header_type is None else HEADERS[header_type]
+        # (None: the defaults of __post_init__)
+        return cls(p, pixels_per_column, columns_per_packet, columns_per_frame,
+                   header, crc)  # type: ignore[arg-type]
 
     @property
     def frame_id_modulus(self) -> int:
@@ -364,7 +365,8 @@ def finish_lidar_packets(fmt: PacketFormat, frame: NDArray[np.uint8], *, frame_i
     return arr
 
 
-def shift_lidar_packet(fmt: PacketFormat, payload: bytes, frames: int, dt_ns: int) -> bytes:
+def shift_lidar_packet(fmt: PacketFormat, payload: bytes, frames: int, dt_ns: int,
+                       crc_rows: CrcRows | None = None) -> bytes:
     """``payload`` as the same sensor sends it ``frames`` frames and ``dt_ns`` later: the
     frame_id advanced (16 bits, wrapping), every column time stamp shifted and the CRC
     footer rewritten (a replay that loops). A payload of another size is returned as is."""
@@ -382,7 +384,7 @@ def shift_lidar_packet(fmt: PacketFormat, payload: bytes, frames: int, dt_ns: in
     assert fid is not None
     _write(fid, arr, (_read(fid, arr) + np.uint64(frames % m)) % np.uint64(m))
     if fmt.crc:
-        arr[:, -8:].view("<u8")[:, 0] = crc64_xz_rows(arr[:, :-8])
+        arr[:, -8:].view("<u8")[:, 0] = (crc_rows or crc64_xz_rows)(arr[:, :-8])
     return arr.tobytes()
 
 

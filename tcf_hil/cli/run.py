@@ -264,14 +264,19 @@ def replay_cmd(recording: Path, meta: Path | None, can_log: Path | None, can_off
 
     with graceful_stop("stopping the replay") as stop, \
             Progress("checking the recording (MB)") as bar:
+
+        def checked(done: int, total: int) -> None:
+            bar.counter(done >> 20, total >> 20)
+            if done >= total:  # checked: the replay's own lines follow
+                bar.update(visible=False)
+
         try:
             r = replay_run(recording, None, None, speed=speed, loop=loop, dest=dest,
                            can_spec=can_spec, lead_s=0.0,
                            sensor_ip=None if sensor_address == "auto" else sensor_address,
                            http_port=http_port, stop=stop, announce=console.print, meta=meta,
                            can_log=can_log, can_offset_s=can_offset,
-                           ports=(lidar_port, imu_port),
-                           progress=lambda done, total: bar.counter(done >> 20, total >> 20))
+                           ports=(lidar_port, imu_port), progress=checked)
         except OSError as err:
             if err.errno is None:
                 raise

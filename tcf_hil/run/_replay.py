@@ -167,8 +167,8 @@ class ReplayTraffic:
         def send() -> None:
             self.sent.update(replay(self.src, speed=self.speed, loop=self.loop,
                                     sensor_ip=self.sensor_ip, spec=wire.spec,
-                                    node_id=self.sdo_node, stop=self.end, rec=self.rec,
-                                    route=wire.route))
+                                    node_id=self.node_id, answered=self.sdo_node is not None,
+                                    stop=self.end, rec=self.rec, route=wire.route))
 
         if self.with_sic and wire.stop.wait(self.lead_s):
             return

@@ -380,9 +380,11 @@ class LidarReceiver(threading.Thread):
             except OSError:
                 break
             st.last_packet = time.monotonic()
-            for frame in asm.feed(view[:n]):
+            out = asm.feed(view[:n])
+            for frame in out:
                 self._push(frame)
-            self._count(a)
+            if out or not a.packets % 64:
+                self._count(a)
         for frame in asm.flush():
             self._push(frame)
         self._count(a)

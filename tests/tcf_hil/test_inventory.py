@@ -104,3 +104,14 @@ def test_score_command_takes_an_inventory(tmp_path: Path) -> None:
     assert m["height_rmse_m"] == pytest.approx(1.0) and m["dbh_rmse_m"] is None
     assert m["evaluation_score_percent"] is None
     assert "absent" in p.stdout
+
+
+def test_a_class_column_with_gaps_gives_no_class_metrics(tmp_path: Path) -> None:
+    path = _write(tmp_path / "inv.csv", ["id", "x", "y", "class"],
+                  [[1, 0, 0, "S"], [2, 5, 0, ""]])
+    truth = read_inventory(path)
+    sc = score_forest(truth, stem_table({"objects": [{"cp": [0, 0, 0], "class": "C"}]},
+                                        "obs", "observed"))
+    m = sc.all.metrics
+    assert m["evaluation_score_percent"] is None and m["em"] is None
+    assert (m["total_matches"], m["missed"]) == (1, 1) and sc.seen is sc.all

@@ -320,3 +320,30 @@ def test_a_scenario_runs_older_firmware_and_says_which_profiles_it_had() -> None
     assert "data_format" in json.loads(m.dumps())  # the legacy flat metadata file
     with pytest.raises(ConfigError, match=r"sensor\.firmware = '2\.1'.*had LEGACY"):
         sensor_metadata(on("2.1"), profile="RNG15_RFL8_NIR8")  # type: ignore[arg-type]
+
+
+def test_a_looped_field_log_moves_the_pose_time_on(tmp_path: Path) -> None:
+    """Without SDO answers in the log (none to answer again), a loop's second pass still
+    moves the harvester's pose time on by the recording's length."""
+    from protocols.harvester import HARVESTER_OD, POSE, decode_pdo, encode_pdo
+
+    pcap, _m, _sent = make_recording(tmp_path, frames=2, other=False)
+    tpdo = next(t for t in HARVESTER_OD.tpdos if (POSE, 8) in t.variables)
+    log = tmp_path / "drive.log"
+    with can.Logger(str(log)) as w:
+        for k in range(4):
+            raw = {key: 0 for key in tpdo.variables} | {(POSE, 8): 1000 + k}
+            w.on_message_received(can.Message(
+                timestamp=(T0 + k * 40_000_000) / 1e9, arbitration_id=tpdo.cob_id(10),
+                data=encode_pdo(tpdo, raw), is_extended_id=False))
+    rec = Recording.load(pcap, can_log=log)
+    assert rec.sdo_node is None and rec.can_frames == 4
+    times = []
+    for _t, kind, item in events(rec, True, 10, answered=False):
+        if kind == "can":
+            times.append(decode_pdo(tpdo, bytes(item.data))[(POSE, 8)])
+        if len(times) == 8:
+            break
+    shift = rec.span_ns // 1000
+    assert times[:4] == [1000, 1001, 1002, 1003]
+    assert times[4:] == [1000 + k + shift for k in range(4)][:len(times) - 4]
