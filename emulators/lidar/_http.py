@@ -41,6 +41,8 @@ __all__ = ["SensorApi"]
 MAX_BODY = 64 * 1024
 #: what a fixed (run) sensor lets a client change: where its stream goes
 REDIRECT_KEYS = ("udp_dest", "udp_port_lidar", "udp_port_imu")
+#: what the emulator's packets may carry (metadata read from a file may say any divisor)
+EMULATED_COLUMNS_PER_PACKET = (8, 16, 32, 64, 128)
 _CONFIG_KEYS = {"lidar_mode": "mode", "udp_profile_lidar": "profile",
                 "udp_dest": "udp_dest", "udp_port_lidar": "udp_port_lidar",
                 "udp_port_imu": "udp_port_imu", "columns_per_packet": "columns_per_packet"}
@@ -230,6 +232,11 @@ class SensorApi:
             new = self.meta.with_changes(**kw)
         except (MetadataError, TypeError, ValueError) as err:
             raise _HttpError(HTTPStatus.BAD_REQUEST, f"config rejected: {err}") from err
+        if new.columns_per_packet != self.meta.columns_per_packet and \
+                new.columns_per_packet not in EMULATED_COLUMNS_PER_PACKET:
+            raise _HttpError(HTTPStatus.BAD_REQUEST, (
+                f"config rejected: columns_per_packet {new.columns_per_packet}; the emulator "
+                f"writes {', '.join(map(str, EMULATED_COLUMNS_PER_PACKET))}"))
         if new.profile != self.meta.profile:
             fw = firmware_of(new)
             offered = fw.profiles if fw is not None else EMULATED_PROFILES

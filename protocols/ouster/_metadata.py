@@ -279,10 +279,14 @@ class SensorMetadata:
             raise MetadataError(
                 f"beam_intrinsics: {n} altitudes, {len(self.beam_azimuth_deg)} azimuths and "
                 f"{len(self.pixel_shift_by_row)} pixel shifts; expected equal non-zero counts")
-        if self.columns_per_packet not in (8, 16, 32, 64, 128) or \
-                self.columns % self.columns_per_packet:
-            raise MetadataError(f"columns_per_packet {self.columns_per_packet}; expected a "
-                                f"power of two from 8 that divides {self.columns}")
+        cpp = self.columns_per_packet
+        if cpp < 1 or self.columns % cpp:
+            raise MetadataError(f"columns_per_packet {cpp}; expected a divisor of "
+                                f"{self.columns} (columns per frame)")
+        size = PROFILES[self.profile].packet_bytes(n, cpp)
+        if size > 65535:  # (as ouster-sdk refuses it)
+            raise MetadataError(f"columns_per_packet {cpp}: a {self.profile} packet of {n} "
+                                f"pixels would be {size} bytes; a UDP datagram holds 65535")
         for name, v, bits in (("initialization_id", self.init_id, 24),
                               ("prod_sn", self.prod_sn, 40)):
             if not 0 <= v < 1 << bits:

@@ -4,6 +4,7 @@ validation errors and fuzzing."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 
@@ -449,3 +450,33 @@ def test_the_sensor_key_offers_every_emulated_firmware() -> None:
 
     hints = typing.get_type_hints(SensorModel)
     assert typing.get_args(hints["firmware"]) == tuple(o.FIRMWARES)
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+@pytest.mark.parametrize(("beams", "cpp"), [(16, 4), (32, 8), (128, 16), (16, 32)])
+def test_every_beam_count_and_packet_width_decodes_as_the_sdk(profile: str, beams: int,
+                                                              cpp: int) -> None:
+    """16, 32, 64 and 128 beams, any columns per packet (the SDK's own encoder and parser
+    on the other side)."""
+    m = dataclasses.replace(
+        o.os0_64_metadata("512x10", profile, columns_per_packet=cpp),
+        beam_altitude_deg=tuple(np.linspace(45, -45, beams)), beam_azimuth_deg=(0.0,) * beams,
+        pixel_shift_by_row=(0,) * beams)
+    fmt = m.packet_format
+    pf = core.PacketFormat(core.SensorInfo(m.dumps()))
+    assert pf.lidar_packet_size == fmt.packet_bytes
+    fields = _random_fields(fmt, np.random.default_rng(beams + cpp))
+    ts = np.arange(512, dtype=np.uint64) * 195_312 + 7
+    arr = o.encode_lidar_frame(fmt, fields, ts, frame_id=3, init_id=m.init_id,
+                               prod_sn=m.prod_sn)
+    back = o.decode_lidar_packets(fmt, arr, init_id=m.init_id, prod_sn=m.prod_sn)
+    for f in fmt.profile.fields:
+        np.testing.assert_array_equal(back.fields[f.name], fields[f.name])
+        if f.name in [str(x) for x in pf.fields]:
+            np.testing.assert_array_equal(pf.packet_field(f.name, arr[-1]),
+                                          fields[f.name][:, -cpp:], err_msg=f.name)
+
+
+def test_a_packet_over_a_datagram_is_refused_as_the_sdk_does() -> None:
+    with pytest.raises(o.MetadataError, match="a UDP datagram holds 65535"):
+        o.os0_64_metadata("1024x10", "RNG19_RFL8_SIG16_NIR16_DUAL", columns_per_packet=128)
