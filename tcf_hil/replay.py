@@ -57,6 +57,7 @@ from tcf_hil.errors import InputError
 _TIME_KEY = (POSE, 8)
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc")
 _CHECK_BATCH = 256  # lidar packets checked at once
+_MAX_STRAYS = 1000  # lidar packets that do not fit before one does: the metadata is wrong
 
 
 def find_metadata(pcap: Path) -> Path:
@@ -109,6 +110,9 @@ class Recording:
     counts: Counter[str] = field(default_factory=Counter)
     port_map: dict[int, int] = field(default_factory=dict)
     can_frames: int = 0
+    # the sensor's source address: where the first packet that fits the metadata came from
+    # (another sensor sending to the same port is other traffic)
+    sensor_ip: str | None = None
     # a field CAN log's SDO answers: the node that gave them and the values
     sdo_node: int | None = None
     sdo_values: dict[tuple[int, int], bytes] = field(default_factory=dict)
@@ -168,8 +172,9 @@ class Recording:
         lidar, imu = self.meta.udp_port_lidar, self.meta.udp_port_imu
         with open(self.pcap, "rb") as f:
             for d in UdpReader(f):
-                if d.dst_port == lidar or (d.dst_port == imu and
-                                           len(d.payload) == IMU_PACKET_BYTES):
+                if (d.dst_port == lidar or (d.dst_port == imu and
+                                            len(d.payload) == IMU_PACKET_BYTES)) and \
+                        d.src_ip == self.sensor_ip:
                     yield d.timestamp_ns, d.dst_port, d.payload
 
     def can_messages(self) -> Iterator[tuple[int, can.Message]]:
@@ -193,6 +198,9 @@ class Recording:
         batch: list[tuple[int, bytes]] = []
         ids: list[int] = []
         first = last = None
+        sensor: str | None = None  # the source address of the metadata's sensor
+        strays: dict[str, InputError] = {}  # the first misfit from each address till then
+        imu_from: Counter[str] = Counter()
         n = self.counts
         size = self.pcap.stat().st_size
 
@@ -216,14 +224,25 @@ class Recording:
                 reader = UdpReader(f)
                 for i, d in enumerate(reader, 1):
                     if d.dst_port == imu and len(d.payload) == IMU_PACKET_BYTES:
-                        n["imu"] += 1  # (first: a sensor may send both to one port)
+                        imu_from[d.src_ip] += 1  # (first: a sensor may send both to one port)
                     elif d.dst_port == lidar:
-                        if len(d.payload) != fmt.packet_bytes:
-                            raise self._bad(i, (
-                                f"a lidar packet of {len(d.payload)} bytes; {fmt.profile.name} "
-                                f"with {fmt.pixels_per_column} pixels and "
-                                f"{fmt.columns_per_packet} columns per packet is "
-                                f"{fmt.packet_bytes} bytes"))
+                        if sensor is None:  # which address is the metadata's sensor?
+                            why = self._misfit(d.payload, crc)
+                            if why is not None:
+                                strays.setdefault(d.src_ip, self._bad(i, why))
+                                n["stray"] += 1
+                                if n["stray"] >= _MAX_STRAYS:
+                                    raise next(iter(strays.values()))
+                                continue
+                            if d.src_ip in strays:  # the sensor's own packet did not fit
+                                raise strays[d.src_ip]
+                            sensor = d.src_ip
+                            n["other sensors"] += n.pop("stray", 0)
+                        elif d.src_ip != sensor:
+                            n["other sensors"] += 1
+                            continue
+                        elif len(d.payload) != fmt.packet_bytes:
+                            raise self._bad(i, self._misfit(d.payload, crc) or "")
                         n["lidar"] += 1
                         first = d.timestamp_ns if first is None else first
                         last = d.timestamp_ns
@@ -246,6 +265,11 @@ class Recording:
             raise InputError(str(self.pcap), "", err.strerror or str(err)) from err
         ids.extend(fr.frame_id for fr in asm.flush())
         self.frames = asm.stats.frames
+        if sensor is None and strays:
+            raise next(iter(strays.values()))
+        self.sensor_ip = sensor
+        n["imu"] = imu_from.pop(sensor, 0) if sensor is not None else 0
+        n["other sensors"] += sum(imu_from.values())
         if ids:
             self.frame_span = (ids[-1] - ids[0]) % fmt.frame_id_modulus + 1
         if not n["lidar"]:
@@ -285,6 +309,20 @@ class Recording:
                              f"not a readable CAN log: {_first_line(err)}") from err
         if not self.is_run:
             self.sdo_node, self.sdo_values = recorded_sdo(iter(frames))
+
+    def _misfit(self, payload: bytes, crc: Any) -> str | None:
+        """Why a lidar packet does not fit the metadata (None: it fits)."""
+        fmt = self.meta.packet_format
+        if len(payload) != fmt.packet_bytes:
+            return (f"a lidar packet of {len(payload)} bytes; {fmt.profile.name} with "
+                    f"{fmt.pixels_per_column} pixels and {fmt.columns_per_packet} columns per "
+                    f"packet is {fmt.packet_bytes} bytes")
+        try:
+            decode_lidar_packet(fmt, payload, init_id=self.meta.init_id,
+                                prod_sn=self.meta.prod_sn, crc_rows=crc)
+        except ProtocolError as err:
+            return str(err)
+        return None
 
     def _bad(self, i: int, why: str) -> InputError:
         return InputError(str(self.pcap), f"datagram {i}", f"{why}: the capture does not fit "

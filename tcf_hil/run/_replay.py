@@ -179,9 +179,10 @@ class ReplayTraffic:
         rec, port = self.rec, self.meta_served.udp_port_lidar
         api = sensor_url(wire.api) if wire.api is not None else "off"
         n = rec.counts
-        other = n["other"] + n["not udp"]
+        other = n["other"] + n["not udp"] + n["other sensors"]
         return (f"replaying {self.src}: {rec.frames} frames ({n['lidar']} lidar, {n['imu']} "
-                f"IMU packets{f'; {other} other frames skipped' if other else ''}), "
+                f"IMU packets from {rec.sensor_ip}"
+                f"{f'; {other} other frames skipped' if other else ''}), "
                 f"{rec.can_frames} CAN frames at {self.speed:g}x from sensor "
                 f"{wire.host.address} (API {api}) to {wire.route.dest_ip}:"
                 f"{wire.route.port(port)}/{wire.route.port(self.meta_served.udp_port_imu)}"

@@ -52,10 +52,12 @@ def _arp_frame() -> bytes:
 
 def make_recording(d: Path, profile: str = "RNG19_RFL8_SIG16_NIR16", header: str = "",
                    frames: int = 3, mode: str = "512x10", pcapng: bool = False,
-                   other: bool = True) -> tuple[Path, o.SensorMetadata, list[tuple[int, bytes]]]:
+                   other: bool = True, src: str = "169.254.12.1", **meta_kw: object
+                   ) -> tuple[Path, o.SensorMetadata, list[tuple[int, bytes]]]:
     """drive.pcap(ng) and drive.json as ouster-cli writes them beside each other; returns the
     capture, the metadata and the (port, payload) of every lidar and IMU datagram in order."""
-    m = o.os0_64_metadata(mode, profile, header_type=header, udp_dest=FIELD_PC)
+    m = o.os0_64_metadata(mode, profile, header_type=header, udp_dest=FIELD_PC,
+                          **meta_kw)  # type: ignore[arg-type]
     fmt = m.packet_format
     rng = np.random.default_rng(5)
     w = PcapWriter(mtu=1500)
@@ -64,7 +66,7 @@ def make_recording(d: Path, profile: str = "RNG19_RFL8_SIG16_NIR16", header: str
     period = 10**9 // m.frequency_hz
 
     def add(t: int, port: int, payload: bytes) -> None:
-        raw = w.records(UdpDatagram(t, "169.254.12.1", FIELD_PC, 7502, port, payload))
+        raw = w.records(UdpDatagram(t, src, FIELD_PC, 7502, port, payload))
         pos = 0
         while pos < len(raw):  # split the writer's records back into frames
             _s, _f, incl, _o = struct.unpack_from("<IIII", raw, pos)
@@ -347,3 +349,33 @@ def test_a_looped_field_log_moves_the_pose_time_on(tmp_path: Path) -> None:
     shift = rec.span_ns // 1000
     assert times[:4] == [1000, 1001, 1002, 1003]
     assert times[4:] == [1000 + k + shift for k in range(4)][:len(times) - 4]
+
+
+@pytest.mark.parametrize("second", ["RNG15_RFL8_NIR8", "RNG19_RFL8_SIG16_NIR16"])
+def test_two_sensors_on_one_port_replay_the_one_the_metadata_describes(
+        tmp_path: Path, second: str) -> None:
+    """Two sensors sending to the same ports (as ouster-sdk's same_ports captures): the one
+    whose packets fit the metadata is replayed, the other's packets are other traffic;
+    with the same profile, its other init_id tells them apart."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    pa, ma, sent = make_recording(tmp_path / "a", other=False, src="169.254.1.1")
+    pb, _mb, sent_b = make_recording(tmp_path / "b", second, other=False, src="169.254.2.2",
+                                     init_id=ma.init_id + 1)
+
+    def records(p: Path) -> list[tuple[int, bytes]]:
+        data, pos, out = p.read_bytes(), 24, []
+        while pos < len(data):
+            sec, ns, incl, _o = struct.unpack_from("<IIII", data, pos)
+            out.append((sec * 10**9 + ns, data[pos + 16:pos + 16 + incl]))
+            pos += 16 + incl
+        return out
+
+    both = sorted(records(pb) + records(pa), key=lambda r: r[0])  # b's first datagram first
+    pcap = tmp_path / "both.pcap"
+    pcap.write_bytes(_pcap(both))
+    rec = Recording.load(pcap, meta=tmp_path / "a" / "drive.json")
+    assert rec.sensor_ip == "169.254.1.1"
+    assert (rec.counts["lidar"] + rec.counts["imu"], rec.counts["other sensors"]) == (
+        len(sent), len(sent_b))
+    assert [b for _t, _p, b in rec.datagrams()] == [b for _p, b in sent]
