@@ -80,6 +80,17 @@ def _open_block(a: int, b: int, template: Any, packets: Any, ts_words: Any, ts: 
 
 
 @numba.njit(cache=True, nogil=True)
+def _take_block(counter: Any, starts: Any, width: int, template: Any, packets: Any,
+                ts_words: Any, ts: Any, beams: Any, mt: Any, oc: Any, o: Any, d: Any) -> int:
+    """The next block this thread takes, begun (:func:`_open_block`): its first column,
+    or -1 when none is left."""
+    a = _next_block(counter, starts)
+    if a >= 0:
+        _open_block(a, a + width, template, packets, ts_words, ts, beams, mt, oc, o, d)
+    return a
+
+
+@numba.njit(cache=True, nogil=True)
 def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: Any, oc: Any,
                        starts: Any, counter: Any, wait_all: bool, width: int, o_all: Any,
                        d_all: Any, template: Any, packets: Any, ts_words: Any, ts: Any,
@@ -111,15 +122,14 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
     t = np.empty((width, H), np.float32)
     sid = np.empty((width, H), np.int32)
     rf, ru, addr = new_rayhit()
-    nb = starts.shape[0]
     go = _wait_go(counter)
     while go:
-        a = _next_block(counter, starts)
+        a = _take_block(counter, starts, width, template, packets, ts_words, ts, beams, mt,
+                        oc, o, d)
         if a < 0:
             break
         b = a + width
         p0, p1 = a // C, b // C
-        _open_block(a, b, template, packets, ts_words, ts, beams, mt, oc, o, d)
         for c in range(width):
             for h in range(H):
                 t[c, h], prim = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
@@ -137,7 +147,7 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
             sid_out, t_out, ok_out)
         _fetch_add(counter, 2, 1)  # type: ignore[call-arg]
     if wait_all and go:
-        _wait_blocks(counter, nb)
+        _wait_blocks(counter, starts.shape[0])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -158,16 +168,15 @@ def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts
     H = beams.shape[0]
     o = np.empty((width, H, 3), np.float32)
     d = np.empty((width, H, 3), np.float32)
-    rf, ru, addr = new_rayhit()
-    nb = starts.shape[0]
     d_flat = d_all.reshape(-1, 3)
+    rf, ru, addr = new_rayhit()
     go = _wait_go(counter)
     while go:
-        a = _next_block(counter, starts)
+        a = _take_block(counter, starts, width, template, packets, ts_words, ts, beams, mt,
+                        oc, o, d)
         if a < 0:
             break
         b = a + width
-        _open_block(a, b, template, packets, ts_words, ts, beams, mt, oc, o, d)
         for c in range(width):
             for h in range(H):
                 t, prim = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
@@ -187,5 +196,5 @@ def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts
             r_near, ambient, a * H, b * H, ss, r, e, nir)
         _fetch_add(counter, 2, 1)  # type: ignore[call-arg]
     if wait_all and go:
-        _wait_blocks(counter, nb)
+        _wait_blocks(counter, starts.shape[0])
 
