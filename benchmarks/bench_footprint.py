@@ -1,12 +1,12 @@
-"""The adaptive beam footprint against the full one: the same frames, the same seed, the
+"""The adaptive beam footprints against the full one: the same frames, the same seed, the
 range noise off and detection made a step (so only the footprint's geometry differs), on
 Forests II, V and X; per frame the pixels supersampled, the lattice rays cast, ms per frame
-(medians; the ``ideal`` sensor's beside), and how far the adaptive footprint's returns lie
-from the full one's: the share of returns (in both) that differ by more than the range
-quantum (1 mm) and by more than 5 mm, on stems and on the ground, and the share returned
-by one only. The differences are split by whether the adaptive footprint sampled the pixel
-(an edge) or took its centre ray alone (inside one object: what it leaves out is the
-footprint's range averaging there).
+(medians; the ``ideal`` sensor's beside), and how far the returns of ``adaptive`` (the
+default: the row at a vertical edge) and ``edges`` (the grid at every edge) lie from the
+full one's: the share of returns (in both) that differ by more than the range quantum
+(1 mm) and by more than 5 mm, on stems and on the ground, and the share returned by one
+only. The differences over 1 mm are split by whether the footprint sampled the pixel (an
+edge) or took its centre ray alone.
 
 Run: ``python benchmarks/bench_footprint.py [--cases II:1024x10,X:2048x10] [--frames 8]
 [--samples 2]`` (noise and detection off as above, so its ms per frame are a little under
@@ -31,6 +31,7 @@ from tcf_hil.scene import Scene
 from tcf_hil.trajectory import Trajectory
 
 DEFAULT_CASES = "II:1024x10,V:1024x10,V:2048x10,X:2048x10"
+FOOTPRINTS = ("ideal", "adaptive", "edges", "full")
 
 
 def main() -> None:
@@ -55,7 +56,7 @@ def main() -> None:
         scene = Scene.from_forest(forest, backend="embree")
         meta = os0_64_metadata(mode)
         runs = {}
-        for fp in ("ideal", "adaptive", "full"):
+        for fp in FOOTPRINTS:
             sensor = (SENSOR_PRESETS["ideal"] if fp == "ideal"
                       else dataclasses.replace(exact, footprint=fp))
             emu = Os0Emulator(meta, scene, track, start_ns=track.t0_ns, seed=7, sensor=sensor)
@@ -74,34 +75,34 @@ def main() -> None:
                     cast.append(phys.last_cast)
                     flagged.append(phys.last_flags.T.copy())  # (H, W) as the images
             runs[fp] = (frames, ms, sup, cast, flagged)
-        fa, fb = runs["adaptive"][0], runs["full"][0]
-        ra = np.stack([f.fields["RANGE"] for f in fa]).astype(np.int64)
-        rb = np.stack([f.fields["RANGE"] for f in fb]).astype(np.int64)
-        sid = np.stack([f.stem_id for f in fa])
-        edge = np.stack(runs["adaptive"][4]) != 0
-        both = (ra > 0) & (rb > 0)
-        diff = np.abs(ra - rb)
-        stem, ground = both & (sid > 0), both & (sid == 0)
+        rb = np.stack([f.fields["RANGE"] for f in runs["full"][0]]).astype(np.int64)
 
         def share(m: np.ndarray, within: np.ndarray, digits: int = 1) -> str:
             n = max(1, np.count_nonzero(within))
-            return f"{100.0 * np.count_nonzero(m & within) / n:.{digits}f} %"
+            pct = 100.0 * np.count_nonzero(m & within) / n
+            return f"{pct:.{digits if pct >= 1 or pct == 0 else 2}f} %"
 
-        big = diff > 1
-        at_edges = share(edge, big & both, 0)
-        one = np.count_nonzero((ra > 0) != (rb > 0)) / max(1, np.count_nonzero(both))
-        for fp in ("ideal", "adaptive", "full"):
-            _, ms, sup, cast, _ = runs[fp]
+        for fp in FOOTPRINTS:
+            frames, ms, sup, cast, flagged = runs[fp]
             med = statistics.median(ms)
             period_ms = 1e3 / meta.frequency_hz
             cols = (f"| {fname} | {mode} | {fp} | "
                     + (f"{100 * statistics.median(sup):.1f} % | "
                        f"{int(statistics.median(cast)):,} | " if sup else "– | – | ")
                     + f"{med:.1f} | {period_ms / med:.1f} |")
-            if fp == "adaptive":
+            if fp in ("adaptive", "edges"):
+                ra = np.stack([f.fields["RANGE"] for f in frames]).astype(np.int64)
+                sid = np.stack([f.stem_id for f in frames])
+                edge = np.stack(flagged) != 0
+                both = (ra > 0) & (rb > 0)
+                diff = np.abs(ra - rb)
+                stem, ground = both & (sid > 0), both & (sid == 0)
+                big = diff > 1
+                one = np.count_nonzero((ra > 0) != (rb > 0)) / max(1, np.count_nonzero(both))
+                at_edges = share(edge, big & both, 0) if np.any(big & both) else "–"
                 cols += (f" {share(big, stem)} | {share(big, ground)} | {at_edges} | "
                          f"{share(diff > 5, stem)} | {share(diff > 5, ground)} | "
-                         f"{100 * one:.1f} % |")
+                         f"{100 * one:.2f} % |")
             else:
                 cols += " – | – | – | – | – | – |"
             if fp == "ideal":

@@ -70,7 +70,8 @@ def centre_echoes(prim: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim
             nir[i] = min(ambient * 0.05, 65535.0)
 
 
-def flag_edges(ss: Any, step: Any, reach: int, c0: int, c1: int, out: Any) -> None:
+def flag_edges(ss: Any, step: Any, reach: int, every: bool, c0: int, c1: int,
+               out: Any) -> None:
     """``out[c0:c1]`` of (W, H): the pixels whose footprint can straddle an edge, as bits:
     1 horizontally, where a column within ``reach`` either side (wrapping) hits another
     object (or nothing) than the pixel's centre ray; 2 towards the next beam, where the
@@ -79,8 +80,10 @@ def flag_edges(ss: Any, step: Any, reach: int, c0: int, c1: int, out: Any) -> No
     column's pixels by degrees, so a vertical edge seen a column apart is not a horizontal
     one); 4 towards the previous beam, where it hits another object than all three of the
     previous beam's around the pixel it is nearest to (the beams are 1.4 degrees apart:
-    the edge lies somewhere between, which the probes tell). Each pixel reads its
-    neighbours and writes itself: columns apart run in parallel."""
+    the edge lies somewhere between, which the probes tell). With ``every``, bits 2 and 4
+    where any of the three differs (every pixel whose footprint can reach another object
+    above or below: the ``edges`` footprint's bound). Each pixel reads its neighbours and
+    writes itself: columns apart run in parallel."""
     W, H = ss.shape
     for c in range(c0, c1):
         for h in range(H):
@@ -92,13 +95,15 @@ def flag_edges(ss: Any, step: Any, reach: int, c0: int, c1: int, out: Any) -> No
                     break
             if h + 1 < H:
                 c2 = _wrap(c + step[h], W)
-                if s != ss[c2, h + 1] and s != ss[_wrap(c2 - 1, W), h + 1] \
-                        and s != ss[_wrap(c2 + 1, W), h + 1]:
+                n = ((s != ss[c2, h + 1]) + (s != ss[_wrap(c2 - 1, W), h + 1])
+                     + (s != ss[_wrap(c2 + 1, W), h + 1]))
+                if n == 3 or (every and n > 0):
                     f |= 2
             if h > 0:
                 cp = _wrap(c - step[h - 1], W)  # the previous beam's pixel whose nearest this is
-                if s != ss[cp, h - 1] and s != ss[_wrap(cp - 1, W), h - 1] \
-                        and s != ss[_wrap(cp + 1, W), h - 1]:
+                n = ((s != ss[cp, h - 1]) + (s != ss[_wrap(cp - 1, W), h - 1])
+                     + (s != ss[_wrap(cp + 1, W), h - 1]))
+                if n == 3 or (every and n > 0):
                     f |= 4
             out[c, h] = f
 
@@ -170,8 +175,11 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
     ``grid_i`` rows away). A sample on a column's centre row is that column's centre ray;
     any other is the lattice ray cast at ``pos[(x H + h)(2 V + 1) + i + V]``. Unused slots
     are left out. A sample of weight ``wt[flags, slot]`` has the energy
-    ``w refl cos / max(r, r_near)^2`` (a centre ray's: ``w e``, ``e`` its energy).
-    Samples sorted by range (stably) join one echo while the gap to the next is within
+    ``w refl cos / max(r, r_near)^2`` (a centre ray's: ``w e``, ``e`` its energy). A
+    footprint that one object fills (every sample hits the centre ray's object) answers as
+    the centre ray does (``e``, ``r``, ``ss``; no second echo): the sub-rays count only
+    where it straddles an edge. Otherwise samples sorted by range (stably) join one echo
+    while the gap to the next is within
     ``resolution``; an echo's range is its energy-weighted mean, its stem id that of its
     strongest sample (the nearest on a tie). Pixel ``idx[j]``'s echoes go to ``e1[j]``,
     ``r1[j]``, ``s1[j]`` (the first) and ``e2[j]``, ``r2[j]``, ``s2[j]`` (the second)."""
@@ -193,6 +201,7 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
         c = i // H
         h = i - c * H
         n = 0  # the samples used, in slot order
+        fill = ss[i] >= 0  # one object fills the footprint (so far)
         for k in range(K if f & 2 else KH + 1):  # flags 1: the row's slots; 3: all
             w = wt[f, k]
             if k == 0:
@@ -214,16 +223,21 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
             if src >= 0:  # a centre ray's sample, the pixel's own or a neighbour's
                 if ss[src] >= 0:
                     rs[n], es[n], sids[n] = r[src], w * e[src], ss[src]
-                n += 1
-                continue
-            s, m, cc = surface(prim_sub[row], dd[row, 0], dd[row, 1], dd[row, 2],
-                               stem_of_prim, material_of_prim, normals, surf)
-            tt = np.float64(t_sub[row])
-            if np.isfinite(tt) and s >= 0:
-                rr = tt + n_m
-                rn = max(rr, r_near)
-                rs[n], es[n], sids[n] = rr, w * refl[m] * cc / (rn * rn), s
+            else:
+                s, m, cc = surface(prim_sub[row], dd[row, 0], dd[row, 1], dd[row, 2],
+                                   stem_of_prim, material_of_prim, normals, surf)
+                tt = np.float64(t_sub[row])
+                if np.isfinite(tt) and s >= 0:
+                    rr = tt + n_m
+                    rn = max(rr, r_near)
+                    rs[n], es[n], sids[n] = rr, w * refl[m] * cc / (rn * rn), s
+            if sids[n] != ss[i]:
+                fill = False
             n += 1
+        if fill:
+            e1[j], r1[j], s1[j] = e[i], r[i], ss[i]
+            e2[j], r2[j], s2[j] = 0.0, np.inf, -1
+            continue
         # a stable insertion sort by range, of the samples themselves
         for k in range(1, n):
             x, ex, sx = rs[k], es[k], sids[k]

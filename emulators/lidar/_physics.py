@@ -20,13 +20,17 @@ rays, so every path gives the same bytes:
    lattice ray is cast once a frame and serves every pixel whose footprint reaches it.
    ``adaptive``: the row where a column within one FWHM hits another object (or nothing)
    than the pixel, the grid where the beam above or below sees another object (a
-   horizontal edge: a stem's top, the horizon); ``full``: the grid at every pixel;
-   ``off``: the centre ray alone.
-2. **Echoes.** Each sub-ray's hit carries the energy ``w ρ cos(i) / r²`` (its weight in
-   the beam, the material's reflectance, the incidence angle, the range). Hits sorted by
-   range join one echo while the gap to the next is within ``range_resolution_m``: the
-   echo's range is their energy-weighted mean, so an echo of a stem edge and the wall
-   behind it lies between them (a mixed pixel). The echoes are ordered as the sensor's
+   horizontal edge: a stem's top, the horizon); ``edges``: the grid at those same
+   pixels; ``full``: the grid at every pixel; ``off``: the centre ray alone.
+2. **Echoes.** A footprint that one object fills (every sample hits the object its centre
+   ray hits) answers as its centre ray does: inside one surface the sub-rays would only
+   average its curvature over the beam (a mm or two, under the noise floor), so only
+   where a footprint straddles an edge do they count. There, each sub-ray's hit carries
+   the energy ``w ρ cos(i) / r²`` (its weight in the beam, the material's reflectance,
+   the incidence angle, the range). Hits sorted by range join one echo while the gap to
+   the next is within ``range_resolution_m``: the echo's range is their energy-weighted
+   mean, so an echo of a stem edge and the wall behind it lies between them (a mixed
+   pixel). The echoes are ordered as the sensor's
    ``return_order`` says; the first is the return, the DUAL profiles' second the next.
 3. **Signal and detection.** ``SIGNAL`` is the echo's energy times a scale fixed by the
    datasheet's reach (a 10 %-reflectance target at ``reach_10pct_m`` in 1024x10 detected
@@ -94,9 +98,10 @@ class SensorModel:
                      "emulator's exact geometry)")
     divergence_h_deg: float = _f(0.35, "beam divergence, horizontal (FWHM)", ge=0.0, le=5.0)
     divergence_v_deg: float = _f(0.35, "beam divergence, vertical (FWHM)", ge=0.0, le=5.0)
-    footprint: Literal["adaptive", "full", "off"] = _f(
-        "adaptive", "sample the footprint where it can straddle an edge, everywhere, or "
-        "never")
+    footprint: Literal["adaptive", "edges", "full", "off"] = _f(
+        "adaptive", "where to sample the footprint: 'adaptive' where it can straddle an "
+        "edge (along the row at a vertical one, fastest), 'edges' the same pixels with "
+        "the whole grid (as 'full' to the range quantum), 'full' everywhere, 'off' never")
     footprint_samples: int = _f(
         2, "footprint samples per FWHM, out to one FWHM each side (horizontally at least "
         "every column: the neighbouring columns' own rays are samples)", ge=1, le=16)
@@ -195,8 +200,11 @@ class FootprintGrid:
     others (``row_j`` virtual columns away), the other rows' (``grid_j``, ``grid_i``).
     ``weights[flags]``: each slot's share of the beam's energy, the Gaussian's, for a pixel
     sampled along its row (flag 1: the rows above and below taken as the centre row) or
-    over the grid (flag 3: both sides, so a range that grows across the footprint averages
-    to the centre's, as it does)."""
+    over the grid (flag 3). The Gaussian is separable, and every row takes the centre
+    row's horizontal profile; the other rows' corners beyond half the FWHM sideways (under
+    1 % of the beam each) are not cast but taken as the centre row's sample of the same
+    column, so a vertical edge (a stem's side) splits the beam between its objects in the
+    same shares whether the row or the grid is sampled."""
 
     step: float
     sub: int
@@ -223,15 +231,16 @@ class FootprintGrid:
         rv = _gauss(np.arange(-V, V + 1) / samples) if V else np.ones(1)
         rv /= rv.sum()
         Jv = min(J, math.floor(fwhm_h * 0.505 / step + 1e-9)) if fwhm_h > 0 else 0
-        cv = _gauss(np.arange(-Jv, Jv + 1) * step / fwhm_h) if Jv else np.ones(1)
-        cv /= cv.sum()
         ii, jj = np.meshgrid([i for i in range(-V, V + 1) if i], np.arange(-Jv, Jv + 1),
                              indexing="ij")
         K = 1 + len(js) + ii.size
         w = np.zeros((4, K))
         w[1, 0], w[1, 1:1 + len(js)] = ch[J], np.delete(ch, J)
-        w[3, 0], w[3, 1:1 + len(js)] = rv[V] * ch[J], rv[V] * np.delete(ch, J)
-        w[3, 1 + len(js):] = (rv[ii + V] * cv[jj + Jv]).reshape(-1)
+        # the centre row: its share of the beam; beyond Jv sideways, the whole column's
+        # (the other rows' corners there are taken as the centre row's sample)
+        col = np.where(np.abs(np.arange(-J, J + 1)) <= Jv, rv[V], 1.0) * ch
+        w[3, 0], w[3, 1:1 + len(js)] = col[J], np.delete(col, J)
+        w[3, 1 + len(js):] = (rv[ii + V] * ch[jj + J]).reshape(-1)
         w[2] = w[3]
         w[0, 0] = 1.0
         return cls(step, sub, max(1, -(-J // sub)), V, fwhm_v / samples, js,
@@ -391,12 +400,13 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
         flags = np.zeros((W, H), np.uint8)
         if m.footprint == "full":
             flags[:] = 3
-        elif m.footprint == "adaptive":
+        elif m.footprint in ("adaptive", "edges"):
+            every = m.footprint == "edges"
             if k is not None:
-                run(k.flag_edges, [(ss.reshape(W, H), self.row_step, g.reach, a, b, flags)
-                                   for a, b in _parts(W, 1, 8, H)])
+                run(k.flag_edges, [(ss.reshape(W, H), self.row_step, g.reach, every, a, b,
+                                    flags) for a, b in _parts(W, 1, 8, H)])
             else:
-                self._flag_np(ss.reshape(W, H), g.reach, flags)
+                self._flag_np(ss.reshape(W, H), g.reach, every, flags)
         if g.weights.shape[1] == 1:
             flags[:] = 0
         if self._turns is None:  # which way columns and beams go: the sensor's, for good
@@ -430,8 +440,10 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
                 differs[who[sid_p != ss[pv[who]]]] = True
                 fv[pv] = np.where(differs, 3, fv[pv] & 1)
                 self.last_probed = len(ent_p)
-        if self.last_probed == 0:  # vertical edges not probed (no rows): the grid
+        if self.last_probed == 0:  # vertical edges not probed (no rows, edges): the grid
             flags[(flags & 6) != 0] = 3
+        if m.footprint == "edges":  # the grid, not the row, at a vertical edge too
+            flags[flags == 1] = 3
         idx = np.flatnonzero(flags.reshape(-1) != 0)
         self.last_flagged = len(idx)
         self.last_flags = flags
@@ -550,7 +562,8 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
         nir[:] = np.where(hit, np.minimum(amb * self.refl[mt], 65535.0),
                           min(amb * 0.05, 65535.0))
 
-    def _flag_np(self, ss: NDArray[np.int32], reach: int, out: NDArray[np.uint8]) -> None:
+    def _flag_np(self, ss: NDArray[np.int32], reach: int, every: bool,
+                 out: NDArray[np.uint8]) -> None:
         W, H = ss.shape
         for j in range(1, reach + 1):
             edge = ss != np.roll(ss, -j, axis=0)  # column c against c + j
@@ -559,10 +572,12 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
         cols = (np.arange(W)[:, None] + self.row_step[None, :]) % W  # (W, H - 1)
         beams = np.broadcast_to(np.arange(1, H)[None, :], cols.shape)
         lo, hi = ss[:, :-1], ss[cols, beams]  # beam h, and h + 1 nearest in angle
-        up = (lo != hi) & (lo != ss[(cols - 1) % W, beams]) & (lo != ss[(cols + 1) % W, beams])
+        both = np.logical_or if every else np.logical_and
+        up = both(both(lo != hi, lo != ss[(cols - 1) % W, beams]),
+                  lo != ss[(cols + 1) % W, beams])
         out[:, :-1][up] |= 2
-        down = ((hi != lo) & (hi != np.roll(ss, 1, axis=0)[:, :-1])
-                & (hi != np.roll(ss, -1, axis=0)[:, :-1]))
+        down = both(both(hi != lo, hi != np.roll(ss, 1, axis=0)[:, :-1]),
+                    hi != np.roll(ss, -1, axis=0)[:, :-1])
         out[cols[down], beams[down]] |= 4
 
     def _rays_np(self, o: NDArray[np.float32], d: NDArray[np.float32], pix: NDArray[np.intp],
@@ -632,6 +647,10 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
             ek.reshape(-1)[at] = np.where(ok, w.reshape(-1)[at] * refl[mt] * cos / (rn2 * rn2),
                                           0.0)
             sk.reshape(-1)[at] = np.where(ok, sid, -1)
+        # a footprint one object fills (every sample it takes hits the centre's object)
+        # answers as its centre ray does
+        filled = np.all(~(use | (row >= 0)) | (sk == ss[idx][:, None]), axis=1) \
+            & (ss[idx] >= 0)
         # echoes: sort by range, split where the gap exceeds the range resolution
         srt = np.argsort(rk, axis=1, kind="stable")
         rk = np.take_along_axis(rk, srt, 1)
@@ -668,6 +687,9 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
             pick = rank[:, n_ret:n_ret + 1]
             ea[:], ra[:], sa[:] = ge2[rows, pick][:, 0], gr[rows, pick][:, 0], \
                 gs2[rows, pick][:, 0]
+            f_at = idx[filled]
+            ea[filled], ra[filled], sa[filled] = ((e[f_at], r[f_at], ss[f_at]) if n_ret == 0
+                                                  else (0.0, np.inf, -1))
 
     def _detect_np(self, e: FloatArray, r: FloatArray, sid: NDArray[np.int32], u: FloatArray,
                    z: FloatArray, scale: float, gain: float, sg: float, width: float,

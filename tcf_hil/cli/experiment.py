@@ -377,9 +377,10 @@ def _floats_list(text: str, name: str) -> tuple[float, ...]:
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Override the seed.")
 @sensor_option
 @click.option("--footprints", default=None,
-              help="The beam footprint axis: off, adaptive:N, full:N (N samples per FWHM; "
-              "the sensor's own is adaptive:2), comma-separated, e.g. "
-              "off,adaptive:2,adaptive:4,full:2 (default: the sensor's own).")
+              help="The beam footprint axis: off, adaptive:N, edges:N, full:N (N samples "
+              "per FWHM; the sensor's own is adaptive:2; edges: the whole grid at every "
+              "edge), comma-separated, e.g. off,adaptive:2,edges:2,full:2 (default: the "
+              "sensor's own).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output directory: bench.md, bench.csv, bench.json, pareto.png.")
 def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerances: str | None,
@@ -398,7 +399,7 @@ def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerance
     Examples:
       tcf-hil bench --quick --out bench-quick
       tcf-hil bench --modes 1024x10,2048x10 --tolerances 1,2,5,20 --out bench
-      tcf-hil bench --forest X --modes 2048x10 --footprints off,adaptive:2,adaptive:4,full:2
+      tcf-hil bench --forest X --modes 2048x10 --footprints off,adaptive:2,edges:2,full:2
     """
     from tcf_hil.experiments.bench import (
         FULL,

@@ -74,8 +74,8 @@ def parse_footprint(text: str) -> tuple[str, int | None]:
     """``"adaptive:4"`` -> ("adaptive", 4: samples per FWHM); ``"off"`` -> ("off", None);
     ``""``: the sensor's own (("", None)). Raises ValueError naming what is allowed."""
     kind, _, rays = text.strip().partition(":")
-    if kind not in ("", "off", "adaptive", "full"):
-        raise ValueError(f"{text!r}: footprints are off, adaptive:N or full:N")
+    if kind not in ("", "off", "adaptive", "edges", "full"):
+        raise ValueError(f"{text!r}: footprints are off, adaptive:N, edges:N or full:N")
     try:
         n = int(rays) if rays else None
     except ValueError:
