@@ -70,20 +70,20 @@ def centre_echoes(prim: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim
             nir[i] = min(ambient * 0.05, 65535.0)
 
 
-def flag_edges(ss: Any, step: Any, reach: int, every: bool, c0: int, c1: int,
+def flag_edges(ss: Any, step: Any, reach: int, vw: int, every: bool, c0: int, c1: int,
                out: Any) -> None:
     """``out[c0:c1]`` of (W, H): the pixels whose footprint can straddle an edge, as bits:
     1 horizontally, where a column within ``reach`` either side (wrapping) hits another
     object (or nothing) than the pixel's centre ray; 2 towards the next beam, where the
-    pixel hits another object than all three of the next beam's pixels nearest in angle
-    (columns ``c + step[h]`` and either side: the beams' azimuth offsets stagger a
-    column's pixels by degrees, so a vertical edge seen a column apart is not a horizontal
-    one); 4 towards the previous beam, where it hits another object than all three of the
-    previous beam's around the pixel it is nearest to (the beams are 1.4 degrees apart:
-    the edge lies somewhere between, which the probes tell). With ``every``, bits 2 and 4
-    where any of the three differs (every pixel whose footprint can reach another object
-    above or below: the ``edges`` footprint's bound). Each pixel reads its neighbours and
-    writes itself: columns apart run in parallel."""
+    pixel hits another object than all of the next beam's pixels within ``vw`` columns of
+    the one nearest in angle (column ``c + step[h]``: the beams' azimuth offsets stagger a
+    column's pixels by degrees, so a vertical edge seen a column or two apart, a stem's
+    side that leans or bows, is not a horizontal one); 4 towards the previous beam, where
+    it hits another object than all of the previous beam's about the pixel it is nearest
+    to (the beams are 1.4 degrees apart: the edge lies somewhere between, which the probes
+    tell). With ``every``, bits 2 and 4 where any of them differs (every pixel whose
+    footprint can reach another object above or below: the ``edges`` footprint's bound).
+    Each pixel reads its neighbours and writes itself: columns apart run in parallel."""
     W, H = ss.shape
     for c in range(c0, c1):
         for h in range(H):
@@ -95,15 +95,17 @@ def flag_edges(ss: Any, step: Any, reach: int, every: bool, c0: int, c1: int,
                     break
             if h + 1 < H:
                 c2 = _wrap(c + step[h], W)
-                n = ((s != ss[c2, h + 1]) + (s != ss[_wrap(c2 - 1, W), h + 1])
-                     + (s != ss[_wrap(c2 + 1, W), h + 1]))
-                if n == 3 or (every and n > 0):
+                n = 0
+                for k in range(-vw, vw + 1):
+                    n += s != ss[_wrap(c2 + k, W), h + 1]
+                if n == 2 * vw + 1 or (every and n > 0):
                     f |= 2
             if h > 0:
                 cp = _wrap(c - step[h - 1], W)  # the previous beam's pixel whose nearest this is
-                n = ((s != ss[cp, h - 1]) + (s != ss[_wrap(cp - 1, W), h - 1])
-                     + (s != ss[_wrap(cp + 1, W), h - 1]))
-                if n == 3 or (every and n > 0):
+                n = 0
+                for k in range(-vw, vw + 1):
+                    n += s != ss[_wrap(cp + k, W), h - 1]
+                if n == 2 * vw + 1 or (every and n > 0):
                     f |= 4
             out[c, h] = f
 

@@ -402,11 +402,14 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
             flags[:] = 3
         elif m.footprint in ("adaptive", "edges"):
             every = m.footprint == "edges"
+            # the next beam's pixels about the nearest in angle: within the row's reach
+            # (one FWHM sideways) for adaptive, the three nearest for edges
+            vw = 1 if every else g.reach
             if k is not None:
-                run(k.flag_edges, [(ss.reshape(W, H), self.row_step, g.reach, every, a, b,
+                run(k.flag_edges, [(ss.reshape(W, H), self.row_step, g.reach, vw, every, a, b,
                                     flags) for a, b in _parts(W, 1, 8, H)])
             else:
-                self._flag_np(ss.reshape(W, H), g.reach, every, flags)
+                self._flag_np(ss.reshape(W, H), g.reach, vw, every, flags)
         if g.weights.shape[1] == 1:
             flags[:] = 0
         if self._turns is None:  # which way columns and beams go: the sensor's, for good
@@ -562,7 +565,7 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
         nir[:] = np.where(hit, np.minimum(amb * self.refl[mt], 65535.0),
                           min(amb * 0.05, 65535.0))
 
-    def _flag_np(self, ss: NDArray[np.int32], reach: int, every: bool,
+    def _flag_np(self, ss: NDArray[np.int32], reach: int, vw: int, every: bool,
                  out: NDArray[np.uint8]) -> None:
         W, H = ss.shape
         for j in range(1, reach + 1):
@@ -572,12 +575,14 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
         cols = (np.arange(W)[:, None] + self.row_step[None, :]) % W  # (W, H - 1)
         beams = np.broadcast_to(np.arange(1, H)[None, :], cols.shape)
         lo, hi = ss[:, :-1], ss[cols, beams]  # beam h, and h + 1 nearest in angle
-        both = np.logical_or if every else np.logical_and
-        up = both(both(lo != hi, lo != ss[(cols - 1) % W, beams]),
-                  lo != ss[(cols + 1) % W, beams])
+        n_up = sum((lo != ss[(cols + k) % W, beams]).astype(np.int64)
+                   for k in range(-vw, vw + 1))
+        n_dn = sum((hi != np.roll(ss, -k, axis=0)[:, :-1]).astype(np.int64)
+                   for k in range(-vw, vw + 1))
+        full = 2 * vw + 1
+        up = (n_up > 0) if every else (n_up == full)
+        down = (n_dn > 0) if every else (n_dn == full)
         out[:, :-1][up] |= 2
-        down = both(both(hi != lo, hi != np.roll(ss, 1, axis=0)[:, :-1]),
-                    hi != np.roll(ss, -1, axis=0)[:, :-1])
         out[cols[down], beams[down]] |= 4
 
     def _rays_np(self, o: NDArray[np.float32], d: NDArray[np.float32], pix: NDArray[np.intp],
