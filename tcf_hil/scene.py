@@ -377,8 +377,9 @@ class Scene:
                     terrain_tolerance_m: float | None = None,
                     margin_m: float | None = None) -> Scene:
         scn = forest.scenario
-        st = stem_mesh(forest.stems, stem_tolerance_m if stem_tolerance_m is not None
-                       else scn.stems.tolerance_mm / 1000.0)
+        tubes, ids = forest.tubes()
+        st = stem_mesh(tubes, stem_tolerance_m if stem_tolerance_m is not None
+                       else scn.stems.tolerance_mm / 1000.0, ids=ids)
         tr = terrain_mesh(forest.terrain, forest.bounds(margin_m),
                           terrain_tolerance_m if terrain_tolerance_m is not None
                           else scn.terrain.tolerance_mm / 1000.0)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -12,10 +12,15 @@ from scipy.spatial import cKDTree
 
 from protocols.stems import QUALITY_BY_CLASS
 from tcf_hil.errors import ConfigError
+from tcf_hil.forest.dbh import draw_dbh
 from tcf_hil.forest.placement import place_stems
-from tcf_hil.forest.stems import BREAST_HEIGHT_M, StemSet
+from tcf_hil.forest.species import SPECIES
+from tcf_hil.forest.stems import BREAST_HEIGHT_M, StemSet, concat_stems
 from tcf_hil.forest.terrain import Terrain
 from tcf_hil.scenario import CLASSES, Scenario
+
+if TYPE_CHECKING:
+    from tcf_hil.forest.natural import Natural
 
 FloatArray = NDArray[np.float64]
 
@@ -24,7 +29,30 @@ QUALITY = QUALITY_BY_CLASS
 
 # Independent random streams, so changing the stem count leaves the terrain alone.
 _STREAM_TERRAIN, _STREAM_PLACE, _STREAM_STEMS, _STREAM_FIX = 1, 2, 3, 4
+_STREAM_NATURAL, _STREAM_NATURAL_FIX = 5, 6
 _CLEARANCE_M = 0.02  # stems keep at least this gap between their surfaces
+
+
+NATURAL_SCHEMA_VERSION = 2
+"""Ground truth of natural stands carries ``schema_version`` 2 (species, suppressed,
+defects, deciding_defect); the paper's forests write version 1, which has no such key, so
+their documents stay byte-identical."""
+NATURAL_RULE = ("X if the stem has a crook, a fork, a broken top or a double stem, or a sweep "
+                "with magnitude_m >= other_threshold_m; else C if its sweep's magnitude_m >= "
+                "curve_threshold_m; else S. deciding_defect: of the defects that give the "
+                "class, the lowest on the stem (none for S); a lean never decides")
+NATURAL_CONVENTIONS = {
+    "maxcurve": "maximum distance of the centre line from its base-to-top chord, measured "
+                "on the centre line (a crook adds to the bow's sweep)",
+    "defects": "[{type, height_m (above the base), magnitude_m, ...}] lowest first: sweep "
+               "(the bow's deviation from its chord; per_log_cm_per_m: each log's, from "
+               "the base), crook (sideways shift over length_m), fork (the second leader's "
+               "diameter where it leaves; its centerline and radii), broken_top (the "
+               "diameter at the break; intact_height_m), double_stem (the second stem's "
+               "diameter where they part; its centerline and radii), lean (horizontal "
+               "offset of the top; lean_deg)",
+    "h": "vertical height from base to top (to the break of a broken top)",
+}
 
 
 def _rng(seed: int, stream: int) -> np.random.Generator:
@@ -52,27 +80,6 @@ def classify(maxcurve: Any, curve_threshold_m: float, other_threshold_m: float) 
     return str(out) if out.ndim == 0 else out
 
 
-def _draw_dbh(scn: Scenario, n: int, rng: np.random.Generator) -> FloatArray:
-    d = scn.stems.dbh
-    if d.kind == "fixed":
-        return np.full(n, d.mean_m)
-    if d.kind == "uniform":
-        return rng.uniform(d.min_m, d.max_m, n)
-    out = np.empty(n)
-    todo = np.arange(n)
-    for _ in range(100):  # truncated distribution by redrawing outliers
-        if d.kind == "normal":
-            v = rng.normal(d.mean_m, d.sd_m, len(todo))
-        else:
-            sigma2 = math.log(1.0 + (d.sd_m / d.mean_m) ** 2)
-            v = rng.lognormal(math.log(d.mean_m) - sigma2 / 2, math.sqrt(sigma2), len(todo))
-        out[todo] = v
-        todo = todo[(v < d.min_m) | (v > d.max_m)]
-        if len(todo) == 0:
-            break
-    return np.clip(out, d.min_m, d.max_m)
-
-
 def _unit_perp(axis: FloatArray, angle: FloatArray) -> FloatArray:
     """Unit vectors perpendicular to ``axis`` at azimuth-like ``angle`` around it."""
     ref = np.where(np.abs(axis[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
@@ -98,7 +105,19 @@ class Forest:
     stems: StemSet
     classes: NDArray[np.str_]
     lean_deg: FloatArray
+    natural: Natural | None = None  # species, defects and parts of a natural stand
     _volume: FloatArray | None = field(default=None, repr=False)
+
+    def tubes(self) -> tuple[StemSet, NDArray[np.int32]]:
+        """Every tube of the forest (the stems, then the parts of natural stems: second
+        leaders and second stems) and the stem id (1-based) each belongs to."""
+        n = len(self.stems)
+        ids = np.arange(1, n + 1, dtype=np.int32)
+        if self.natural is None or len(self.natural.parts) == 0:
+            return self.stems, ids
+        nat = self.natural
+        return (concat_stems(self.stems, nat.parts),
+                np.concatenate([ids, (nat.part_owner + 1).astype(np.int32)]))
 
     @property
     def origin(self) -> FloatArray:
@@ -131,11 +150,14 @@ class Forest:
 
 
 def _conflicts(stems: StemSet, step: float = 0.1,
-               only: NDArray[np.int64] | None = None) -> list[tuple[int, int]]:
+               only: NDArray[np.int64] | None = None,
+               owner: NDArray[np.int64] | None = None) -> list[tuple[int, int]]:
     """Pairs of stems whose surfaces come closer than the clearance (sampled centre lines).
 
     Args:
         only: check just the pairs that involve these stems.
+        owner: the tree each tube belongs to; tubes of one tree (a stem and its second
+            leader) never conflict.
     """
     n = len(stems)
     if n < 2:
@@ -151,6 +173,8 @@ def _conflicts(stems: StemSet, step: float = 0.1,
         mark = np.zeros(n, dtype=bool)
         mark[only] = True
         pairs = pairs[mark[pairs[:, 0]] | mark[pairs[:, 1]]]
+    if owner is not None:
+        pairs = pairs[owner[pairs[:, 0]] != owner[pairs[:, 1]]]
     cache: dict[int, tuple[FloatArray, FloatArray, cKDTree]] = {}
 
     def samples(i: int) -> tuple[FloatArray, FloatArray, cKDTree]:
@@ -184,12 +208,14 @@ def generate_forest(scn: Scenario, seed: int | None = None) -> Forest:
     terrain = Terrain.generate(scn.terrain, _rng(seed, _STREAM_TERRAIN))
     xy = place_stems(scn, _rng(seed, _STREAM_PLACE))
     n = len(xy)
+    if scn.stand.kind == "natural":
+        return _natural_forest(scn, seed, terrain, xy)
     rng = _rng(seed, _STREAM_STEMS)
     counts = class_counts({c: getattr(st.class_mix, c) for c in CLASSES}, n)
     classes = np.array([c for c in CLASSES for _ in range(counts[c])], dtype="<U1")
     classes = classes[rng.permutation(n)] if n else classes
     height = rng.uniform(st.height_m[0], st.height_m[1], n)
-    dbh = _draw_dbh(scn, n, rng)
+    dbh = draw_dbh(scn.stems.dbh, n, rng)
     sweep = np.zeros(n)
     for c in CLASSES:
         lo, hi = getattr(st.sweep_m, c)
@@ -233,6 +259,40 @@ def generate_forest(scn: Scenario, seed: int | None = None) -> Forest:
                   lean_deg=lean)
 
 
+def _natural_forest(scn: Scenario, seed: int, terrain: Terrain, xy: FloatArray) -> Forest:
+    """A natural stand (:mod:`tcf_hil.forest.natural`) on the placed bases."""
+    from tcf_hil.forest import natural
+
+    n = len(xy)
+    base = np.column_stack([xy, terrain.height(xy[:, 0], xy[:, 1])]) if n else np.zeros((0, 3))
+    dr = natural.draw(scn, base, _rng(seed, _STREAM_NATURAL))
+    fix = _rng(seed, _STREAM_NATURAL_FIX)
+    changed: NDArray[np.int64] | None = None
+    for _attempt in range(40):
+        stems, parts, owner, kinds = natural.build(scn, dr)
+        tubes = concat_stems(stems, parts)
+        who = np.concatenate([np.arange(n), owner]).astype(np.int64)
+        only = None if changed is None else np.flatnonzero(np.isin(who, changed))
+        bad = sorted({int(who[j]) for _, j in _conflicts(tubes, only=only, owner=who)})
+        if not bad:
+            break
+        ix = changed = np.asarray(bad)
+        dr.lean_az[ix] = fix.uniform(0.0, 2.0 * math.pi, len(ix))
+        dr.bend_ang[ix] = fix.uniform(0.0, 2.0 * math.pi, len(ix))
+        dr.part_az[ix] = fix.uniform(0.0, 2.0 * math.pi, len(ix))
+    else:
+        raise ConfigError("distribution.min_spacing_m", scn.distribution.min_spacing_m,
+                          "a larger spacing: natural stems (with their second leaders and "
+                          "stems) intersect after 40 re-draws (or fewer stems.count, less "
+                          "stems.lean_deg or stand.defects.x_double_stem)")
+    origin = np.asarray(scn.plot.origin_m, dtype=np.float64)
+    defects, deciding, classes = natural.defects_of(scn, dr, stems, parts, owner, kinds, origin)
+    nat = natural.Natural(species=dr.species, suppressed=dr.suppressed, defects=defects,
+                          deciding=deciding, parts=parts, part_owner=owner, part_kind=kinds)
+    return Forest(scenario=scn, seed=seed, terrain=terrain, stems=stems, classes=classes,
+                  lean_deg=dr.lean, natural=nat)
+
+
 def ground_truth(forest: Forest) -> dict[str, Any]:
     """The ground-truth document (paper's Algorithm 1 / Table 3 fields plus geometry)."""
     scn = forest.scenario
@@ -253,13 +313,20 @@ def ground_truth(forest: Forest) -> dict[str, Any]:
         out: list[Any] = np.round(a, 4).tolist()
         return out
 
-    h, dbh, mc = r4(st.height), r4(2.0 * st.r_bh), r4(st.sweep)
-    # A maxcurve that rounding would carry across a class threshold is written exactly:
-    # the document's class always follows its own rule applied to its own maxcurve.
-    flip = classify(np.asarray(mc, dtype=np.float64), scn.stems.curve_threshold_m,
-                    scn.stems.other_threshold_m) != forest.classes if n else []
-    for i in np.flatnonzero(flip).tolist():
-        mc[i] = float(st.sweep[i])
+    nat = forest.natural
+    h, dbh = r4(st.height), r4(2.0 * st.r_bh)
+    if nat is None:
+        mc = r4(st.sweep)
+        # A maxcurve that rounding would carry across a class threshold is written exactly:
+        # the document's class always follows its own rule applied to its own maxcurve.
+        flip = classify(np.asarray(mc, dtype=np.float64), scn.stems.curve_threshold_m,
+                        scn.stems.other_threshold_m) != forest.classes if n else []
+        for i in np.flatnonzero(flip).tolist():
+            mc[i] = float(st.sweep[i])
+    else:  # measured on the centre line: a crook adds to the bow
+        from tcf_hil.forest.natural import maxcurve
+
+        mc = r4(maxcurve(st))
     cp, base = r4(pos + origin), r4(st.base + origin)
     d = r4(np.hypot(pos[:, 0], pos[:, 1]))
     vol: list[float] = np.round(forest.volume, 5).tolist()
@@ -274,7 +341,13 @@ def ground_truth(forest: Forest) -> dict[str, Any]:
             "base": base[i], "centerline": cl_all[a:b], "radii": r_all[a:b],
             "volume": vol[i], "lean_deg": lean[i],
         })
-    return {
+        if nat is not None:
+            k = int(nat.deciding[i])
+            objects[-1].update({
+                "species": SPECIES[int(nat.species[i])],
+                "suppressed": bool(nat.suppressed[i]), "defects": nat.defects[i],
+                "deciding_defect": None if k < 0 else nat.defects[i][k]["type"]})
+    doc: dict[str, Any] = {
         "timestamp": scn.timestamp,
         "total_objects_count": len(objects),
         "scenario": {"name": scn.name, "seed": forest.seed},
@@ -297,3 +370,8 @@ def ground_truth(forest: Forest) -> dict[str, Any]:
         "terrain": forest.terrain.to_doc(tuple(float(v) for v in origin)),  # type: ignore[arg-type]
         "objects": objects,
     }
+    if nat is not None:
+        doc = {"schema_version": NATURAL_SCHEMA_VERSION, **doc}
+        doc["classification"]["rule"] = NATURAL_RULE
+        doc["conventions"].update(NATURAL_CONVENTIONS)
+    return doc

@@ -87,8 +87,10 @@ def _tubes(stems: StemSet, ids: NDArray[np.int64], s: FloatArray, n: int) -> Flo
 
 
 def stem_mesh(stems: StemSet, tolerance_m: float,
-              origin: FloatArray | None = None) -> trimesh.Trimesh:
-    """All stems as one mesh; face attribute ``stem_id`` (1-based) tells which stem a face is.
+              origin: FloatArray | None = None,
+              ids: NDArray[np.int32] | None = None) -> trimesh.Trimesh:
+    """All stems as one mesh; face attribute ``stem_id`` (1-based) tells which stem a face is
+    (``ids``: the stem id of each tube, e.g. :meth:`Forest.tubes`'s; default 1..n).
 
     Stems are meshed in batches that share a ring and side count (one vectorised pass per
     batch); faces are ordered by stem id.
@@ -112,18 +114,19 @@ def stem_mesh(stems: StemSet, tolerance_m: float,
     f_off = np.concatenate([[0], np.cumsum(nfaces)])
     verts = np.empty((int(v_off[-1]), 3))
     faces = np.empty((int(f_off[-1]), 3), dtype=np.int64)
-    stem_id = np.repeat(np.arange(1, n_stems + 1, dtype=np.int32), nfaces)
+    sid = np.arange(1, n_stems + 1, dtype=np.int32) if ids is None else ids.astype(np.int32)
+    stem_id = np.repeat(sid, nfaces)
     keys = ring_n * 100_000 + sides
     for key in np.unique(keys):
-        ids = np.flatnonzero(keys == key)
-        m, n = int(ring_n[ids[0]]), int(sides[ids[0]])
-        s = np.stack([rings[i] for i in ids])
-        vv = _tubes(stems, ids, s, n)
+        batch = np.flatnonzero(keys == key)
+        m, n = int(ring_n[batch[0]]), int(sides[batch[0]])
+        s = np.stack([rings[i] for i in batch])
+        vv = _tubes(stems, batch, s, n)
         tmpl = _tube_faces(m, n)
-        vrow = (v_off[ids][:, None] + np.arange(m * n + 2)[None, :]).ravel()
+        vrow = (v_off[batch][:, None] + np.arange(m * n + 2)[None, :]).ravel()
         verts[vrow] = vv.reshape(-1, 3)
-        frow = (f_off[ids][:, None] + np.arange(len(tmpl))[None, :]).ravel()
-        faces[frow] = (tmpl[None, :, :] + v_off[ids][:, None, None]).reshape(-1, 3)
+        frow = (f_off[batch][:, None] + np.arange(len(tmpl))[None, :]).ravel()
+        faces[frow] = (tmpl[None, :, :] + v_off[batch][:, None, None]).reshape(-1, 3)
     if origin is not None:
         verts = verts + origin
     mesh = trimesh.Trimesh(verts, faces, process=False)

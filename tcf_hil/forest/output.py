@@ -44,7 +44,8 @@ def write_forest(forest: Forest, out_dir: str | Path, *, meshes: bool = True,
     written.append(out / "ground_truth.json")
     if meshes:
         say("stems.ply")
-        sm = stem_mesh(forest.stems, scn.stems.tolerance_mm / 1000.0, forest.origin)
+        tubes, ids = forest.tubes()
+        sm = stem_mesh(tubes, scn.stems.tolerance_mm / 1000.0, forest.origin, ids)
         write_bytes_atomic(out / "stems.ply", mesh_ply(sm))
         say("terrain.ply")
         tm = terrain_mesh(forest.terrain, forest.bounds(), scn.terrain.tolerance_mm / 1000.0,

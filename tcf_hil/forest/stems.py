@@ -13,12 +13,23 @@ tapers from the breast-height value r_bh at s = 1.3 m to r_top at the top::
     r(s) = r_top + (r_bh - r_top) * ((L - s) / (L - 1.3)) ** taper
 
 Below the base (s < 0) the tube continues straight along A so no gap opens on slopes.
+
+Natural stems (:mod:`tcf_hil.forest.natural`) add three things, each only where it is set
+(the paper's stems leave them None and are evaluated exactly as before):
+
+- ``species`` >= 0: the radius follows the species' taper curve (:mod:`~.species`) scaled
+  to the radius at breast height, ``r(s) = r_bh P(1 - s/T) / P(1 - 1.3/T)`` with T the
+  ``taper_length`` (the intact length: a broken top keeps the thickness it broke at);
+- a crook: a sideways shift ``K`` (perpendicular to A) over a short stretch from ``crook_s``
+  to ``crook_s + crook_w``, ``C(s) += K g((s - crook_s)/crook_w)`` with g the quintic
+  smoothstep (C2, 0 below the stretch, 1 above it).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,6 +69,11 @@ class StemSet:
     r_top: FloatArray  # (n,)
     taper: FloatArray  # (n,)
     below: FloatArray  # (n,) mesh extension below the base
+    species: IntArray | None = None  # (n,) taper curve: -1 the power law, else a species code
+    taper_length: FloatArray | None = None  # (n,) length the taper curve spans (>= length)
+    crook: FloatArray | None = None  # (n, 3) sideways shift, perpendicular to axis (or 0)
+    crook_s: FloatArray | None = None  # (n,) where the crook starts along the axis
+    crook_w: FloatArray | None = None  # (n,) its length along the axis (> 0)
 
     def __len__(self) -> int:
         return len(self.length)
@@ -76,7 +92,22 @@ class StemSet:
         """dC/ds (not normalised); below the base it is the value at the base."""
         L = self.length[idx]
         _, df, _ = _bow(np.clip(s, 0.0, None) / L, self.peak[idx])
-        return self.axis[idx] + (self.sweep[idx] * df / L)[:, None] * self.bend[idx]
+        out = self.axis[idx] + (self.sweep[idx] * df / L)[:, None] * self.bend[idx]
+        if self.crook is not None:
+            _, dg, _ = self._crook(idx, np.clip(s, 0.0, None))
+            out = out + dg[:, None] * self.crook[idx]
+        return out
+
+    def _crook(self, idx: IntArray, s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """g, dg/ds and d2g/ds2 of each stem's crook at ``s`` (the smoothstep; zeros where
+        there is none)."""
+        assert self.crook_s is not None and self.crook_w is not None
+        w = self.crook_w[idx]
+        u = np.clip((s - self.crook_s[idx]) / w, 0.0, 1.0)
+        g = u**3 * (10.0 + u * (-15.0 + 6.0 * u))
+        dg = 30.0 * u**2 * (1.0 - u) ** 2 / w
+        d2g = 60.0 * u * (1.0 - u) * (1.0 - 2.0 * u) / w**2
+        return g, dg, d2g
 
     def centre(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """Centre-line points (m, 3) of stems ``idx`` at axial positions ``s``. Below the
@@ -86,6 +117,9 @@ class StemSet:
         f, _, _ = _bow(t, self.peak[idx])
         above = (self.base[idx] + s[:, None] * self.axis[idx]
                  + (self.sweep[idx] * f)[:, None] * self.bend[idx])
+        if self.crook is not None:
+            g, _, _ = self._crook(idx, s)
+            above = above + g[:, None] * self.crook[idx]
         below = self.base[idx] + s[:, None] * self._dcds(idx, np.zeros_like(s))
         return np.where((s < 0)[:, None], below, above)
 
@@ -102,27 +136,54 @@ class StemSet:
         """Largest |dC/ds| of stems ``idx`` (all by default), at the bow's steepest point."""
         ix = np.arange(len(self)) if idx is None else idx
         q = np.minimum(self.peak[ix], 1.0 - self.peak[ix])
-        return np.sqrt(1.0 + (self.sweep[ix] * 0.5 * math.pi / q / self.length[ix]) ** 2)
+        slope = self.sweep[ix] * 0.5 * math.pi / q / self.length[ix]
+        if self.crook is not None:  # the two slopes are perpendicular to the axis: a bound
+            assert self.crook_w is not None
+            slope = slope + 1.875 * np.linalg.norm(self.crook[ix], axis=1) / self.crook_w[ix]
+        return np.sqrt(1.0 + slope**2)
 
     def curvature_bound(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """|d2C/ds2| (1/m): how fast the centre line bends."""
         L = self.length[idx]
         _, _, d2f = _bow(s / L, self.peak[idx])
-        return np.abs(self.sweep[idx] * d2f) / L**2
+        out = np.abs(self.sweep[idx] * d2f) / L**2
+        if self.crook is not None:
+            _, _, d2g = self._crook(idx, s)
+            out = out + np.abs(d2g) * np.linalg.norm(self.crook[idx], axis=1)
+        return out
 
     def radius(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """Stem radius (m) at axial positions ``s``."""
         L = self.length[idx]
         rel = np.clip(L - s, 0.0, None) / (L - BREAST_HEIGHT_M)
-        return self.r_top[idx] + (self.r_bh[idx] - self.r_top[idx]) * rel ** self.taper[idx]
+        out = self.r_top[idx] + (self.r_bh[idx] - self.r_top[idx]) * rel ** self.taper[idx]
+        if self.species is not None:
+            out = np.where(self.species[idx] >= 0, self._taper_curve(idx, s, 0), out)
+        return out
+
+    def _taper_curve(self, idx: IntArray, s: FloatArray, derivative: int) -> FloatArray:
+        """The species taper curve's radius (or its derivatives in s) at ``s``; rows whose
+        species is -1 get the pine curve (callers take the power law there)."""
+        from tcf_hil.forest.species import taper_poly
+
+        assert self.species is not None and self.taper_length is not None
+        sp = np.maximum(self.species[idx], 0)
+        T = self.taper_length[idx]
+        scale = self.r_bh[idx] / taper_poly(sp, 1.0 - BREAST_HEIGHT_M / T)
+        inside = (s <= T) & (s >= 0.0)
+        d = taper_poly(sp, 1.0 - s / T, derivative) * (-1.0 / T) ** derivative
+        return scale * np.where(inside | (derivative == 0), d, 0.0)
 
     def radius_d2(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """|d2r/ds2| (1/m)."""
         L = self.length[idx]
         p = self.taper[idx]
         rem = np.clip(L - s, 1e-3, None)
-        return np.abs((self.r_bh[idx] - self.r_top[idx]) * p * (p - 1.0)
-                      * rem ** (p - 2.0) / (L - BREAST_HEIGHT_M) ** p)
+        out = np.abs((self.r_bh[idx] - self.r_top[idx]) * p * (p - 1.0)
+                     * rem ** (p - 2.0) / (L - BREAST_HEIGHT_M) ** p)
+        if self.species is not None:
+            out = np.where(self.species[idx] >= 0, np.abs(self._taper_curve(idx, s, 2)), out)
+        return out
 
     def volume(self, samples: int = 513, chunk: int = 2048) -> FloatArray:
         """Above-ground wood volume per stem (m³): integral of pi r² along the arc length
@@ -163,3 +224,27 @@ class StemSet:
         horiz = np.hypot(c[:, 0] - self.base[idx, 0], c[:, 1] - self.base[idx, 1]).reshape(n, m)
         r = self.radius(idx, s).reshape(n, m)
         return np.max(horiz + r, axis=1)
+
+
+def concat_stems(a: StemSet, b: StemSet) -> StemSet:
+    """The stems of ``a`` then ``b`` in one set; a natural field one side lacks is filled
+    with its "none" value (power-law taper, the intact length, no crook)."""
+    if len(b) == 0:
+        return a
+
+    def opt(name: str, fill: Any) -> Any:
+        va, vb = getattr(a, name), getattr(b, name)
+        if va is None and vb is None:
+            return None
+        return np.concatenate([fill(a) if va is None else va, fill(b) if vb is None else vb])
+
+    plain = {f: np.concatenate([getattr(a, f), getattr(b, f)])
+             for f in ("base", "axis", "bend", "length", "sweep", "peak", "r_bh", "r_top",
+                       "taper", "below")}
+    return StemSet(
+        **plain,
+        species=opt("species", lambda s: np.full(len(s), -1, dtype=np.int64)),
+        taper_length=opt("taper_length", lambda s: s.length),
+        crook=opt("crook", lambda s: np.zeros((len(s), 3))),
+        crook_s=opt("crook_s", lambda s: np.ones(len(s))),
+        crook_w=opt("crook_w", lambda s: np.ones(len(s))))

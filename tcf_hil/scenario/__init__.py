@@ -3,7 +3,9 @@
 from protocols.stems import CLASSES
 from tcf_hil.scenario._load import (
     EXTRA_PRESETS,
+    NATURAL_VARIANTS,
     PRESET_NAMES,
+    STAND_PRESETS,
     list_presets,
     load_scenario,
     preset_name,
@@ -15,6 +17,7 @@ from tcf_hil.scenario._load import (
 from tcf_hil.scenario._model import (
     ClassMix,
     DbhConfig,
+    DefectsConfig,
     DistributionConfig,
     FaultsConfig,
     HarvesterConfig,
@@ -22,6 +25,8 @@ from tcf_hil.scenario._model import (
     PoseErrorConfig,
     SamplingConfig,
     Scenario,
+    SpeciesConfig,
+    StandConfig,
     StemsConfig,
     SweepConfig,
     TerrainConfig,
@@ -31,9 +36,12 @@ from tcf_hil.scenario._model import (
 __all__ = [
     "CLASSES",
     "EXTRA_PRESETS",
+    "NATURAL_VARIANTS",
     "PRESET_NAMES",
+    "STAND_PRESETS",
     "ClassMix",
     "DbhConfig",
+    "DefectsConfig",
     "DistributionConfig",
     "FaultsConfig",
     "HarvesterConfig",
@@ -41,6 +49,8 @@ __all__ = [
     "PoseErrorConfig",
     "SamplingConfig",
     "Scenario",
+    "SpeciesConfig",
+    "StandConfig",
     "StemsConfig",
     "SweepConfig",
     "TerrainConfig",

@@ -26,9 +26,15 @@ T = TypeVar("T")
 
 _ROMAN = ("i", "ii", "iii", "iv", "v", "vi", "vii", "viii", "ix", "x")
 PRESET_NAMES: tuple[str, ...] = tuple(f"forest-{r}" for r in _ROMAN)
-EXTRA_PRESETS: tuple[str, ...] = ("strip-road",)
+STAND_PRESETS: tuple[str, ...] = ("pine-thinning", "spruce-thinning", "birch-mixed",
+                                  "spruce-final-felling")
+"""Natural stands (``stand.kind = "natural"``), each parameter sourced in its file."""
+NATURAL_VARIANTS: tuple[str, ...] = tuple(f"{p}-natural" for p in PRESET_NAMES)
+"""Each paper forest with natural stems (``forest-v-natural``): its plot, count, placement,
+DBH and class shares, ``natural-variant.toml`` laid over it."""
+EXTRA_PRESETS: tuple[str, ...] = ("strip-road", *STAND_PRESETS, *NATURAL_VARIANTS)
 """Presets beyond the paper's forests (``strip-road``: Forest V cut by three strip roads,
-driven in three passes)."""
+driven in three passes; the natural stands and the paper forests' natural variants)."""
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 _MAX_ITEMS = 1000
@@ -178,6 +184,7 @@ def _validate(s: Scenario, source: str | None) -> None:
     if st.count > 0 and sum(mix) <= 0:
         raise bad("stems.class_mix", dict(zip(CLASSES, mix, strict=True)),
                   "at least one class with a share > 0")
+    _validate_stand(s, bad)
     dist = s.distribution
     for axis, size in zip("xy", s.plot.size_m, strict=True):
         if 2 * dist.edge_margin_m >= size:
@@ -188,6 +195,40 @@ def _validate(s: Scenario, source: str | None) -> None:
             and t.start_m[0] != t.end_m[0] and t.start_m[1] != t.end_m[1]:
         raise bad("distribution.corridor_half_width_m", dist.corridor_half_width_m,
                   "0 unless the track runs parallel to the x or y axis")
+
+
+def _validate_stand(s: Scenario, bad: Any) -> None:
+    """The ``[stand]`` table's checks across keys (natural stands only)."""
+    sd = s.stand
+    if sd.kind != "natural":
+        return
+    species = ("pine", "spruce", "birch")
+    if s.stems.count > 0 and sum(getattr(sd, n).share for n in species) <= 0:
+        raise bad("stand.pine.share", sd.pine.share,
+                  "a share > 0 for at least one of stand.pine, stand.spruce, stand.birch")
+    for n in species:
+        cfg = getattr(sd, n)
+        mean = cfg.dbh_mean_m or s.stems.dbh.mean_m
+        if cfg.share > 0 and s.stems.dbh.kind in ("normal", "lognormal", "fixed", "weibull") \
+                and not s.stems.dbh.min_m <= mean <= s.stems.dbh.max_m:
+            raise bad(f"stand.{n}.dbh_mean_m", cfg.dbh_mean_m,
+                      f"within [{s.stems.dbh.min_m}, {s.stems.dbh.max_m}] "
+                      "(stems.dbh.min_m, max_m)")
+    if s.stems.dbh.kind == "weibull" and s.stems.dbh.sd_m <= 0:
+        raise bad("stems.dbh.sd_m", s.stems.dbh.sd_m, "> 0 for a weibull distribution")
+    ranges = [("stand.suppressed_dbh_m", sd.suppressed_dbh_m)]
+    for f in dataclasses.fields(sd.defects):
+        v = getattr(sd.defects, f.name)
+        if isinstance(v, tuple):
+            ranges.append((f"stand.defects.{f.name}", v))
+    for key, (lo, hi) in ranges:
+        if lo > hi:
+            raise bad(key, [lo, hi], "[low, high] with low <= high")
+    x_shares = [getattr(sd.defects, f"x_{k}") for k in
+                ("sweep", "crook", "fork", "broken_top", "double_stem")]
+    if s.stems.class_mix.X > 0 and sum(x_shares) <= 0:
+        raise bad("stand.defects.x_crook", sd.defects.x_crook,
+                  "a share > 0 for at least one stand.defects.x_* (X stems need a defect)")
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
@@ -205,6 +246,8 @@ def preset_name(name: str) -> str | None:
     n = name.strip().lower().replace("_", "-").replace(" ", "-")
     if n in _ROMAN:
         n = f"forest-{n}"
+    if n.endswith("-natural") and n.removesuffix("-natural") in _ROMAN:
+        n = f"forest-{n}"
     return n if n in PRESET_NAMES or n in EXTRA_PRESETS else None
 
 
@@ -215,6 +258,15 @@ def _preset_text(name: str) -> str:
 def _load_dict(name_or_path: str, _seen: tuple[str, ...] = ()) -> tuple[dict[str, Any], str]:
     preset = preset_name(name_or_path)
     path = Path(name_or_path)
+    if preset in NATURAL_VARIANTS and "/" not in name_or_path \
+            and not name_or_path.endswith(".toml"):
+        paper = preset.removesuffix("-natural")
+        base, _ = _load_dict(paper, _seen)
+        over = tomllib.loads(_preset_text("natural-variant"))
+        data = _merge(base, over)
+        data["name"] = preset
+        data["description"] = f"{base.get('description', paper)}; natural stems"
+        return data, f"preset {preset}"
     # A bare preset name is the preset, even if a file of that name sits in the working
     # directory; write ./forest-v or forest-v.toml to mean a file.
     looks_like_path = "/" in name_or_path or name_or_path.endswith(".toml")

@@ -56,8 +56,9 @@ class TerrainConfig:
 
 @dataclass(frozen=True, slots=True)
 class DbhConfig:
-    kind: Literal["fixed", "normal", "uniform", "lognormal"] = _f(
-        "normal", "DBH distribution")
+    kind: Literal["fixed", "normal", "uniform", "lognormal", "weibull"] = _f(
+        "normal", "DBH distribution (weibull: two-parameter, its shape and scale matched to "
+        "mean_m and sd_m)")
     mean_m: float = _f(0.25, "mean DBH (fixed: the value)", gt=0.0, le=3.0)
     sd_m: float = _f(0.02, "standard deviation (normal, lognormal)", ge=0.0)
     min_m: float = _f(0.12, "smallest DBH (also uniform's low end)", gt=0.0)
@@ -105,6 +106,89 @@ class StemsConfig:
         gt=0.01, le=100.0)
     below_ground_m: float = _f(
         0.5, "stem meshes reach this far below the base (no gap on slopes)", ge=0.0, le=5.0)
+
+
+@dataclass(frozen=True, slots=True)
+class SpeciesConfig:
+    share: float = _f(0.0, "share of the stand's stems", ge=0.0)
+    dbh_mean_m: float = _f(0.0, "mean DBH of this species (0: stems.dbh.mean_m)", ge=0.0,
+                           le=3.0)
+    dbh_sd_m: float = _f(0.0, "DBH standard deviation of this species (0: stems.dbh.sd_m)",
+                         ge=0.0, le=1.0)
+
+
+@dataclass(frozen=True, slots=True)
+class DefectsConfig:
+    """Defects drawn on natural stems. The shares say which defect makes an X stem X; the
+    ranges are assumptions (no published rates or sizes were found: see the README)."""
+
+    x_sweep: float = _f(0.15, "share of X stems made X by a sweep beyond "
+                        "stems.other_threshold_m", ge=0.0)
+    x_crook: float = _f(0.40, "share of X stems made X by a crook", ge=0.0)
+    x_fork: float = _f(0.20, "share of X stems made X by a fork (a second leader)", ge=0.0)
+    x_broken_top: float = _f(0.15, "share of X stems made X by a broken top", ge=0.0)
+    x_double_stem: float = _f(0.10, "share of X stems made X by a double stem", ge=0.0)
+    crook_offset_m: tuple[float, float] = _f(
+        (0.04, 0.12), "crook: sideways shift of the stem above it", gt=0.0, le=2.0)
+    crook_length_m: tuple[float, float] = _f(
+        (0.3, 0.9), "crook: length of stem over which it bends (under 1 m)", gt=0.0, le=1.0)
+    crook_height: tuple[float, float] = _f(
+        (0.15, 0.6), "crook: where, as a fraction of the stem's height", gt=0.0,
+        le=0.95)
+    fork_height: tuple[float, float] = _f(
+        (0.4, 0.8), "fork: where the second leader leaves, fraction of height", gt=0.0,
+        le=0.95)
+    fork_angle_deg: tuple[float, float] = _f(
+        (15.0, 35.0), "fork: angle of the second leader from the stem", ge=1.0, le=80.0)
+    fork_diameter_ratio: tuple[float, float] = _f(
+        (0.5, 0.8), "fork: the second leader's diameter over the stem's there", gt=0.0,
+        le=1.0)
+    broken_height: tuple[float, float] = _f(
+        (0.55, 0.85), "broken top: height left standing, fraction of the intact height",
+        gt=0.2, le=0.98)
+    double_height_m: tuple[float, float] = _f(
+        (0.2, 1.0), "double stem: height at which the two stems part", ge=0.0, le=1.2)
+    double_angle_deg: tuple[float, float] = _f(
+        (5.0, 15.0), "double stem: angle of the second stem from the first", ge=1.0, le=45.0)
+    double_diameter_ratio: tuple[float, float] = _f(
+        (0.6, 0.9), "double stem: the second stem's diameter over the first's where they "
+        "part", gt=0.0, le=1.0)
+    lean_record_deg: float = _f(
+        3.0, "a lean at least this large is listed among the stem's defects", ge=0.0,
+        le=30.0)
+    log_length_m: float = _f(
+        4.6, "log length over which sweep is also given in cm/m, as graders measure it",
+        gt=0.5, le=20.0)
+
+
+@dataclass(frozen=True, slots=True)
+class StandConfig:
+    """Natural stands: species, taper, height from DBH, suppressed stems and defects as
+    shapes. ``kind = "paper"`` keeps the paper's poles (stems.taper_exponent, heights drawn
+    uniformly in stems.height_m, classes from sweep alone)."""
+
+    kind: Literal["paper", "natural"] = _f(
+        "paper", "paper: the paper's tapered poles; natural: species taper curves, height "
+        "from DBH, suppressed stems and defects")
+    site: Literal["mt", "vt", "ct", "clt"] = _f(
+        "vt", "forest site type for the height model (Finnish: mt mesic or richer, vt "
+        "sub-xeric, ct xeric, clt barren)")
+    height_sd_scale: float = _f(
+        1.0, "height residual spread as a share of the published one (0: heights on the "
+        "curve)", ge=0.0, le=3.0)
+    pine: SpeciesConfig = field(default_factory=lambda: SpeciesConfig(share=1.0),
+                                metadata={"doc": "Scots pine: share and DBH"})
+    spruce: SpeciesConfig = field(default_factory=SpeciesConfig,
+                                  metadata={"doc": "Norway spruce: share and DBH"})
+    birch: SpeciesConfig = field(default_factory=SpeciesConfig,
+                                 metadata={"doc": "silver birch: share and DBH"})
+    suppressed_share: float = _f(
+        0.0, "share of stems that are suppressed (small DBH under the canopy)", ge=0.0,
+        le=1.0)
+    suppressed_dbh_m: tuple[float, float] = _f(
+        (0.04, 0.10), "DBH range of suppressed stems (uniform)", gt=0.0, le=0.5)
+    defects: DefectsConfig = field(default_factory=DefectsConfig,
+                                   metadata={"doc": "defects of natural stems"})
 
 
 @dataclass(frozen=True, slots=True)
@@ -268,6 +352,9 @@ class Scenario:
     stems: StemsConfig = field(default_factory=StemsConfig, metadata={"doc": "stems"})
     distribution: DistributionConfig = field(default_factory=DistributionConfig,
                                              metadata={"doc": "stem placement"})
+    stand: StandConfig = field(default_factory=StandConfig,
+                               metadata={"doc": "natural stands (species, taper, height "
+                                         "from DBH, defects); kind = 'paper' by default"})
     track: TrackConfig = field(default_factory=TrackConfig, metadata={"doc": "sensor track"})
     harvester: HarvesterConfig = field(default_factory=HarvesterConfig,
                                        metadata={"doc": "the harvester's CANopen node"})
