@@ -127,7 +127,10 @@ class LidarRun:
         n = max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
         self.frames = min(n, max_frames) if max_frames is not None else n
         self.backend = self.scene.backend  # the concrete one: auto resolved
-        self.counts = np.zeros(len(self.forest.stems) + 1, dtype=np.int64)
+        self.n_stems = len(self.forest.stems)
+        sc = self.forest.scenery()
+        self.counts = np.zeros(self.n_stems + 1 if sc is None else len(sc.component_of_id),
+                               dtype=np.int64)
         self.packets = 0
         self._poses = io.StringIO()
         self._pw = csv.writer(self._poses, lineterminator="\n")
@@ -190,11 +193,36 @@ class LidarRun:
         self._poses.seek(0, io.SEEK_END)
         self._pw = csv.writer(self._poses, lineterminator="\n")
 
+    def stems_seen(self) -> int:
+        """Stems that got at least one return so far (their branches and foliage aside)."""
+        return int(np.count_nonzero(self.counts[1:self.n_stems + 1]))
+
+    def returns_by_component(self) -> dict[str, int]:
+        """Returns so far by what they hit (ground, stem, and in natural stands branch,
+        foliage, understory, dead wood, stump, boulder)."""
+        from tcf_hil.forest.scenery import COMPONENTS
+
+        sc = self.forest.scenery()
+        if sc is None:
+            return {"ground": int(self.counts[0]), "stem": int(self.counts[1:].sum())}
+        per = np.bincount(sc.component_of_id, weights=self.counts,
+                          minlength=len(COMPONENTS))
+        return {name: int(v) for name, v in zip(COMPONENTS, per.tolist(), strict=True)}
+
     def ground_truth(self) -> dict[str, Any]:
-        """The forest's ground truth with the lidar returns each stem got so far."""
+        """The forest's ground truth with the lidar returns each stem got so far (natural
+        stands: also its branches' and foliage's, and the totals by component)."""
         gt = ground_truth(self.forest)
+        n = self.n_stems
+        natural = self.forest.scenery() is not None
         for o in gt["objects"]:
             o["returns"] = int(self.counts[o["id"]])
+            if natural:
+                o["returns_by_component"] = {"stem": o["returns"],
+                                             "branch": int(self.counts[n + o["id"]]),
+                                             "foliage": int(self.counts[2 * n + o["id"]])}
+        if natural:
+            gt["returns_by_component"] = self.returns_by_component()
         return gt
 
     def write_sidecars(self, out: Path) -> dict[str, Any]:
@@ -209,10 +237,13 @@ class LidarRun:
             "frames": self.frames, "mode": self.meta.mode, "profile": self.meta.profile,
             "backend": self.backend, "sensor": self.sensor.preset,
             "terrain_returns": int(c[0]),
-            "stem_returns": int(c[1:].sum()), "stems_seen": int(np.count_nonzero(c[1:])),
-            "stems_total": len(self.forest.stems),
-            "returns_per_stem": {str(i): int(v) for i, v in enumerate(c) if i and v},
+            "stem_returns": int(c[1:self.n_stems + 1].sum()), "stems_seen": self.stems_seen(),
+            "stems_total": self.n_stems,
+            "returns_per_stem": {str(i): int(v) for i, v in enumerate(c[:self.n_stems + 1])
+                                 if i and v},
         }
+        if self.forest.scenery() is not None:
+            vis["returns_by_component"] = self.returns_by_component()
         write_json_atomic(out / "visibility.json", vis)
         return vis
 
@@ -220,7 +251,7 @@ class LidarRun:
         """``frames``: those that left (default: every frame of the run)."""
         return RecordResult(out, self.frames if frames is None else frames, self.packets,
                             int(self.counts.sum()),
-                            int(np.count_nonzero(self.counts[1:])), self.backend, **kw)
+                            self.stems_seen(), self.backend, **kw)
 
 
 def _pcap_records(writer: PcapWriter, dgs: list[Datagram], sensor_ip: str, dest: str

@@ -364,8 +364,9 @@ class Scene:
 
     vertices: FloatArray
     faces: NDArray[np.int64]
-    stem_id: NDArray[np.int32]  # per triangle; 0 = terrain
+    stem_id: NDArray[np.int32]  # per triangle: the object id, 0 = terrain
     caster: Caster
+    material: NDArray[np.uint8] | None = None  # per triangle; None: terrain ground, else bark
     _sid_of_prim: tuple[NDArray[np.int32], NDArray[np.int32]] | None = field(
         default=None, init=False, repr=False, compare=False)
     _surfaces: tuple[NDArray[np.int32], Surfaces] | None = field(
@@ -387,7 +388,19 @@ class Scene:
         faces = np.vstack([tr.faces, st.faces + len(tr.vertices)]).astype(np.int64)
         ids = np.concatenate([np.zeros(len(tr.faces), np.int32),
                               np.asarray(st.face_attributes.get("stem_id", []), np.int32)])
-        return cls(verts, faces, ids, make_caster(backend, verts, faces))
+        sc = forest.scenery()
+        if sc is None or len(sc) == 0:
+            return cls(verts, faces, ids, make_caster(backend, verts, faces))
+        # natural stands: branches, foliage, ... after the stems, with their materials
+        from emulators.lidar import MATERIALS
+
+        mat = np.concatenate([np.full(len(tr.faces), MATERIALS.index("ground"), np.uint8),
+                              np.full(len(st.faces), MATERIALS.index("bark"), np.uint8),
+                              sc.face_material])
+        faces = np.vstack([faces, sc.faces + len(verts)])
+        verts = np.vstack([verts, sc.vertices])
+        ids = np.concatenate([ids, sc.face_id])
+        return cls(verts, faces, ids, make_caster(backend, verts, faces), mat)
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
@@ -445,7 +458,8 @@ class Scene:
             v = self.vertices[self.faces]
             n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
             n /= np.maximum(np.linalg.norm(n, axis=1), 1e-30)[:, None]
-            mat = np.append(np.where(self.stem_id > 0, 1, 0), 0).astype(np.uint8)
+            mat = np.append(np.where(self.stem_id > 0, 1, 0) if self.material is None
+                            else self.material, 0).astype(np.uint8)
             self._surfaces = (self.stem_id, Surfaces(
                 self._stem_table(), n.astype(np.float32), mat, self.caster.cast,
                 self.caster.cast1))

@@ -165,4 +165,4 @@ def run_offline(scn: Scenario, *, mode: str = "1024x10",
                          sim_seconds=frames * run.emu.period_ns / 1e9, emulator_s=emu_s,
                          sic_frame_ms=sic.frame_ms, stem_s=sic.stem_s,
                          poses=sic.track.received, packets=sic.stats.packets,
-                         stems_seen=int(np.count_nonzero(run.counts[1:])))
+                         stems_seen=run.stems_seen())

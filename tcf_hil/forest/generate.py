@@ -21,6 +21,7 @@ from tcf_hil.scenario import CLASSES, Scenario
 
 if TYPE_CHECKING:
     from tcf_hil.forest.natural import Natural
+    from tcf_hil.forest.scenery import GroundObjects, Scenery
 
 FloatArray = NDArray[np.float64]
 
@@ -107,6 +108,30 @@ class Forest:
     lean_deg: FloatArray
     natural: Natural | None = None  # species, defects and parts of a natural stand
     _volume: FloatArray | None = field(default=None, repr=False)
+    _scenery: Scenery | None = field(default=None, repr=False)
+    _ground: GroundObjects | None = field(default=None, repr=False)
+
+    def ground_objects(self) -> GroundObjects | None:
+        """Understory, lying dead wood, stumps and boulders of a natural stand (drawn when
+        first asked for; None for the paper's forests)."""
+        if self.natural is None:
+            return None
+        if self._ground is None:
+            from tcf_hil.forest.scenery import ground_objects
+
+            self._ground = ground_objects(self)
+        return self._ground
+
+    def scenery(self) -> Scenery | None:
+        """Branches, foliage, understory, dead wood, stumps and boulders of a natural stand
+        (built when first asked for; None for the paper's forests)."""
+        if self.natural is None:
+            return None
+        if self._scenery is None:
+            from tcf_hil.forest.scenery import build_scenery
+
+            self._scenery = build_scenery(self)
+        return self._scenery
 
     def tubes(self) -> tuple[StemSet, NDArray[np.int32]]:
         """Every tube of the forest (the stems, then the parts of natural stems: second
@@ -371,6 +396,15 @@ def ground_truth(forest: Forest) -> dict[str, Any]:
         "objects": objects,
     }
     if nat is not None:
+        go = forest.ground_objects()
+        assert go is not None
+        doc["ground_objects"] = go.records(origin)
+        doc["object_ids"] = {
+            "stems": [1, n], "branches": [n + 1, 2 * n], "foliage": [2 * n + 1, 3 * n],
+            "ground_objects": [3 * n + 1, 3 * n + len(go)],
+            "rule": "returns are counted by object id: 0 the ground, a stem's id (its second "
+                    "leader and second stem too), n + id its branches, 2n + id its foliage, "
+                    "then each ground object's own id"}
         doc = {"schema_version": NATURAL_SCHEMA_VERSION, **doc}
         doc["classification"]["rule"] = NATURAL_RULE
         doc["conventions"].update(NATURAL_CONVENTIONS)

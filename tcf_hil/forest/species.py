@@ -72,3 +72,66 @@ def mean_height(species: IntArray, dbh_m: FloatArray, site: str) -> FloatArray:
     a = HEIGHT_A1[species] + HEIGHT_SITE[site][species]
     out: FloatArray = a / (1.0 + HEIGHT_B1[species] / d + HEIGHT_B2[species] / d**2)
     return out
+
+
+# --- Crowns -----------------------------------------------------------------------------
+# Crown length (m) from DBH d (cm) and height h (m): pine 2.653 + 0.26 d, spruce
+# 2.686 + 0.52 d (Rautiainen et al. 2008, Silva Fennica 42); birch 0.5525 h/d + d^0.7032
+# (Nilson et al. 1999). Crown radius (m), southern Sweden: (a dS + b)/20 with the stump
+# diameter dS = 2 + 1.25 d (Jakobsons 1970; dS from Laasasenaho 1975). All as coded, with
+# their references, in M. Mõttus's allometric functions for Finland (2017-2018); the
+# originals were not read.
+CROWN_RADIUS_A = np.array([1.14, 1.06, 1.51])
+CROWN_RADIUS_B = np.array([10.7, 15.5, 12.8])
+
+# Foliage: dry needle/leaf mass (kg) per tree, Repola 2009 (pine model 1a eq. 7, spruce 1c
+# eq. 15) and Repola 2008 (birch, d > 11 cm; Johansson 1999 below), as coded in the same
+# file; specific leaf weight (g/m2) and STAR (shoot silhouette to total area) as used by
+# Majasalmi et al. 2013 (For. Ecol. Manage. 292: 10-18): SLW 161.3 / 202.0 / 74.07
+# (Palmroth & Hari 2001; Stenberg et al. 1999; Lintunen et al. 2011), STAR 0.147 / 0.161 /
+# 0.25 (Smolander et al. 1994; Stenberg et al. 1995; a flat leaf's 0.25 for birch).
+SLW_G_M2 = np.array([161.3, 202.0, 74.07])
+STAR = np.array([0.147, 0.161, 0.25])
+
+# Branches: no published whorl or branch model with coefficients was found (Mäkinen & Colin
+# 1998 and Kantola & Mäkelä give forms, not numbers we could read). These are assumptions,
+# except spruce's branch angle 40-70 degrees (Fabrika et al. 2019, BioResources 14(1): 908).
+WHORL_SPACING_M = np.array([0.40, 0.35, 0.30])  # birch: branches spaced along the crown
+BRANCHES_PER_WHORL = np.array([4, 5, 2])
+BRANCH_ANGLE_DEG = np.array([[50.0, 75.0], [40.0, 70.0], [30.0, 55.0]])
+BRANCH_DIAMETER_SHARE = 0.12  # of the stem's diameter where it leaves (assumption)
+BRANCH_DIAMETER_MAX_M = 0.04
+# Dead branches stay on the lower stem of pine and spruce for decades (dead branch to
+# occlusion > 40 years in Scots pine: Mäkinen, Silva Fennica, 19 thinning experiments);
+# birch sheds them within about a metre under its crown (assumption).
+DEAD_ZONE_FROM_M = np.array([0.8, 0.5, -1.0])  # height the dead branches start (-1: crown - 1 m)
+DEAD_LENGTH_SHARE = (0.15, 0.45)  # of the crown radius: broken stubs (assumption)
+
+
+def crown_length(species: IntArray, dbh_m: FloatArray, height_m: FloatArray) -> FloatArray:
+    """Living crown length (m), at most 0.9 of the height and at least 0.5 m."""
+    d = 100.0 * dbh_m
+    conifer = np.where(species == 0, 2.653 + 0.26 * d, 2.686 + 0.52 * d)
+    birch = 0.5525 * height_m / np.maximum(d, 1.0) + np.maximum(d, 1.0) ** 0.7032
+    out: FloatArray = np.clip(np.where(species == 2, birch, conifer), 0.5, 0.9 * height_m)
+    return out
+
+
+def crown_radius(species: IntArray, dbh_m: FloatArray) -> FloatArray:
+    """Crown radius (m) at its widest."""
+    ds = 2.0 + 125.0 * dbh_m
+    out: FloatArray = (CROWN_RADIUS_A[species] * ds + CROWN_RADIUS_B[species]) / 20.0
+    return out
+
+
+def foliage_mass_kg(species: IntArray, dbh_m: FloatArray, height_m: FloatArray) -> FloatArray:
+    """Dry foliage mass (kg) per tree (Repola 2008, 2009; Johansson 1999 for small birch)."""
+    ds = 2.0 + 125.0 * dbh_m
+    h = height_m
+    pine = np.exp(-6.303 + 14.472 * ds / (ds + 6) - 3.976 * h / (h + 1) + (0.109 + 0.118) / 2)
+    spruce = np.exp(-2.994 + 12.251 * ds / (ds + 10) - 3.415 * h / (h + 1)
+                    + (0.107 + 0.089) / 2)
+    birch = np.where(100.0 * dbh_m > 11.0, np.exp(-29.566 + 33.372 * ds / (ds + 2) + 0.077 / 2),
+                     0.00371 * (10.0 * ds) ** 1.11993)
+    out: FloatArray = np.choose(species, [pine, spruce, birch])
+    return out

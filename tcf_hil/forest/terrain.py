@@ -53,7 +53,7 @@ class Terrain:
         g = math.tan(math.radians(cfg.slope_deg))
         tilt = (g * math.sin(az), g * math.cos(az)) if cfg.slope_deg else (0.0, 0.0)
         if cfg.kind == "flat" or cfg.amplitude_m == 0.0:
-            return cls(float(cfg.elevation_m), np.zeros((0, 4)), tilt)
+            return cls(float(cfg.elevation_m), cls._rough(cfg, rng, np.zeros((0, 4))), tilt)
         rows = []
         for octave in range(cfg.octaves):
             lam = cfg.wavelength_m / 2.0**octave
@@ -67,7 +67,25 @@ class Terrain:
         waves = np.array(rows, dtype=np.float64)
         # Normalise so that the RMS height is amplitude/sqrt(2), as for one cosine.
         waves[:, 2] *= cfg.amplitude_m / math.sqrt(float(np.sum(waves[:, 2] ** 2)))
-        return cls(float(cfg.elevation_m), waves, tilt)
+        return cls(float(cfg.elevation_m), cls._rough(cfg, rng, waves), tilt)
+
+    @staticmethod
+    def _rough(cfg: TerrainConfig, rng: np.random.Generator, waves: FloatArray) -> FloatArray:
+        """``waves`` and the micro-relief's (``roughness_m`` > 0): 16 plane waves of
+        0.7-1.4 times ``roughness_wavelength_m``, scaled to that RMS height. Drawn after the
+        terrain's own, so a terrain without micro-relief is drawn as before."""
+        if cfg.roughness_m <= 0.0:
+            return waves
+        rows = []
+        for _ in range(16):
+            k = 2.0 * math.pi / (cfg.roughness_wavelength_m * rng.uniform(0.7, 1.4))
+            ang = rng.uniform(0.0, 2.0 * math.pi)
+            rows.append((k * math.cos(ang), k * math.sin(ang), 1.0,
+                         rng.uniform(0.0, 2.0 * math.pi)))
+        rough = np.array(rows, dtype=np.float64)
+        # the RMS of a sum of cosines is sqrt(sum a^2 / 2)
+        rough[:, 2] *= cfg.roughness_m * math.sqrt(2.0 / len(rough))
+        return np.vstack([waves, rough])
 
     @property
     def is_flat(self) -> bool:

@@ -52,6 +52,11 @@ class TerrainConfig:
     uphill_azimuth_deg: float = _f(
         0.0, "compass direction the hillside rises toward (0 north, 90 east)", ge=-360.0,
         le=360.0)
+    roughness_m: float = _f(
+        0.0, "micro-relief: RMS height of short waves over any kind of terrain (0: none)",
+        ge=0.0, le=1.0)
+    roughness_wavelength_m: float = _f(
+        2.0, "micro-relief: typical wavelength (0.7-1.4 of it)", ge=0.3, le=50.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -189,6 +194,37 @@ class StandConfig:
         (0.04, 0.10), "DBH range of suppressed stems (uniform)", gt=0.0, le=0.5)
     defects: DefectsConfig = field(default_factory=DefectsConfig,
                                    metadata={"doc": "defects of natural stems"})
+    branches: bool = _f(True, "living branches in whorls in the crown, dead ones below it")
+    foliage: bool = _f(True, "foliage in the crowns, as facets that stop a beam as "
+                       "Beer-Lambert says")
+    foliage_facet_m: float = _f(
+        0.10, "foliage: side of a facet (a shoot's size); smaller is finer and costs "
+              "memory", ge=0.02, le=0.5)
+    saplings_per_ha: float = _f(0.0, "understory trees (a stem and a crown)", ge=0.0,
+                                le=100_000.0)
+    sapling_height_m: tuple[float, float] = _f(
+        (0.5, 4.0), "sapling height range (uniform): below and above a SIC's 2.5 m",
+        gt=0.1, le=10.0)
+    shrubs_per_ha: float = _f(0.0, "shrubs: foliage near the ground", ge=0.0, le=100_000.0)
+    shrub_height_m: tuple[float, float] = _f((0.3, 1.5), "shrub height range", gt=0.05,
+                                             le=5.0)
+    understory_sigma_per_m: float = _f(
+        0.8, "extinction coefficient of sapling and shrub foliage (assumption)", gt=0.0,
+        le=20.0)
+    dead_wood_m3_per_ha: float = _f(
+        0.0, "lying dead wood volume (Finnish NFI: 3.2 south, 7.6 north, 4.7 in forests "
+             "in wood production)", ge=0.0, le=500.0)
+    dead_wood_diameter_m: tuple[float, float] = _f(
+        (0.10, 0.30), "lying log diameter range (NFI counts from 10 cm)", gt=0.01, le=2.0)
+    dead_wood_length_m: tuple[float, float] = _f((2.0, 8.0), "lying log length range",
+                                                 gt=0.1, le=40.0)
+    stumps_per_ha: float = _f(0.0, "stumps of earlier fellings", ge=0.0, le=10_000.0)
+    stump_height_m: tuple[float, float] = _f((0.10, 0.30), "stump height above ground",
+                                             gt=0.0, le=2.0)
+    boulders_per_ha: float = _f(0.0, "boulders on the ground", ge=0.0, le=10_000.0)
+    boulder_radius_m: tuple[float, float] = _f(
+        (0.2, 0.8), "boulder horizontal semi-axis range (height 0.6 of it, 30 % sunk)",
+        gt=0.01, le=5.0)
 
 
 @dataclass(frozen=True, slots=True)

@@ -308,8 +308,9 @@ def test_every_natural_variant_keeps_its_paper_forest_plot_count_and_placement()
         assert b.stand.kind == "natural" and a.stand.kind == "paper"
         assert (a.plot, a.stems.count, a.distribution, a.stems.dbh, a.stems.class_mix) == (
             b.plot, b.stems.count, b.distribution, b.stems.dbh, b.stems.class_mix)
-        fa, fb = generate_forest(a), generate_forest(b)
-        assert np.array_equal(fa.stems.base, fb.stems.base)
+        fa, fb = generate_forest(a), generate_forest(b)  # the same bases (on micro-relief)
+        assert np.array_equal(fa.stems.base[:, :2], fb.stems.base[:, :2])
+        assert np.abs(fa.stems.base[:, 2] - fb.stems.base[:, 2]).max() < 0.2
 
 
 @pytest.mark.parametrize(("patch", "key"), [
@@ -333,3 +334,133 @@ def test_bad_stand_input_names_the_key(patch: dict, key: str) -> None:
         scenario_from_dict({"name": "bad", **patch})
     assert ei.value.key == key
     assert "\n" not in str(ei.value)
+
+
+# --- branches, foliage, understory, dead wood, stumps, boulders -------------------------
+
+SCENERY = {**NATURAL_STRESS, "name": "natural-scenery",
+           "terrain": {"kind": "flat", "roughness_m": 0.03},
+           "stand": {**NATURAL_STRESS["stand"], "saplings_per_ha": 3000, "shrubs_per_ha": 2000,
+                     "dead_wood_m3_per_ha": 40.0, "stumps_per_ha": 800,
+                     "boulders_per_ha": 200}}
+
+
+@pytest.fixture(scope="module")
+def scenery_forest():  # type: ignore[no-untyped-def]
+    f = generate_forest(scenario_from_dict(SCENERY))
+    f.scenery()
+    return f
+
+
+@pytest.mark.parametrize("sigma", [0.3, 1.0])
+def test_foliage_facets_stop_a_beam_as_beer_lambert_says(sigma: float) -> None:
+    """Parallel rays through a slab of facets: the share that passes a depth L is
+    exp(-sigma L) within its sampling error."""
+    from tcf_hil.forest.scenery import _facets, facet_density
+    from tcf_hil.scene import make_caster
+
+    rng = np.random.default_rng(5)
+    edge, depth, side = 0.1, 4.0, 3.0
+    n = int(float(facet_density(sigma, edge)) * depth * side * side)
+    centres = rng.uniform((-side / 2, -side / 2, 0.0), (side / 2, side / 2, depth), (n, 3))
+    v, f = _facets(centres, edge, rng)
+    caster = make_caster("auto", v, f)
+    m = 40_000
+    o = np.column_stack([rng.uniform(-1.0, 1.0, (m, 2)), np.full(m, -1.0)])
+    d = np.tile([0.0, 0.0, 1.0], (m, 1))
+    t, _ = caster.cast(o, d)
+    depth_hit = np.where(np.isfinite(t), t - 1.0, np.inf)
+    for L in (0.5, 1.0, 2.0, 3.0):
+        passed = float(np.mean(depth_hit > L))
+        want = math.exp(-sigma * L)
+        se = math.sqrt(want * (1 - want) / m)
+        assert abs(passed - want) < 4 * se + 0.01, (L, passed, want)
+
+
+def test_branches_whorls_and_dead_stubs_keep_clear_of_other_trees(scenery_forest) -> None:  # type: ignore[no-untyped-def]
+    f = scenery_forest
+    sc = f.scenery()
+    n = len(f.stems)
+    assert sc.counts["branches"] > 20 * n and sc.counts["dead_branches"] > 0
+    branch = (sc.face_id > n) & (sc.face_id <= 2 * n)
+    tri = sc.vertices[sc.faces[branch]]  # (k, 3, 3)
+    owner = sc.face_id[branch] - n
+    # every branch vertex against every other tree's stem surface, densely sampled
+    tubes, ids = f.tubes()
+    pts, rad, own = [], [], []
+    for k in range(len(tubes)):
+        s = np.arange(0.0, float(tubes.length[k]), 0.02)
+        pts.append(tubes.centre(np.full(len(s), k), s))
+        rad.append(tubes.radius(np.full(len(s), k), s))
+        own.append(np.full(len(s), ids[k]))
+    p, r, o = np.vstack(pts), np.concatenate(rad), np.concatenate(own)
+    q = tri.reshape(-1, 3)
+    q_own = np.repeat(owner, 3)
+    dist, j = cKDTree(p).query(q, k=8)
+    other = o[j] != q_own[:, None]
+    gap = np.where(other, dist - r[j], np.inf)
+    assert gap.min() > 0.0
+
+
+def test_ground_objects_are_drawn_clear_of_stems_and_recorded(scenery_forest) -> None:  # type: ignore[no-untyped-def]
+    f = scenery_forest
+    gt = ground_truth(f)
+    rows = gt["ground_objects"]
+    kinds = Counter(r["kind"] for r in rows)
+    assert set(kinds) == {"sapling", "shrub", "dead_wood", "stump", "boulder"}
+    area_ha = 24.0 * 24.0 / 10_000.0
+    assert kinds["sapling"] == round(3000 * area_ha)
+    vol = sum(r["volume_m3"] for r in rows if r["kind"] == "dead_wood")
+    assert 40.0 * area_ha <= vol <= 40.0 * area_ha + math.pi * 0.15**2 * 8.0
+    ids = [r["id"] for r in rows]
+    n = len(f.stems)
+    assert ids == list(range(3 * n + 1, 3 * n + 1 + len(rows)))
+    lo, hi = gt["object_ids"]["ground_objects"]
+    assert (lo, hi) == (ids[0], ids[-1])
+    sc = f.scenery()
+    assert set(np.unique(sc.face_id[sc.face_id > 3 * n]).tolist()) == set(ids)
+    assert len(sc.component_of_id) == 3 * n + 1 + len(rows)
+    # the saplings span the SIC's 2.5 m threshold
+    hs_ = [r["height_m"] for r in rows if r["kind"] == "sapling"]
+    assert min(hs_) < 2.5 < max(hs_)
+
+
+def test_micro_relief_has_the_rms_height_asked_for() -> None:
+    from tcf_hil.forest import Terrain
+    from tcf_hil.scenario import TerrainConfig
+
+    rough = Terrain.generate(TerrainConfig(kind="flat", roughness_m=0.03),
+                             np.random.default_rng(2))
+    x, y = np.meshgrid(np.linspace(-40, 40, 300), np.linspace(-40, 40, 300))
+    z = rough.height(x.ravel(), y.ravel())
+    assert float(np.sqrt(np.mean((z - z.mean()) ** 2))) == pytest.approx(0.03, rel=0.2)
+    # and without it the terrain draws as before
+    a = Terrain.generate(TerrainConfig(kind="rolling"), np.random.default_rng(2))
+    b = Terrain.generate(TerrainConfig(kind="rolling", roughness_m=0.02),
+                         np.random.default_rng(2))
+    assert np.array_equal(a.waves, b.waves[: len(a.waves)]) and len(b.waves) == len(a.waves) + 16
+
+
+def test_returns_are_counted_by_component(tmp_path: Path) -> None:
+    from tcf_hil.lidar import record_pcap
+
+    scn = scenario_from_dict({**SCENERY, "track": {"start_m": [0.0, -14.0, 2.0],
+                                                   "end_m": [0.0, 14.0, 2.0]}})
+    record_pcap(scn, tmp_path, max_frames=3)
+    vis = json.loads((tmp_path / "visibility.json").read_text())
+    gt = json.loads((tmp_path / "ground_truth.json").read_text())
+    comp = vis["returns_by_component"]
+    assert comp == gt["returns_by_component"]
+    assert comp["stem"] == vis["stem_returns"] == sum(o["returns"] for o in gt["objects"])
+    for name in ("ground", "stem", "branch", "foliage", "understory"):
+        assert comp[name] > 0, name
+    assert sum(o["returns_by_component"]["foliage"] for o in gt["objects"]) == comp["foliage"]
+    assert vis["stems_seen"] == sum(1 for o in gt["objects"] if o["returns"])
+
+
+def test_the_same_seed_gives_the_same_scenery() -> None:
+    a = generate_forest(scenario_from_dict(SCENERY)).scenery()
+    b = generate_forest(scenario_from_dict(SCENERY)).scenery()
+    assert a is not None and b is not None
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.face_id, b.face_id)
+    assert np.array_equal(a.face_material, b.face_material)

@@ -1,0 +1,602 @@
+"""Everything of a natural stand that is not a stem: branches, foliage, understory, dead
+wood, stumps and boulders, as triangles with a material and an object id.
+
+**Object ids** (what the lidar emulator reports per return, and what per-component return
+counts are kept by): 0 the ground; 1..n the stems (with their second leaders and second
+stems); n+1..2n tree i's branches (id n + i); 2n+1..3n tree i's foliage; after 3n one id per
+understory plant, dead-wood log, stump and boulder (:attr:`Scenery.component_of_id`).
+
+**Branches** are straight cones (exact with two rings), from the stem's centre line out,
+in whorls on conifers (spacing, count and angle by species: :mod:`~.species`), living in the
+crown (longest at its base on conifers, a cone; birch's crown an ellipsoid) and dead stubs
+below it. A branch is cut short where it would come within the clearance of another tree's
+stem.
+
+**Foliage** is a turbid medium drawn as facets: small triangles, randomly placed and
+oriented in the crown envelope (a cone on conifers, an ellipsoid on birch), as many as give
+the extinction coefficient sigma = STAR * leaf area / crown volume (leaf area from the
+foliage mass and specific leaf weight). A ray through randomly placed, randomly oriented
+facets of one-sided area ``a`` at ``N`` per m^3 is stopped within a path ``L`` with
+probability 1 - exp(-N a/2 L): the Beer-Lambert law HELIOS++'s transmittive voxels draw from
+(free path -ln(U)/sigma), here with explicit geometry, so every ray backend and the beam
+footprint see it with no change (a test measures the law on a crown). Why facets and not a
+free-path draw in the ray kernels: the same Embree scene, no change to the compiled kernels
+or to the open3d and trimesh backends, and partial hits inside a footprint come out right
+(a facet covers part of a beam); the cost is memory (measured in the README).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from tcf_hil.forest import species as sp
+from tcf_hil.forest.stems import StemSet
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+COMPONENTS: tuple[str, ...] = ("ground", "stem", "branch", "foliage", "understory",
+                               "dead_wood", "stump", "boulder")
+"""Per-component return counts go by these (index = code)."""
+GROUND, STEM, BRANCH, FOLIAGE, UNDERSTORY, DEAD_WOOD, STUMP, BOULDER = range(8)
+# Materials as the lidar emulator numbers them (emulators.lidar MATERIALS).
+MAT_GROUND, MAT_BARK, MAT_FOLIAGE, MAT_DEAD_WOOD, MAT_ROCK = 0, 1, 2, 3, 4
+_CLEARANCE_M = 0.02
+_BRANCH_SIDES = 5
+_SAPLING_BASE_DIAMETER_PER_M = 0.015  # a 2 m sapling is 3 cm thick at its foot (assumption)
+_STREAM_SCENERY = 7
+
+
+@dataclass
+class Scenery:
+    """Triangles in local coordinates with an object id and a material each."""
+
+    vertices: FloatArray
+    faces: IntArray
+    face_id: NDArray[np.int32]
+    face_material: NDArray[np.uint8]
+    component_of_id: NDArray[np.uint8]  # component code of every id 0..max
+    counts: dict[str, int]  # objects drawn per kind (branches, facets, logs, ...)
+
+    def __len__(self) -> int:
+        return len(self.faces)
+
+
+class _Parts:
+    """Collects triangle batches."""
+
+    def __init__(self) -> None:
+        self.v: list[FloatArray] = []
+        self.f: list[IntArray] = []
+        self.ids: list[NDArray[np.int32]] = []
+        self.mat: list[NDArray[np.uint8]] = []
+        self.nv = 0
+
+    def add(self, v: FloatArray, f: IntArray, ids: NDArray[np.int32] | int,
+            mat: NDArray[np.uint8] | int) -> None:
+        if len(f) == 0:
+            return
+        self.v.append(v)
+        self.f.append(f + self.nv)
+        self.ids.append(np.broadcast_to(np.asarray(ids, np.int32), (len(f),)).copy())
+        self.mat.append(np.broadcast_to(np.asarray(mat, np.uint8), (len(f),)).copy())
+        self.nv += len(v)
+
+
+def cones(base: FloatArray, axis: FloatArray, length: FloatArray, r0: FloatArray,
+          r1: FloatArray, sides: int, caps: bool = True) -> tuple[FloatArray, IntArray]:
+    """Straight cones (frusta), ``sides`` sided, one per row: vertices and faces (each
+    cone's rows in turn: two rings, then the two cap centres; ``caps=False``: open ends,
+    for a branch whose base is inside its stem and whose tip is a few millimetres)."""
+    k = len(base)
+    ref = np.where(np.abs(axis[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(ref, axis)
+    e1 /= np.linalg.norm(e1, axis=1)[:, None]
+    e2 = np.cross(axis, e1)
+    th = np.linspace(0.0, 2.0 * math.pi, sides, endpoint=False)
+    ring = np.cos(th)[None, :, None] * e1[:, None, :] + np.sin(th)[None, :, None] * e2[:, None, :]
+    tip = base + length[:, None] * axis
+    v = np.concatenate([base[:, None, :] + r0[:, None, None] * ring,
+                        tip[:, None, :] + r1[:, None, None] * ring,
+                        base[:, None, :], tip[:, None, :]], axis=1)  # (k, 2 sides + 2, 3)
+    j = np.arange(sides)
+    a0, a1 = j, (j + 1) % sides
+    b0, b1 = a0 + sides, a1 + sides
+    c0, c1 = 2 * sides, 2 * sides + 1
+    tmpl = np.concatenate([np.stack([a0, a1, b1], -1), np.stack([a0, b1, b0], -1)]
+                          + ([np.stack([np.full(sides, c0), a1, a0], -1),
+                              np.stack([np.full(sides, c1), b0, b1], -1)] if caps else []))
+    per = 2 * sides + 2
+    faces = (tmpl[None, :, :] + (np.arange(k) * per)[:, None, None]).reshape(-1, 3)
+    return v.reshape(-1, 3), faces.astype(np.int64)
+
+
+def _perp(axis: FloatArray, angle: FloatArray) -> FloatArray:
+    ref = np.where(np.abs(axis[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(ref, axis)
+    e1 /= np.linalg.norm(e1, axis=1)[:, None]
+    e2 = np.cross(axis, e1)
+    out: FloatArray = np.cos(angle)[:, None] * e1 + np.sin(angle)[:, None] * e2
+    return out
+
+
+class _Obstacles:
+    """Other trees' tubes, sampled along their centre lines, to keep branches, foliage and
+    ground objects clear of them."""
+
+    def __init__(self, tubes: StemSet, owner: NDArray[np.int32], step: float = 0.15) -> None:
+        pts, rad, own = [], [], []
+        for k in range(len(tubes)):
+            s = np.arange(0.0, float(tubes.length[k]) + step, step)
+            s = np.minimum(s, float(tubes.length[k]))
+            idx = np.full(len(s), k)
+            pts.append(tubes.centre(idx, s))
+            rad.append(tubes.radius(idx, s))
+            own.append(np.full(len(s), owner[k]))
+        self.p = np.vstack(pts) if pts else np.zeros((0, 3))
+        self.r = np.concatenate(rad) if rad else np.zeros(0)
+        self.own = np.concatenate(own) if own else np.zeros(0, np.int32)
+        self.tree = cKDTree(self.p) if len(self.p) else None
+        self.r_max = float(self.r.max()) if len(self.r) else 0.0
+        self.step = step
+
+    def blocked(self, q: FloatArray, radius: FloatArray | float, me: NDArray[np.int32] | int,
+                k: int = 6) -> NDArray[np.bool_]:
+        """Whether points ``q`` (with their own radius) come within the clearance of a tube
+        of a tree other than ``me`` (0: of any tree)."""
+        if self.tree is None or len(q) == 0:
+            return np.zeros(len(q), dtype=bool)
+        k = min(k, len(self.p))
+        d, j = self.tree.query(q, k=k, distance_upper_bound=self.r_max + 0.5 + self.step)
+        ok = np.isfinite(d)
+        jj = np.where(ok, j, 0)
+        other = self.own[jj] != np.asarray(me).reshape(-1, 1) if np.ndim(me) else \
+            self.own[jj] != me
+        rad = np.asarray(radius, dtype=np.float64)
+        rad = rad.reshape(-1, 1) if rad.ndim else rad
+        # a centre-line sample stands for the stretch half a step either side of it
+        near = d < self.r[jj] + rad + _CLEARANCE_M + 0.5 * self.step
+        out: NDArray[np.bool_] = np.any(ok & other & near, axis=1)
+        return out
+
+
+def _branches(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
+              parts: _Parts, counts: dict[str, int]) -> None:
+    from tcf_hil.forest.generate import Forest
+
+    assert isinstance(forest, Forest) and forest.natural is not None
+    st, nat = forest.stems, forest.natural
+    n = len(st)
+    spc = nat.species
+    intact = st.taper_length if st.taper_length is not None else st.length
+    h_intact = intact * st.axis[:, 2]
+    cl = sp.crown_length(spc, 2.0 * st.r_bh, h_intact) / st.axis[:, 2]
+    cr = sp.crown_radius(spc, 2.0 * st.r_bh)
+    # crowns of suppressed stems are narrower: at most half the distance to the nearest stem
+    tree = cKDTree(st.base[:, :2])
+    dn, _ = tree.query(st.base[:, :2], k=2)
+    cr = np.minimum(cr, np.maximum(0.3, 0.75 * dn[:, 1])) if n > 1 else cr
+    crown_base = intact - cl
+    rows_i, rows_s, rows_len, rows_dead = [], [], [], []
+    for i in range(n):
+        L = float(st.length[i])
+        spacing = float(sp.WHORL_SPACING_M[spc[i]])
+        start = float(sp.DEAD_ZONE_FROM_M[spc[i]])
+        if start < 0:
+            start = max(0.5, float(crown_base[i]) - 1.0)
+        s = np.arange(start + rng.uniform(0.0, spacing), L - 0.2, spacing)
+        if len(s) == 0:
+            continue
+        per = int(sp.BRANCHES_PER_WHORL[spc[i]])
+        s = np.repeat(s, per)
+        t = np.clip((intact[i] - s) / cl[i], 0.0, 1.0)  # 0 at the top, 1 at the crown base
+        dead = s < crown_base[i]
+        if spc[i] == 2:  # birch: an ellipsoid crown
+            shape = np.sqrt(np.clip(1.0 - (2.0 * t - 1.0) ** 2, 0.0, 1.0))
+        else:  # conifers: a cone, longest at the crown base
+            shape = t
+        ln = cr[i] * np.maximum(shape, 0.08) * rng.uniform(0.7, 1.0, len(s))
+        ln[dead] = cr[i] * rng.uniform(*sp.DEAD_LENGTH_SHARE, int(dead.sum()))
+        rows_i.append(np.full(len(s), i))
+        rows_s.append(s)
+        rows_len.append(ln)
+        rows_dead.append(dead)
+    if not rows_i:
+        return
+    idx = np.concatenate(rows_i)
+    s = np.concatenate(rows_s)
+    ln = np.concatenate(rows_len)
+    dead = np.concatenate(rows_dead)
+    m = len(idx)
+    lo, hi = sp.BRANCH_ANGLE_DEG[spc[idx]].T
+    ang = np.radians(lo + (hi - lo) * rng.uniform(0.0, 1.0, m))
+    # azimuths: a whorl's branches evenly round, the whorl turned at random
+    per = sp.BRANCHES_PER_WHORL[spc[idx]]
+    first = np.r_[True, (idx[1:] != idx[:-1]) | (s[1:] != s[:-1])]
+    start = np.flatnonzero(first)[np.cumsum(first) - 1]
+    k_in = np.arange(m) - start
+    whorl_turn = rng.uniform(0.0, 2.0 * math.pi, m)[start]
+    az = whorl_turn + 2.0 * math.pi * k_in / per + rng.normal(0.0, 0.25, m)
+    tangent = st.tangent(idx, s)
+    direction = np.cos(ang)[:, None] * tangent + np.sin(ang)[:, None] * _perp(tangent, az)
+    base = st.centre(idx, s)
+    r_stem = st.radius(idx, s)
+    r0 = np.minimum(sp.BRANCH_DIAMETER_SHARE * r_stem, sp.BRANCH_DIAMETER_MAX_M / 2.0)
+    r0 = np.maximum(r0, 0.002)
+    ln = np.maximum(ln, r_stem + 0.05)  # out of the bark at least
+    # cut where another tree's stem is in the way (samples along each branch)
+    fr = np.linspace(0.15, 1.0, 7)
+    q = base[:, None, :] + (ln[:, None] * fr[None, :])[:, :, None] * direction[:, None, :]
+    hit = obstacles.blocked(q.reshape(-1, 3), np.repeat(r0, len(fr)),
+                            np.repeat(idx + 1, len(fr)).astype(np.int32)).reshape(m, len(fr))
+    first_hit = np.where(hit.any(axis=1), hit.argmax(axis=1), len(fr))
+    keep_frac = np.where(first_hit == 0, 0.0, fr[np.maximum(first_hit - 1, 0)])
+    keep_frac = np.where(first_hit == len(fr), 1.0, keep_frac)
+    ln = ln * keep_frac
+    ok = ln > r_stem + 0.03
+    counts["branches_cut"] = int(np.count_nonzero(keep_frac < 1.0))
+    idx, base, direction, ln, r0, dead = idx[ok], base[ok], direction[ok], ln[ok], r0[ok], dead[ok]
+    # five sides: the chord error 0.19 r is within 2 mm up to r = 1 cm (most branches)
+    v, f = cones(base, direction, ln, r0, np.full(len(r0), 0.002), _BRANCH_SIDES, caps=False)
+    parts.add(v, f, np.repeat((n + idx + 1).astype(np.int32), 2 * _BRANCH_SIDES), MAT_BARK)
+    counts["branches"] = len(idx)
+    counts["dead_branches"] = int(np.count_nonzero(dead))
+
+
+def _facets(centres: FloatArray, edge: float, rng: np.random.Generator
+            ) -> tuple[FloatArray, IntArray]:
+    """Equilateral triangles of side ``edge`` about each centre, randomly oriented."""
+    m = len(centres)
+    nrm = rng.normal(size=(m, 3))
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    u = _perp(nrm, rng.uniform(0.0, 2.0 * math.pi, m))
+    w = np.cross(nrm, u)
+    rad = edge / math.sqrt(3.0)
+    v = np.stack([centres + rad * (math.cos(a) * u + math.sin(a) * w)
+                  for a in (0.0, 2.0 * math.pi / 3.0, 4.0 * math.pi / 3.0)], axis=1)
+    return v.reshape(-1, 3), np.arange(3 * m, dtype=np.int64).reshape(m, 3)
+
+
+def facet_density(sigma: FloatArray | float, edge: float) -> FloatArray | float:
+    """Facets per m^3 that give extinction ``sigma`` (1/m): N a / 2 = sigma, a the facet's
+    one-sided area (a randomly oriented flat facet's mean silhouette is half its area)."""
+    area = math.sqrt(3.0) / 4.0 * edge**2
+    return np.asarray(sigma) * 2.0 / area
+
+
+def crown_points(rng: np.random.Generator, apex: FloatArray, axis: FloatArray,
+                 length: float, radius: float, shape: str, count: int) -> FloatArray:
+    """``count`` points uniform in a crown envelope below ``apex`` along ``-axis``: a cone
+    (widest at its base) or an ellipsoid."""
+    out = np.zeros((0, 3))
+    need = count
+    e1 = _perp(axis[None, :], np.zeros(1))[0]
+    e2 = np.cross(axis, e1)
+    while need > 0:
+        m = max(64, int(need * 2.2))
+        z = rng.uniform(0.0, 1.0, m)  # 0 apex, 1 base
+        x, y = rng.uniform(-1.0, 1.0, (2, m))
+        rr = np.hypot(x, y)
+        if shape == "cone":
+            inside = rr <= z
+        else:
+            inside = rr**2 + (2.0 * z - 1.0) ** 2 <= 1.0
+        p = (apex[None, :] - (z * length)[:, None] * axis[None, :]
+             + (radius * x)[:, None] * e1[None, :] + (radius * y)[:, None] * e2[None, :])
+        out = np.vstack([out, p[inside][:need]])
+        need = count - len(out)
+    return out
+
+
+def _foliage(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
+             parts: _Parts, counts: dict[str, int], edge: float) -> None:
+    from tcf_hil.forest.generate import Forest
+
+    assert isinstance(forest, Forest) and forest.natural is not None
+    st, nat = forest.stems, forest.natural
+    n = len(st)
+    spc = nat.species
+    intact = st.taper_length if st.taper_length is not None else st.length
+    dbh = 2.0 * st.r_bh
+    h = intact * st.axis[:, 2]
+    cl = sp.crown_length(spc, dbh, h) / st.axis[:, 2]
+    cr = sp.crown_radius(spc, dbh)
+    tree = cKDTree(st.base[:, :2])
+    if n > 1:
+        dn, _ = tree.query(st.base[:, :2], k=2)
+        cr = np.minimum(cr, np.maximum(0.3, 0.75 * dn[:, 1]))
+    area = sp.foliage_mass_kg(spc, dbh, h) * 1000.0 / sp.SLW_G_M2[spc]
+    volume = np.where(spc == 2, 4.0 / 3.0 * math.pi * cr**2 * cl / 2.0,
+                      math.pi * cr**2 * cl / 3.0)
+    sigma = sp.STAR[spc] * area / volume
+    # a broken top keeps the crown below its break
+    kept = np.clip((st.length - (intact - cl)) / cl, 0.0, 1.0)
+    want = np.rint(np.asarray(facet_density(sigma, edge)) * volume * kept).astype(np.int64)
+    cen_all, ids_all = [], []
+    for i in range(n):
+        if want[i] <= 0:
+            continue
+        apex = st.centre(np.array([i]), np.array([float(intact[i])]))[0]
+        shape = "ellipsoid" if spc[i] == 2 else "cone"
+        p = crown_points(rng, apex, st.axis[i], float(cl[i]), float(cr[i]), shape,
+                         int(want[i]) if kept[i] >= 1.0 else int(want[i] / max(kept[i], 1e-6)))
+        p = p[np.einsum("ij,j->i", p - st.base[i], st.axis[i]) <= st.length[i]][: want[i]]
+        cen_all.append(p)
+        ids_all.append(np.full(len(p), 2 * n + i + 1, np.int32))
+    if not cen_all:
+        return
+    cen = np.vstack(cen_all)
+    ids = np.concatenate(ids_all)
+    clear = ~obstacles.blocked(cen, edge / 2.0, (ids - 2 * n).astype(np.int32))
+    cen, ids = cen[clear], ids[clear]
+    v, f = _facets(cen, edge, rng)
+    parts.add(v, f, ids, MAT_FOLIAGE)
+    counts["foliage_facets"] = len(cen)
+    counts["foliage_sigma_median_per_m_x1000"] = round(1000 * float(np.median(sigma)))
+
+
+@dataclass
+class GroundObjects:
+    """Understory plants, lying logs, stumps and boulders: one row each, ids from 3n + 1 in
+    this order (saplings, shrubs, logs, stumps, boulders)."""
+
+    kind: list[str]  # "sapling", "shrub", "dead_wood", "stump", "boulder"
+    base: FloatArray  # (k, 3): foot (sapling, shrub, stump, boulder centre) or a log's end
+    tip: FloatArray  # (k, 3): top (sapling, shrub, stump, boulder top) or the log's other end
+    radius: FloatArray  # (k,): base radius, crown/shrub radius, log radius, semi-axis
+    species: IntArray  # (k,): saplings' species code, else -1
+    first_id: int
+
+    def __len__(self) -> int:
+        return len(self.kind)
+
+    def records(self, origin: FloatArray) -> list[dict[str, object]]:
+        """Ground-truth rows: id, kind, and the shape in world coordinates."""
+        out: list[dict[str, object]] = []
+        for k, kind in enumerate(self.kind):
+            row: dict[str, object] = {"id": self.first_id + k, "kind": kind}
+            b = np.round(self.base[k] + origin, 4).tolist()
+            t = np.round(self.tip[k] + origin, 4).tolist()
+            r = round(float(self.radius[k]), 4)
+            if kind == "dead_wood":
+                row.update(ends=[b, t], diameter_m=round(2 * r, 4),
+                           volume_m3=round(math.pi * r * r * float(np.linalg.norm(
+                               self.tip[k] - self.base[k])), 5))
+            elif kind == "boulder":
+                row.update(centre=b, semi_axis_m=r, height_m=round(float(
+                    self.tip[k, 2] - self.base[k, 2]), 4))
+            else:
+                row.update(base=b, height_m=round(float(self.tip[k, 2] - self.base[k, 2]), 4),
+                           **({"diameter_m": round(2 * r, 4)} if kind == "stump" else
+                              {"radius_m": r}))
+                if self.species[k] >= 0:
+                    row["species"] = sp.SPECIES[int(self.species[k])]
+            out.append(row)
+        return out
+
+
+def _free_spots(forest: object, rng: np.random.Generator, count: int, clearance: float,
+                obstacles: _Obstacles, off_roads: bool) -> FloatArray:
+    """Up to ``count`` (x, y) uniform in the plot, clear of every stem by ``clearance`` (and
+    of the strip roads, ``off_roads``)."""
+    from tcf_hil.forest.generate import Forest
+    from tcf_hil.forest.placement import region_for
+
+    assert isinstance(forest, Forest)
+    w, h = forest.scenario.plot.size_m
+    reg = region_for(forest.scenario)
+    out = np.zeros((0, 2))
+    for _ in range(20):
+        need = count - len(out)
+        if need <= 0:
+            break
+        xy = rng.uniform((-w / 2, -h / 2), (w / 2, h / 2), (2 * need + 16, 2))
+        if off_roads and reg.cuts:
+            a = reg.axis
+            inside = np.zeros(len(xy), dtype=bool)
+            for lo, hi in reg.cuts:
+                inside |= (xy[:, a] >= lo - 0.5) & (xy[:, a] <= hi + 0.5)
+            xy = xy[~inside]
+        z = forest.terrain.height(xy[:, 0], xy[:, 1])
+        q = np.column_stack([xy, z + 0.3])
+        xy = xy[~obstacles.blocked(q, clearance, 0)]
+        out = np.vstack([out, xy[:need]])
+    return out
+
+
+def ground_objects(forest: object) -> GroundObjects:
+    """Draw the stand's understory, dead wood, stumps and boulders (own random stream)."""
+    from tcf_hil.forest.generate import Forest
+
+    assert isinstance(forest, Forest) and forest.natural is not None
+    cfg = forest.scenario.stand
+    rng = np.random.default_rng([forest.seed, _STREAM_SCENERY, 3])
+    w, h = forest.scenario.plot.size_m
+    ha = w * h / 10_000.0
+    tubes, owner = forest.tubes()
+    obstacles = _Obstacles(tubes, owner)
+    terrain = forest.terrain
+    kinds: list[str] = []
+    base, tip, rad, spc = [], [], [], []
+
+    def ground(xy: FloatArray) -> FloatArray:
+        return np.column_stack([xy, terrain.height(xy[:, 0], xy[:, 1])])
+
+    # saplings
+    xy = _free_spots(forest, rng, round(cfg.saplings_per_ha * ha), 0.15, obstacles, True)
+    g = ground(xy)
+    hh = rng.uniform(*cfg.sapling_height_m, len(g))
+    shares = np.array([getattr(cfg, n).share for n in sp.SPECIES])
+    species = rng.choice(3, size=len(g), p=shares / shares.sum()) if len(g) else \
+        np.zeros(0, np.int64)
+    kinds += ["sapling"] * len(g)
+    base.append(g)
+    tip.append(g + np.column_stack([np.zeros((len(g), 2)), hh]))
+    rad.append(_SAPLING_BASE_DIAMETER_PER_M * hh / 2.0)
+    spc.append(species.astype(np.int64))
+    # shrubs
+    xy = _free_spots(forest, rng, round(cfg.shrubs_per_ha * ha), 0.3, obstacles, True)
+    g = ground(xy)
+    hh = rng.uniform(*cfg.shrub_height_m, len(g))
+    kinds += ["shrub"] * len(g)
+    base.append(g)
+    tip.append(g + np.column_stack([np.zeros((len(g), 2)), hh]))
+    rad.append(rng.uniform(0.5, 1.0, len(g)) * np.maximum(hh, 0.3))
+    spc.append(np.full(len(g), -1, np.int64))
+    # lying dead wood, up to the volume asked for
+    want = cfg.dead_wood_m3_per_ha * ha
+    vol = 0.0
+    logs_b, logs_t, logs_r = [], [], []
+    tries = 0
+    while vol < want and tries < 10_000:
+        tries += 1
+        r = rng.uniform(*cfg.dead_wood_diameter_m) / 2.0
+        ln = rng.uniform(*cfg.dead_wood_length_m)
+        c = _free_spots(forest, rng, 1, r + 0.1, obstacles, True)
+        if not len(c):
+            continue
+        ang = rng.uniform(0.0, math.pi)
+        d = np.array([math.cos(ang), math.sin(ang)]) * ln / 2.0
+        ends = np.array([c[0] - d, c[0] + d])
+        e3 = ground(ends) + np.array([0.0, 0.0, r])
+        samples = e3[0] + np.linspace(0.0, 1.0, 9)[:, None] * (e3[1] - e3[0])
+        if obstacles.blocked(samples, r, 0).any():
+            continue
+        if np.any(np.abs(samples[:, :2]) > np.array([w / 2, h / 2])):
+            continue
+        logs_b.append(e3[0])
+        logs_t.append(e3[1])
+        logs_r.append(r)
+        vol += math.pi * r * r * float(np.linalg.norm(e3[1] - e3[0]))
+    kinds += ["dead_wood"] * len(logs_r)
+    base.append(np.array(logs_b).reshape(-1, 3))
+    tip.append(np.array(logs_t).reshape(-1, 3))
+    rad.append(np.array(logs_r))
+    spc.append(np.full(len(logs_r), -1, np.int64))
+    # stumps: stump diameter 2 + 1.25 DBH cm (Laasasenaho 1975), DBH as the stand's
+    xy = _free_spots(forest, rng, round(cfg.stumps_per_ha * ha), 0.3, obstacles, False)
+    g = ground(xy)
+    from tcf_hil.forest.dbh import draw_dbh
+
+    d = draw_dbh(forest.scenario.stems.dbh, len(g), rng)
+    kinds += ["stump"] * len(g)
+    base.append(g)
+    tip.append(g + np.column_stack([np.zeros((len(g), 2)),
+                                    rng.uniform(*cfg.stump_height_m, len(g))]))
+    rad.append((0.02 + 1.25 * d) / 2.0)
+    spc.append(np.full(len(g), -1, np.int64))
+    # boulders: an ellipsoid, 30 % of its height sunk
+    xy = _free_spots(forest, rng, round(cfg.boulders_per_ha * ha), 0.9, obstacles, True)
+    g = ground(xy)
+    a = rng.uniform(*cfg.boulder_radius_m, len(g))
+    centre = g + np.column_stack([np.zeros((len(g), 2)), 0.6 * a * (1.0 - 2 * 0.3)])
+    kinds += ["boulder"] * len(g)
+    base.append(centre)
+    tip.append(centre + np.column_stack([np.zeros((len(g), 2)), 0.6 * a]))
+    rad.append(a)
+    spc.append(np.full(len(g), -1, np.int64))
+    return GroundObjects(kinds, np.vstack(base), np.vstack(tip), np.concatenate(rad),
+                         np.concatenate(spc), 3 * len(forest.stems) + 1)
+
+
+def _ground_meshes(forest: object, go: GroundObjects, parts: _Parts, comp: list[int],
+                   counts: dict[str, int], edge: float) -> None:
+    from tcf_hil.forest.generate import Forest
+    from tcf_hil.forest.mesh import sides_for
+
+    assert isinstance(forest, Forest)
+    cfg = forest.scenario.stand
+    tol = forest.scenario.stems.tolerance_mm / 1000.0
+    rng = np.random.default_rng([forest.seed, _STREAM_SCENERY, 4])
+    up = np.array([0.0, 0.0, 1.0])
+    for k, kind in enumerate(go.kind):
+        oid = go.first_id + k
+        b, t, r = go.base[k], go.tip[k], float(go.radius[k])
+        if kind in ("sapling", "shrub"):
+            comp.append(UNDERSTORY)
+            hgt = float(t[2] - b[2])
+            if kind == "sapling":
+                v, f = cones(b[None, :] - 0.1 * up, up[None, :], np.array([hgt + 0.1]),
+                             np.array([r]), np.array([0.001]), 5)
+                parts.add(v, f, oid, MAT_BARK)
+                crown_r, crown_l, shape = 0.25 * hgt, 0.8 * hgt, "cone"
+                apex = t
+            else:
+                crown_r, crown_l, shape = r, hgt, "ellipsoid"
+                apex = t
+            vol = (math.pi * crown_r**2 * crown_l / 3.0 if shape == "cone"
+                   else 4.0 / 3.0 * math.pi * crown_r**2 * crown_l / 2.0)
+            m = round(float(facet_density(cfg.understory_sigma_per_m, edge)) * vol)
+            if m:
+                p = crown_points(rng, apex, up, crown_l, crown_r, shape, m)
+                v, f = _facets(p, edge, rng)
+                parts.add(v, f, oid, MAT_FOLIAGE)
+                counts["understory_facets"] = counts.get("understory_facets", 0) + m
+        elif kind in ("dead_wood", "stump"):
+            comp.append(DEAD_WOOD if kind == "dead_wood" else STUMP)
+            if kind == "stump":
+                b = b - 0.2 * up
+            ax = t - b
+            ln = float(np.linalg.norm(ax))
+            n_sides = sides_for(r, 0.75 * tol)
+            v, f = cones(b[None, :], (ax / ln)[None, :], np.array([ln]), np.array([r]),
+                         np.array([r]), n_sides)
+            parts.add(v, f, oid, MAT_DEAD_WOOD)
+        else:
+            comp.append(BOULDER)
+            sph = trimesh.creation.icosphere(subdivisions=2)
+            turn = rng.uniform(0.0, 2.0 * math.pi)
+            squash = np.array([r, r * rng.uniform(0.6, 1.0), float(t[2] - b[2])])
+            v = sph.vertices * squash
+            c, s_ = math.cos(turn), math.sin(turn)
+            v = v @ np.array([[c, s_, 0.0], [-s_, c, 0.0], [0.0, 0.0, 1.0]]) + b
+            parts.add(v, np.asarray(sph.faces, np.int64), oid, MAT_ROCK)
+    for kind in ("sapling", "shrub", "dead_wood", "stump", "boulder"):
+        counts[kind + "s" if not kind.endswith("d") else kind] = go.kind.count(kind)
+
+
+def build_scenery(forest: object) -> Scenery:
+    """The scenery of a natural forest (deterministic per scenario and seed)."""
+    from tcf_hil.forest.generate import Forest
+
+    assert isinstance(forest, Forest) and forest.natural is not None
+    cfg = forest.scenario.stand
+    n = len(forest.stems)
+    tubes, owner = forest.tubes()
+    obstacles = _Obstacles(tubes, owner)
+    parts = _Parts()
+    counts: dict[str, int] = {}
+    if cfg.branches:
+        _branches(forest, np.random.default_rng([forest.seed, _STREAM_SCENERY, 1]), obstacles,
+                  parts, counts)
+    if cfg.foliage:
+        _foliage(forest, np.random.default_rng([forest.seed, _STREAM_SCENERY, 2]), obstacles,
+                 parts, counts, cfg.foliage_facet_m)
+    comp = [GROUND] + [STEM] * n + [BRANCH] * n + [FOLIAGE] * n
+    go = forest.ground_objects()
+    assert go is not None
+    _ground_meshes(forest, go, parts, comp, counts, cfg.foliage_facet_m)
+    if parts.f:
+        v = np.vstack(parts.v)
+        f = np.vstack(parts.f)
+        ids = np.concatenate(parts.ids)
+        mat = np.concatenate(parts.mat)
+    else:
+        v, f = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+        ids, mat = np.zeros(0, np.int32), np.zeros(0, np.uint8)
+    return Scenery(v, f, ids, mat, np.asarray(comp, np.uint8), counts)
+
+
+def scenery_mesh(sc: Scenery) -> trimesh.Trimesh:
+    """The scenery as one mesh with face attributes ``stem_id`` (the object id) and
+    ``material``."""
+    mesh = trimesh.Trimesh(sc.vertices, sc.faces, process=False)
+    mesh.face_attributes["stem_id"] = sc.face_id
+    mesh.face_attributes["material"] = sc.face_material.astype(np.int32)
+    return mesh
