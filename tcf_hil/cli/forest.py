@@ -30,10 +30,14 @@ def scenario_list() -> None:
         t.add_row(s.name, f"{s.plot.size_m[0]:g} x {s.plot.size_m[1]:g}", str(s.stems.count),
                   s.distribution.kind, s.terrain.kind, str(s.seed))
     console.print(t)
-    from tcf_hil.scenario import EXTRA_PRESETS, load_scenario
+    from tcf_hil.scenario import EXTRA_PRESETS, NATURAL_VARIANTS, load_scenario
 
     for name in EXTRA_PRESETS:
-        console.print(f"Also [bold]{name}[/]: {load_scenario(name).description}.")
+        if name not in NATURAL_VARIANTS:
+            console.print(f"Also [bold]{name}[/]: {load_scenario(name).description}.")
+    console.print(f"Also [bold]{NATURAL_VARIANTS[0]}[/] ... [bold]{NATURAL_VARIANTS[-1]}[/]: "
+                  "each paper forest (its plot, count, placement, DBH and classes) with "
+                  "natural stems, branches, foliage and understory.")
     console.print("Show one fully resolved: [bold]tcf-hil scenario show forest-v[/]. "
                   "Start your own"
                   " from a preset with [bold]extends = \"forest-v\"[/] in a TOML file.")
@@ -65,10 +69,22 @@ def _terrain_kind(terrain: Any) -> str:
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output directory.")
 @click.option("--no-meshes", is_flag=True, help="Skip stems.ply and terrain.ply.")
-def forest_generate(scenario_name: str, seed: int | None, out: Path, no_meshes: bool) -> None:
+@click.option("--scenery", is_flag=True,
+              help="Natural stands: also write scenery.ply (branches, foliage, understory, "
+                   "dead wood, stumps, boulders; large: about 0.5 GB a hectare).")
+def forest_generate(scenario_name: str, seed: int | None, out: Path, no_meshes: bool,
+                    scenery: bool) -> None:
     """Generate a forest: ground_truth.json, stems.ply, terrain.ply and map.png in --out.
 
     stems.ply has a per-face stem_id (the ground-truth id); coordinates are world metres.
+    A natural stand (pine-thinning, forest-v-natural, ...: `tcf-hil scenario list`) also
+    lists its species, defects and ground objects in ground_truth.json; --scenery writes
+    its branches, foliage and ground objects too.
+
+    \b
+    Examples:
+      tcf-hil forest generate forest-v --out forest-v/
+      tcf-hil forest generate pine-thinning --scenery --out pine/
     """
     from tcf_hil.forest import generate_forest
     from tcf_hil.forest.output import write_forest
@@ -78,7 +94,7 @@ def forest_generate(scenario_name: str, seed: int | None, out: Path, no_meshes: 
     with blame(scenario_name), \
             console.status(f"generating {scn.name} ({scn.stems.count} stems)") as status:
         f = generate_forest(scn)
-        paths = write_forest(f, out, meshes=not no_meshes,
+        paths = write_forest(f, out, meshes=not no_meshes, scenery=scenery,
                              progress=lambda name: status.update(f"{scn.name}: writing {name}"))
     counts = {c: int(np.sum(f.classes == c)) for c in ("S", "C", "X")}
     console.print(f"{scn.name}, seed {f.seed}: {len(f.stems)} stems "

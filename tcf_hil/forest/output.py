@@ -12,6 +12,7 @@ from protocols.ply import encode_ply
 from tcf_hil._io import ensure_dir, write_bytes_atomic, write_json_atomic
 from tcf_hil.forest.generate import Forest, ground_truth
 from tcf_hil.forest.mesh import stem_mesh, terrain_mesh
+from tcf_hil.forest.scenery import scenery_mesh
 from tcf_hil.plots import forest_map
 
 
@@ -27,10 +28,15 @@ FILES = ("ground_truth.json", "stems.ply", "terrain.ply", "map.png")
 
 
 def write_forest(forest: Forest, out_dir: str | Path, *, meshes: bool = True,
+                 scenery: bool = False,
                  progress: Callable[[str], None] | None = None) -> list[Path]:
     """Write the forest's files into ``out_dir`` (each atomically); returns their paths.
 
-    ``stems.ply`` carries a per-face ``stem_id`` (1-based, the ground-truth ``id``).
+    ``stems.ply`` carries a per-face ``stem_id`` (1-based, the ground-truth ``id``); with
+    ``scenery``, a natural stand adds ``scenery.ply`` (branches, foliage, understory, dead
+    wood, stumps, boulders) with the object id (``stem_id``, see the ground truth's
+    ``object_ids``) and ``material`` (0 ground, 1 bark, 2 foliage, 3 dead wood, 4 rock) of
+    every face.
     ``progress`` is called with the name of each file before it is built.
     """
     say = progress or (lambda _name: None)
@@ -52,8 +58,17 @@ def write_forest(forest: Forest, out_dir: str | Path, *, meshes: bool = True,
                           forest.origin)
         write_bytes_atomic(out / "terrain.ply", mesh_ply(tm))
         written += [out / "stems.ply", out / "terrain.ply"]
+        sc = forest.scenery() if scenery else None
+        if sc is not None:
+            say("scenery.ply")
+            mesh = scenery_mesh(sc)
+            mesh.vertices = mesh.vertices + forest.origin
+            write_bytes_atomic(out / "scenery.ply", mesh_ply(mesh))
+            written.append(out / "scenery.ply")
+        else:
+            (out / "scenery.ply").unlink(missing_ok=True)
     else:  # never leave another forest's meshes beside this ground truth
-        for name in ("stems.ply", "terrain.ply"):
+        for name in ("stems.ply", "terrain.ply", "scenery.ply"):
             (out / name).unlink(missing_ok=True)
     say("map.png")
     pos = forest.positions()

@@ -166,6 +166,34 @@ class _Obstacles:
         return out
 
 
+def track_distance(forest: object, xy: FloatArray) -> FloatArray:
+    """Horizontal distance of points ``xy`` from the scenario's track (every pass), from
+    its path sampled every 0.25 s."""
+    from tcf_hil.forest.generate import Forest
+    from tcf_hil.trajectory import Trajectory
+
+    assert isinstance(forest, Forest)
+    tr = Trajectory.from_config(forest.scenario.track, forest.terrain)
+    t = np.arange(tr.t0_ns, tr.end_ns + 1, 250_000_000, dtype=np.int64)
+    pos, _ = tr.sensor_pose(t)
+    d, _ = cKDTree(pos[:, :2]).query(xy)
+    out: FloatArray = d
+    return out
+
+
+def _near_track(forest: object, xy: FloatArray, reach: FloatArray | float) -> NDArray[np.bool_]:
+    """Which of ``xy`` (objects reaching ``reach`` from there) ``stand.detail_range_m``
+    keeps."""
+    from tcf_hil.forest.generate import Forest
+
+    assert isinstance(forest, Forest)
+    rng_m = forest.scenario.stand.detail_range_m
+    if rng_m <= 0.0 or len(xy) == 0:
+        return np.ones(len(xy), dtype=bool)
+    out: NDArray[np.bool_] = track_distance(forest, xy) - reach <= rng_m
+    return out
+
+
 def _branches(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
               parts: _Parts, counts: dict[str, int]) -> None:
     from tcf_hil.forest.generate import Forest
@@ -184,7 +212,9 @@ def _branches(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
     cr = np.minimum(cr, np.maximum(0.3, 0.75 * dn[:, 1])) if n > 1 else cr
     crown_base = intact - cl
     rows_i, rows_s, rows_len, rows_dead = [], [], [], []
-    for i in range(n):
+    near = _near_track(forest, st.base[:, :2], cr)
+    counts["trees_detailed"] = int(near.sum())
+    for i in np.flatnonzero(near).tolist():
         L = float(st.length[i])
         spacing = float(sp.WHORL_SPACING_M[spc[i]])
         start = float(sp.DEAD_ZONE_FROM_M[spc[i]])
@@ -319,8 +349,9 @@ def _foliage(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
     kept = np.clip((st.length - (intact - cl)) / cl, 0.0, 1.0)
     want = np.rint(np.asarray(facet_density(sigma, edge)) * volume * kept).astype(np.int64)
     cen_all, ids_all = [], []
+    near = _near_track(forest, st.base[:, :2], cr)
     for i in range(n):
-        if want[i] <= 0:
+        if want[i] <= 0 or not near[i]:
             continue
         apex = st.centre(np.array([i]), np.array([float(intact[i])]))[0]
         shape = "ellipsoid" if spc[i] == 2 else "cone"
@@ -515,8 +546,15 @@ def _ground_meshes(forest: object, go: GroundObjects, parts: _Parts, comp: list[
     tol = forest.scenario.stems.tolerance_mm / 1000.0
     rng = np.random.default_rng([forest.seed, _STREAM_SCENERY, 4])
     up = np.array([0.0, 0.0, 1.0])
+    near = _near_track(forest, go.base[:, :2], np.linalg.norm(go.tip - go.base, axis=1)
+                       + go.radius)
+    counts["ground_objects_culled"] = int(np.count_nonzero(~near))
     for k, kind in enumerate(go.kind):
         oid = go.first_id + k
+        if not near[k]:
+            comp.append({"sapling": UNDERSTORY, "shrub": UNDERSTORY, "dead_wood": DEAD_WOOD,
+                         "stump": STUMP}.get(kind, BOULDER))
+            continue
         b, t, r = go.base[k], go.tip[k], float(go.radius[k])
         if kind in ("sapling", "shrub"):
             comp.append(UNDERSTORY)

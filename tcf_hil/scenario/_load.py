@@ -265,7 +265,8 @@ def _load_dict(name_or_path: str, _seen: tuple[str, ...] = ()) -> tuple[dict[str
         over = tomllib.loads(_preset_text("natural-variant"))
         data = _merge(base, over)
         data["name"] = preset
-        data["description"] = f"{base.get('description', paper)}; natural stems"
+        data["description"] = (f"{base.get('description', paper)}; natural stems, branches, "
+                               "foliage and understory")
         return data, f"preset {preset}"
     # A bare preset name is the preset, even if a file of that name sits in the working
     # directory; write ./forest-v or forest-v.toml to mean a file.

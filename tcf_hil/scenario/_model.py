@@ -221,6 +221,9 @@ class StandConfig:
     stumps_per_ha: float = _f(0.0, "stumps of earlier fellings", ge=0.0, le=10_000.0)
     stump_height_m: tuple[float, float] = _f((0.10, 0.30), "stump height above ground",
                                              gt=0.0, le=2.0)
+    detail_range_m: float = _f(
+        0.0, "branches, foliage and ground objects are built only within this horizontal "
+             "distance of the track (0: everywhere); stems always", ge=0.0, le=100_000.0)
     boulders_per_ha: float = _f(0.0, "boulders on the ground", ge=0.0, le=10_000.0)
     boulder_radius_m: tuple[float, float] = _f(
         (0.2, 0.8), "boulder horizontal semi-axis range (height 0.6 of it, 30 % sunk)",

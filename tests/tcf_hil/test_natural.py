@@ -456,6 +456,11 @@ def test_returns_are_counted_by_component(tmp_path: Path) -> None:
         assert comp[name] > 0, name
     assert sum(o["returns_by_component"]["foliage"] for o in gt["objects"]) == comp["foliage"]
     assert vis["stems_seen"] == sum(1 for o in gt["objects"] if o["returns"])
+    import jsonschema
+
+    from protocols.stems import load_schema
+
+    jsonschema.Draft7Validator(load_schema("ground_truth")).validate(gt)
 
 
 def test_the_same_seed_gives_the_same_scenery() -> None:
@@ -464,3 +469,24 @@ def test_the_same_seed_gives_the_same_scenery() -> None:
     assert a is not None and b is not None
     assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.face_id, b.face_id)
     assert np.array_equal(a.face_material, b.face_material)
+
+
+def test_forest_generate_writes_the_scenery_when_asked(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    toml = tmp_path / "s.toml"
+    toml.write_text('extends = "forest-i-natural"\nname = "small"\n[stand]\nsaplings_per_ha = '
+                    '2000\nboulders_per_ha = 100\n')
+    for flag, want in (([], False), (["--scenery"], True)):
+        out = tmp_path / ("with" if want else "without")
+        r = subprocess.run([sys.executable, "-m", "tcf_hil", "forest", "generate", str(toml),
+                            "--out", str(out), *flag], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        assert (out / "scenery.ply").exists() == want
+    import trimesh
+
+    mesh = trimesh.load(tmp_path / "with" / "scenery.ply", process=False)
+    gt = json.loads((tmp_path / "with" / "ground_truth.json").read_text())
+    assert len(mesh.faces) > 0
+    assert gt["schema_version"] == 2 and gt["ground_objects"]
