@@ -46,7 +46,10 @@ def refine_hits(forest: Forest, origins: FloatArray, directions: FloatArray,
         gx, gy = forest.terrain.gradient(p[:, 0], p[:, 1])
         nz = np.column_stack([-gx, -gy, np.ones_like(gx)])
         cos[ter] = np.abs(np.einsum("ij,ij->i", nz, d)) / np.linalg.norm(nz, axis=1)
-    stem = np.flatnonzero((stem_id > 0) & np.isfinite(t))
+    # stems only: a natural stand's branches, foliage and ground objects (ids above the
+    # stem count) are not refined, nor are its second leaders (they carry their stem's id
+    # and do not converge onto its surface: NaN)
+    stem = np.flatnonzero((stem_id > 0) & (stem_id <= len(forest.stems)) & np.isfinite(t))
     if len(stem):
         st = forest.stems
         idx = (stem_id[stem] - 1).astype(np.int64)

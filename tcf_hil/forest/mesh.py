@@ -75,9 +75,7 @@ def _tubes(stems: StemSet, ids: NDArray[np.int64], s: FloatArray, n: int) -> Flo
     idx = np.repeat(ids, m)
     sf = s.ravel()
     c = stems.centre(idx, sf)
-    t = stems.tangent(idx, sf)
-    b = stems.binormal[idx]
-    u = np.cross(b, t)
+    u, b = stems.ring_frame(idx, sf)
     r = stems.radius(idx, sf)
     th = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
     ring = (np.cos(th)[None, :, None] * u[:, None, :] + np.sin(th)[None, :, None] * b[:, None, :])

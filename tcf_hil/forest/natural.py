@@ -182,16 +182,19 @@ def build(scn: Scenario, dr: _Draw) -> tuple[StemSet, StemSet, IntArray, list[st
     intact = dr.height / axis[:, 2]
     length = intact.copy()
     broken = dr.x_kind == "broken_top"
-    length[broken] = intact[broken] * _lerp(df.broken_height, dr.u[broken, 0])
+    # a broken top stands above breast height (half a metre at least: it has a DBH)
+    length[broken] = np.maximum(intact[broken] * _lerp(df.broken_height, dr.u[broken, 0]),
+                                np.minimum(0.98 * intact[broken], BREAST_HEIGHT_M + 0.5))
     crook = np.zeros((n, 3))
     crook_s = np.full(n, 1.0)
     crook_w = np.full(n, 1.0)
     ck = np.flatnonzero(dr.x_kind == "crook")
     if len(ck):
-        crook_w[ck] = _lerp(df.crook_length_m, dr.u[ck, 1])
-        crook_s[ck] = np.minimum(_lerp(df.crook_height, dr.u[ck, 0]) * intact[ck],
-                                 intact[ck] - crook_w[ck] - 0.5)
-        crook_s[ck] = np.maximum(crook_s[ck], BREAST_HEIGHT_M + 0.2)
+        # within the stem: above breast height where it can, ending 0.3 m below the top
+        crook_w[ck] = np.minimum(_lerp(df.crook_length_m, dr.u[ck, 1]), 0.4 * intact[ck])
+        hi = intact[ck] - crook_w[ck] - 0.3
+        lo = np.minimum(BREAST_HEIGHT_M + 0.2, hi)
+        crook_s[ck] = np.clip(_lerp(df.crook_height, dr.u[ck, 0]) * intact[ck], lo, hi)
         crook[ck] = (_lerp(df.crook_offset_m, dr.u[ck, 2])[:, None]
                      * _unit_perp(axis[ck], 2.0 * math.pi * dr.u[ck, 3]))
     stems = StemSet(

@@ -66,9 +66,7 @@ def _stem_points(forest: Forest, idx: NDArray[np.int64], rng: np.random.Generato
     j = k - idx * _GRID
     s = (u[j] + np.clip(frac, 0.0, 1.0) * (u[1] - u[0])) * st.length[idx]
     th = rng.uniform(0.0, 2.0 * math.pi, len(idx))
-    t = st.tangent(idx, s)
-    b = st.binormal[idx]
-    e1 = np.cross(b, t)
+    e1, b = st.ring_frame(idx, s)
     r = st.radius(idx, s)
     return st.centre(idx, s) + r[:, None] * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * b)
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -49,6 +50,7 @@ GROUND, STEM, BRANCH, FOLIAGE, UNDERSTORY, DEAD_WOOD, STUMP, BOULDER = range(8)
 MAT_GROUND, MAT_BARK, MAT_FOLIAGE, MAT_DEAD_WOOD, MAT_ROCK = 0, 1, 2, 3, 4
 _CLEARANCE_M = 0.02
 _BRANCH_SIDES = 5
+_BOULDER_SHOWS = 0.7  # share of a boulder's height above the ground (assumption)
 _SAPLING_BASE_DIAMETER_PER_M = 0.015  # a 2 m sapling is 3 cm thick at its foot (assumption)
 _STREAM_SCENERY = 7
 
@@ -147,7 +149,7 @@ class _Obstacles:
         self.step = step
 
     def blocked(self, q: FloatArray, radius: FloatArray | float, me: NDArray[np.int32] | int,
-                k: int = 6) -> NDArray[np.bool_]:
+                k: int = 12) -> NDArray[np.bool_]:
         """Whether points ``q`` (with their own radius) come within the clearance of a tube
         of a tree other than ``me`` (0: of any tree)."""
         if self.tree is None or len(q) == 0:
@@ -341,13 +343,15 @@ def _foliage(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
     if n > 1:
         dn, _ = tree.query(st.base[:, :2], k=2)
         cr = np.minimum(cr, np.maximum(0.3, 0.75 * dn[:, 1]))
-    area = sp.foliage_mass_kg(spc, dbh, h) * 1000.0 / sp.SLW_G_M2[spc]
+    # SLW is per one-sided (projected, hemi-surface) leaf area; STAR is silhouette over
+    # total (all-sided) area, twice that (the flat leaf's STAR 0.25 then gives G = 0.5)
+    area = 2.0 * sp.foliage_mass_kg(spc, dbh, h) * 1000.0 / sp.SLW_G_M2[spc]
     volume = np.where(spc == 2, 4.0 / 3.0 * math.pi * cr**2 * cl / 2.0,
                       math.pi * cr**2 * cl / 3.0)
     sigma = sp.STAR[spc] * area / volume
-    # a broken top keeps the crown below its break
-    kept = np.clip((st.length - (intact - cl)) / cl, 0.0, 1.0)
-    want = np.rint(np.asarray(facet_density(sigma, edge)) * volume * kept).astype(np.int64)
+    # a broken top keeps the part of the crown below its break (its points drawn in the
+    # whole envelope, those above the break dropped)
+    want = np.rint(np.asarray(facet_density(sigma, edge)) * volume).astype(np.int64)
     cen_all, ids_all = [], []
     near = _near_track(forest, st.base[:, :2], cr)
     for i in range(n):
@@ -356,8 +360,8 @@ def _foliage(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
         apex = st.centre(np.array([i]), np.array([float(intact[i])]))[0]
         shape = "ellipsoid" if spc[i] == 2 else "cone"
         p = crown_points(rng, apex, st.axis[i], float(cl[i]), float(cr[i]), shape,
-                         int(want[i]) if kept[i] >= 1.0 else int(want[i] / max(kept[i], 1e-6)))
-        p = p[np.einsum("ij,j->i", p - st.base[i], st.axis[i]) <= st.length[i]][: want[i]]
+                         int(want[i]))
+        p = p[np.einsum("ij,j->i", p - st.base[i], st.axis[i]) <= st.length[i]]
         cen_all.append(p)
         ids_all.append(np.full(len(p), 2 * n + i + 1, np.int32))
     if not cen_all:
@@ -400,8 +404,9 @@ class GroundObjects:
                            volume_m3=round(math.pi * r * r * float(np.linalg.norm(
                                self.tip[k] - self.base[k])), 5))
             elif kind == "boulder":
-                row.update(centre=b, semi_axis_m=r, height_m=round(float(
-                    self.tip[k, 2] - self.base[k, 2]), 4))
+                c = self.tip[k] - np.array([0.0, 0.0, 0.6 * float(self.radius[k])])
+                row.update(centre=np.round(c + origin, 4).tolist(), semi_axis_m=r,
+                           height_m=round(float(self.tip[k, 2] - self.base[k, 2]), 4))
             else:
                 row.update(base=b, height_m=round(float(self.tip[k, 2] - self.base[k, 2]), 4),
                            **({"diameter_m": round(2 * r, 4)} if kind == "stump" else
@@ -412,28 +417,40 @@ class GroundObjects:
         return out
 
 
+def _road_test(forest: object) -> Any:
+    """A test of (x, y) points: on a strip road (within half a metre of its edge)."""
+    from tcf_hil.forest.generate import Forest
+    from tcf_hil.forest.placement import region_for
+
+    assert isinstance(forest, Forest)
+    reg = region_for(forest.scenario)
+
+    def on_road(xy: FloatArray) -> NDArray[np.bool_]:
+        inside = np.zeros(len(xy), dtype=bool)
+        for lo, hi in reg.cuts:
+            inside |= (xy[:, reg.axis] >= lo - 0.5) & (xy[:, reg.axis] <= hi + 0.5)
+        return inside
+
+    return on_road
+
+
 def _free_spots(forest: object, rng: np.random.Generator, count: int, clearance: float,
                 obstacles: _Obstacles, off_roads: bool) -> FloatArray:
     """Up to ``count`` (x, y) uniform in the plot, clear of every stem by ``clearance`` (and
     of the strip roads, ``off_roads``)."""
     from tcf_hil.forest.generate import Forest
-    from tcf_hil.forest.placement import region_for
 
     assert isinstance(forest, Forest)
     w, h = forest.scenario.plot.size_m
-    reg = region_for(forest.scenario)
+    road = _road_test(forest)
     out = np.zeros((0, 2))
     for _ in range(20):
         need = count - len(out)
         if need <= 0:
             break
         xy = rng.uniform((-w / 2, -h / 2), (w / 2, h / 2), (2 * need + 16, 2))
-        if off_roads and reg.cuts:
-            a = reg.axis
-            inside = np.zeros(len(xy), dtype=bool)
-            for lo, hi in reg.cuts:
-                inside |= (xy[:, a] >= lo - 0.5) & (xy[:, a] <= hi + 0.5)
-            xy = xy[~inside]
+        if off_roads:
+            xy = xy[~road(xy)]
         z = forest.terrain.height(xy[:, 0], xy[:, 1])
         q = np.column_stack([xy, z + 0.3])
         xy = xy[~obstacles.blocked(q, clearance, 0)]
@@ -485,7 +502,8 @@ def ground_objects(forest: object) -> GroundObjects:
     vol = 0.0
     logs_b, logs_t, logs_r = [], [], []
     tries = 0
-    while vol < want and tries < 10_000:
+    road = _road_test(forest)
+    while vol < want and tries < 2_000:
         tries += 1
         r = rng.uniform(*cfg.dead_wood_diameter_m) / 2.0
         ln = rng.uniform(*cfg.dead_wood_length_m)
@@ -497,7 +515,7 @@ def ground_objects(forest: object) -> GroundObjects:
         ends = np.array([c[0] - d, c[0] + d])
         e3 = ground(ends) + np.array([0.0, 0.0, r])
         samples = e3[0] + np.linspace(0.0, 1.0, 9)[:, None] * (e3[1] - e3[0])
-        if obstacles.blocked(samples, r, 0).any():
+        if obstacles.blocked(samples, r, 0).any() or road(samples[:, :2]).any():
             continue
         if np.any(np.abs(samples[:, :2]) > np.array([w / 2, h / 2])):
             continue
@@ -526,10 +544,9 @@ def ground_objects(forest: object) -> GroundObjects:
     xy = _free_spots(forest, rng, round(cfg.boulders_per_ha * ha), 0.9, obstacles, True)
     g = ground(xy)
     a = rng.uniform(*cfg.boulder_radius_m, len(g))
-    centre = g + np.column_stack([np.zeros((len(g), 2)), 0.6 * a * (1.0 - 2 * 0.3)])
     kinds += ["boulder"] * len(g)
-    base.append(centre)
-    tip.append(centre + np.column_stack([np.zeros((len(g), 2)), 0.6 * a]))
+    base.append(g)  # the ground under its centre, and its top: 70 % of its 1.2 a height
+    tip.append(g + np.column_stack([np.zeros((len(g), 2)), _BOULDER_SHOWS * 1.2 * a]))
     rad.append(a)
     spc.append(np.full(len(g), -1, np.int64))
     return GroundObjects(kinds, np.vstack(base), np.vstack(tip), np.concatenate(rad),
@@ -590,10 +607,10 @@ def _ground_meshes(forest: object, go: GroundObjects, parts: _Parts, comp: list[
             comp.append(BOULDER)
             sph = trimesh.creation.icosphere(subdivisions=2)
             turn = rng.uniform(0.0, 2.0 * math.pi)
-            squash = np.array([r, r * rng.uniform(0.6, 1.0), float(t[2] - b[2])])
+            squash = np.array([r, r * rng.uniform(0.6, 1.0), 0.6 * r])
             v = sph.vertices * squash
             c, s_ = math.cos(turn), math.sin(turn)
-            v = v @ np.array([[c, s_, 0.0], [-s_, c, 0.0], [0.0, 0.0, 1.0]]) + b
+            v = v @ np.array([[c, s_, 0.0], [-s_, c, 0.0], [0.0, 0.0, 1.0]]) + (t - 0.6 * r * up)
             parts.add(v, np.asarray(sph.faces, np.int64), oid, MAT_ROCK)
     for kind in ("sapling", "shrub", "dead_wood", "stump", "boulder"):
         counts[kind + "s" if not kind.endswith("d") else kind] = go.kind.count(kind)

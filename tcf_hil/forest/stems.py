@@ -128,6 +128,19 @@ class StemSet:
         d = self._dcds(idx, s)
         return d / np.linalg.norm(d, axis=1)[:, None]
 
+    def ring_frame(self, idx: IntArray, s: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Two unit vectors spanning the plane perpendicular to the centre line at ``s``
+        (a cross-section's axes): ``binormal x tangent`` and the binormal, which are
+        orthonormal where the stem bends in its bend plane only (the paper's bow); with a
+        crook, which bends it out of that plane, they are made so."""
+        t = self.tangent(idx, s)
+        b = self.binormal[idx]
+        u = np.cross(b, t)
+        if self.crook is None:
+            return u, b
+        u /= np.linalg.norm(u, axis=1)[:, None]
+        return u, np.cross(t, u)
+
     def speed(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """|dC/ds| (arc length per axial length, >= 1)."""
         return np.linalg.norm(self._dcds(idx, s), axis=1)

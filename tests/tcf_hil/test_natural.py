@@ -490,3 +490,49 @@ def test_forest_generate_writes_the_scenery_when_asked(tmp_path: Path) -> None:
     gt = json.loads((tmp_path / "with" / "ground_truth.json").read_text())
     assert len(mesh.faces) > 0
     assert gt["schema_version"] == 2 and gt["ground_objects"]
+
+
+def test_every_backend_sees_the_same_natural_stand(scenery_forest) -> None:  # type: ignore[no-untyped-def]
+    """Branches, foliage facets and ground objects are triangles: Embree and open3d (and
+    trimesh, the numpy fallback) cast them all; none needs a primitive another lacks."""
+    from tcf_hil.scene import Scene, backend_unavailable
+
+    rng = np.random.default_rng(3)
+    m = 3000
+    o = np.column_stack([rng.uniform(-2.0, 2.0, (m, 2)), rng.uniform(0.5, 6.0, m)])
+    d = rng.normal(size=(m, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    ids = {}
+    for backend in ("embree", "open3d"):
+        if backend_unavailable(backend):
+            continue
+        _, sid = Scene.from_forest(scenery_forest, backend=backend).cast(o, d)
+        ids[backend] = sid
+    assert len(ids) >= 2
+    first = next(iter(ids.values()))
+    for name, sid in ids.items():
+        assert np.mean(sid == first) > 0.995, name
+    assert len(set(first.tolist())) > 20  # stems, branches, foliage and ground objects
+
+
+def test_a_crooked_stem_is_meshed_round_within_the_tolerance() -> None:
+    """A crook bends the stem out of its bow's plane: the mesh's rings stay perpendicular to
+    the centre line with the stem's radius (every vertex's distance from the centre line is
+    its radius within the tolerance), the worst case a crook across the bow's plane."""
+    from tcf_hil.forest.stems import StemSet
+
+    one = np.ones(1)
+    st = StemSet(base=np.zeros((1, 3)), axis=np.array([[0.0, 0.0, 1.0]]),
+                 bend=np.array([[1.0, 0.0, 0.0]]), length=16.0 * one, sweep=0.04 * one,
+                 peak=0.5 * one, r_bh=0.12 * one, r_top=0 * one, taper=one, below=0.5 * one,
+                 species=np.zeros(1, np.int64), taper_length=16.0 * one,
+                 crook=np.array([[0.0, 0.12, 0.0]]), crook_s=4.0 * one, crook_w=0.3 * one)
+    tol = 0.002
+    mesh = stem_mesh(st, tol)
+    s = np.arange(3.5, 4.8, 0.0005)
+    c = st.centre(np.zeros(len(s), np.int64), s)
+    r = st.radius(np.zeros(len(s), np.int64), s)
+    d, k = cKDTree(c).query(mesh.vertices)
+    inside = (k > 0) & (k < len(s) - 1)  # the vertices along the crooked stretch
+    assert inside.sum() > 100
+    assert np.abs(d[inside] - r[k[inside]]).max() < tol
