@@ -14,15 +14,18 @@ stem.
 
 **Foliage** is a turbid medium drawn as facets: small triangles, randomly placed and
 oriented in the crown envelope (a cone on conifers, an ellipsoid on birch), as many as give
-the extinction coefficient sigma = STAR * leaf area / crown volume (leaf area from the
-foliage mass and specific leaf weight). A ray through randomly placed, randomly oriented
-facets of one-sided area ``a`` at ``N`` per m^3 is stopped within a path ``L`` with
-probability 1 - exp(-N a/2 L): the Beer-Lambert law HELIOS++'s transmittive voxels draw from
-(free path -ln(U)/sigma), here with explicit geometry, so every ray backend and the beam
-footprint see it with no change (a test measures the law on a crown). Why facets and not a
-free-path draw in the ray kernels: the same Embree scene, no change to the compiled kernels
-or to the open3d and trimesh backends, and partial hits inside a footprint come out right
-(a facet covers part of a beam); the cost is memory (measured in the README).
+the extinction coefficient sigma = STAR * total leaf area / crown volume (total leaf area
+twice the one-sided area the foliage mass and specific leaf weight give). A ray through
+randomly placed, randomly oriented facets of one-sided area ``a`` at ``N`` per m^3 is
+stopped within a path ``L`` with probability 1 - exp(-N a/2 L): the Beer-Lambert law that
+HELIOS++'s transmittive voxels draw from (free path -ln(U)/sigma), here with explicit
+geometry, so every ray backend and the beam footprint see it with no change (a test measures
+the law on a slab). Why facets and not a free-path draw in the ray kernels: the same Embree
+scene, no change to the compiled kernels or to the open3d and trimesh backends, and a facet
+covers part of a beam as a shoot does; the cost is triangles (measured in the README).
+
+Each object draws from its own random stream (a tree's branches, its foliage, a ground
+object), so culling by ``stand.detail_range_m`` changes nothing of what it keeps.
 """
 
 from __future__ import annotations
@@ -196,8 +199,15 @@ def _near_track(forest: object, xy: FloatArray, reach: FloatArray | float) -> ND
     return out
 
 
-def _branches(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
-              parts: _Parts, counts: dict[str, int]) -> None:
+def _object_rng(seed: int, part: int, k: int) -> np.random.Generator:
+    """The draws of one object (a tree's branches, its foliage, a ground object): its own
+    stream, so that what is built of the others (``stand.detail_range_m``) changes nothing
+    of it."""
+    return np.random.default_rng([seed, _STREAM_SCENERY, part, k])
+
+
+def _branches(forest: object, obstacles: _Obstacles, parts: _Parts,
+              counts: dict[str, int]) -> None:
     from tcf_hil.forest.generate import Forest
 
     assert isinstance(forest, Forest) and forest.natural is not None
@@ -213,28 +223,35 @@ def _branches(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
     dn, _ = tree.query(st.base[:, :2], k=2)
     cr = np.minimum(cr, np.maximum(0.3, 0.75 * dn[:, 1])) if n > 1 else cr
     crown_base = intact - cl
-    rows_i, rows_s, rows_len, rows_dead = [], [], [], []
+    rows_i, rows_s, rows_len, rows_dead, rows_ang, rows_az = [], [], [], [], [], []
     near = _near_track(forest, st.base[:, :2], cr)
     counts["trees_detailed"] = int(near.sum())
     for i in np.flatnonzero(near).tolist():
+        g = _object_rng(forest.seed, 1, i)  # a tree's own draws: culling others leaves them
         L = float(st.length[i])
         spacing = float(sp.WHORL_SPACING_M[spc[i]])
         start = float(sp.DEAD_ZONE_FROM_M[spc[i]])
         if start < 0:
             start = max(0.5, float(crown_base[i]) - 1.0)
-        s = np.arange(start + rng.uniform(0.0, spacing), L - 0.2, spacing)
-        if len(s) == 0:
+        whorls = np.arange(start + g.uniform(0.0, spacing), L - 0.2, spacing)
+        if len(whorls) == 0:
             continue
         per = int(sp.BRANCHES_PER_WHORL[spc[i]])
-        s = np.repeat(s, per)
+        s = np.repeat(whorls, per)
         t = np.clip((intact[i] - s) / cl[i], 0.0, 1.0)  # 0 at the top, 1 at the crown base
         dead = s < crown_base[i]
         if spc[i] == 2:  # birch: an ellipsoid crown
             shape = np.sqrt(np.clip(1.0 - (2.0 * t - 1.0) ** 2, 0.0, 1.0))
         else:  # conifers: a cone, longest at the crown base
             shape = t
-        ln = cr[i] * np.maximum(shape, 0.08) * rng.uniform(0.7, 1.0, len(s))
-        ln[dead] = cr[i] * rng.uniform(*sp.DEAD_LENGTH_SHARE, int(dead.sum()))
+        ln = cr[i] * np.maximum(shape, 0.08) * g.uniform(0.7, 1.0, len(s))
+        ln[dead] = cr[i] * g.uniform(*sp.DEAD_LENGTH_SHARE, int(dead.sum()))
+        lo, hi = sp.BRANCH_ANGLE_DEG[spc[i]]
+        # azimuths: a whorl's branches evenly round, the whorl turned at random
+        turn = np.repeat(g.uniform(0.0, 2.0 * math.pi, len(whorls)), per)
+        k_in = np.tile(np.arange(per), len(whorls))
+        rows_ang.append(np.radians(lo + (hi - lo) * g.uniform(0.0, 1.0, len(s))))
+        rows_az.append(turn + 2.0 * math.pi * k_in / per + g.normal(0.0, 0.25, len(s)))
         rows_i.append(np.full(len(s), i))
         rows_s.append(s)
         rows_len.append(ln)
@@ -245,16 +262,9 @@ def _branches(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
     s = np.concatenate(rows_s)
     ln = np.concatenate(rows_len)
     dead = np.concatenate(rows_dead)
+    ang = np.concatenate(rows_ang)
+    az = np.concatenate(rows_az)
     m = len(idx)
-    lo, hi = sp.BRANCH_ANGLE_DEG[spc[idx]].T
-    ang = np.radians(lo + (hi - lo) * rng.uniform(0.0, 1.0, m))
-    # azimuths: a whorl's branches evenly round, the whorl turned at random
-    per = sp.BRANCHES_PER_WHORL[spc[idx]]
-    first = np.r_[True, (idx[1:] != idx[:-1]) | (s[1:] != s[:-1])]
-    start = np.flatnonzero(first)[np.cumsum(first) - 1]
-    k_in = np.arange(m) - start
-    whorl_turn = rng.uniform(0.0, 2.0 * math.pi, m)[start]
-    az = whorl_turn + 2.0 * math.pi * k_in / per + rng.normal(0.0, 0.25, m)
     tangent = st.tangent(idx, s)
     direction = np.cos(ang)[:, None] * tangent + np.sin(ang)[:, None] * _perp(tangent, az)
     base = st.centre(idx, s)
@@ -326,8 +336,8 @@ def crown_points(rng: np.random.Generator, apex: FloatArray, axis: FloatArray,
     return out
 
 
-def _foliage(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
-             parts: _Parts, counts: dict[str, int], edge: float) -> None:
+def _foliage(forest: object, obstacles: _Obstacles, parts: _Parts, counts: dict[str, int],
+             edge: float) -> None:
     from tcf_hil.forest.generate import Forest
 
     assert isinstance(forest, Forest) and forest.natural is not None
@@ -352,27 +362,31 @@ def _foliage(forest: object, rng: np.random.Generator, obstacles: _Obstacles,
     # a broken top keeps the part of the crown below its break (its points drawn in the
     # whole envelope, those above the break dropped)
     want = np.rint(np.asarray(facet_density(sigma, edge)) * volume).astype(np.int64)
-    cen_all, ids_all = [], []
+    cen_all, ids_all, v_all = [], [], []
     near = _near_track(forest, st.base[:, :2], cr)
     for i in range(n):
         if want[i] <= 0 or not near[i]:
             continue
+        g = _object_rng(forest.seed, 2, i)
         apex = st.centre(np.array([i]), np.array([float(intact[i])]))[0]
         shape = "ellipsoid" if spc[i] == 2 else "cone"
-        p = crown_points(rng, apex, st.axis[i], float(cl[i]), float(cr[i]), shape,
+        p = crown_points(g, apex, st.axis[i], float(cl[i]), float(cr[i]), shape,
                          int(want[i]))
-        p = p[np.einsum("ij,j->i", p - st.base[i], st.axis[i]) <= st.length[i]]
-        cen_all.append(p)
-        ids_all.append(np.full(len(p), 2 * n + i + 1, np.int32))
+        v, _ = _facets(p, edge, g)  # every facet drawn, then those kept
+        keep = np.einsum("ij,j->i", p - st.base[i], st.axis[i]) <= st.length[i]
+        cen_all.append(p[keep])
+        v_all.append(v.reshape(-1, 3, 3)[keep])
+        ids_all.append(np.full(int(keep.sum()), 2 * n + i + 1, np.int32))
     if not cen_all:
         return
     cen = np.vstack(cen_all)
     ids = np.concatenate(ids_all)
+    tri = np.concatenate(v_all)
     clear = ~obstacles.blocked(cen, edge / 2.0, (ids - 2 * n).astype(np.int32))
-    cen, ids = cen[clear], ids[clear]
-    v, f = _facets(cen, edge, rng)
-    parts.add(v, f, ids, MAT_FOLIAGE)
-    counts["foliage_facets"] = len(cen)
+    tri, ids = tri[clear], ids[clear]
+    parts.add(tri.reshape(-1, 3), np.arange(3 * len(tri), dtype=np.int64).reshape(-1, 3),
+              ids, MAT_FOLIAGE)
+    counts["foliage_facets"] = len(tri)
     counts["foliage_sigma_median_per_m_x1000"] = round(1000 * float(np.median(sigma)))
 
 
@@ -561,7 +575,6 @@ def _ground_meshes(forest: object, go: GroundObjects, parts: _Parts, comp: list[
     assert isinstance(forest, Forest)
     cfg = forest.scenario.stand
     tol = forest.scenario.stems.tolerance_mm / 1000.0
-    rng = np.random.default_rng([forest.seed, _STREAM_SCENERY, 4])
     up = np.array([0.0, 0.0, 1.0])
     near = _near_track(forest, go.base[:, :2], np.linalg.norm(go.tip - go.base, axis=1)
                        + go.radius)
@@ -573,6 +586,7 @@ def _ground_meshes(forest: object, go: GroundObjects, parts: _Parts, comp: list[
                          "stump": STUMP}.get(kind, BOULDER))
             continue
         b, t, r = go.base[k], go.tip[k], float(go.radius[k])
+        rng = _object_rng(forest.seed, 4, k)
         if kind in ("sapling", "shrub"):
             comp.append(UNDERSTORY)
             hgt = float(t[2] - b[2])
@@ -628,11 +642,9 @@ def build_scenery(forest: object) -> Scenery:
     parts = _Parts()
     counts: dict[str, int] = {}
     if cfg.branches:
-        _branches(forest, np.random.default_rng([forest.seed, _STREAM_SCENERY, 1]), obstacles,
-                  parts, counts)
+        _branches(forest, obstacles, parts, counts)
     if cfg.foliage:
-        _foliage(forest, np.random.default_rng([forest.seed, _STREAM_SCENERY, 2]), obstacles,
-                 parts, counts, cfg.foliage_facet_m)
+        _foliage(forest, obstacles, parts, counts, cfg.foliage_facet_m)
     comp = [GROUND] + [STEM] * n + [BRANCH] * n + [FOLIAGE] * n
     go = forest.ground_objects()
     assert go is not None

@@ -536,3 +536,19 @@ def test_a_crooked_stem_is_meshed_round_within_the_tolerance() -> None:
     inside = (k > 0) & (k < len(s) - 1)  # the vertices along the crooked stretch
     assert inside.sum() > 100
     assert np.abs(d[inside] - r[k[inside]]).max() < tol
+
+
+def test_culling_by_the_track_changes_nothing_of_what_it_keeps() -> None:
+    """``stand.detail_range_m`` builds branches, foliage and ground objects only near the
+    track: what it keeps is the very geometry the whole stand has (each object draws from
+    its own stream)."""
+    whole = generate_forest(scenario_from_dict(SCENERY)).scenery()
+    near = generate_forest(scenario_from_dict(
+        {**SCENERY, "stand": {**SCENERY["stand"], "detail_range_m": 5.0}})).scenery()
+    assert whole is not None and near is not None
+    assert 0 < len(near) < len(whole)
+    kept = np.unique(near.face_id)
+    for oid in kept[::7].tolist():
+        a = whole.vertices[whole.faces[whole.face_id == oid]]
+        b = near.vertices[near.faces[near.face_id == oid]]
+        assert np.array_equal(a, b), oid
