@@ -111,15 +111,16 @@ class Forest:
     _scenery: Scenery | None = field(default=None, repr=False)
     _ground: GroundObjects | None = field(default=None, repr=False)
 
-    def ground_objects(self) -> GroundObjects | None:
+    def ground_objects(self, obstacles: Any = None) -> GroundObjects | None:
         """Understory, lying dead wood, stumps and boulders of a natural stand (drawn when
-        first asked for; None for the paper's forests)."""
+        first asked for; None for the paper's forests). ``obstacles``: the stems' index the
+        scenery already built, if any (else built here)."""
         if self.natural is None:
             return None
         if self._ground is None:
             from tcf_hil.forest.scenery import ground_objects
 
-            self._ground = ground_objects(self)
+            self._ground = ground_objects(self, obstacles)
         return self._ground
 
     def scenery(self) -> Scenery | None:

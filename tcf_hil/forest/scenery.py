@@ -472,7 +472,7 @@ def _free_spots(forest: object, rng: np.random.Generator, count: int, clearance:
     return out
 
 
-def ground_objects(forest: object) -> GroundObjects:
+def ground_objects(forest: object, obstacles: _Obstacles | None = None) -> GroundObjects:
     """Draw the stand's understory, dead wood, stumps and boulders (own random stream)."""
     from tcf_hil.forest.generate import Forest
 
@@ -481,8 +481,9 @@ def ground_objects(forest: object) -> GroundObjects:
     rng = np.random.default_rng([forest.seed, _STREAM_SCENERY, 3])
     w, h = forest.scenario.plot.size_m
     ha = w * h / 10_000.0
-    tubes, owner = forest.tubes()
-    obstacles = _Obstacles(tubes, owner)
+    if obstacles is None:
+        tubes, owner = forest.tubes()
+        obstacles = _Obstacles(tubes, owner)
     terrain = forest.terrain
     kinds: list[str] = []
     base, tip, rad, spc = [], [], [], []
@@ -646,7 +647,7 @@ def build_scenery(forest: object) -> Scenery:
     if cfg.foliage:
         _foliage(forest, obstacles, parts, counts, cfg.foliage_facet_m)
     comp = [GROUND] + [STEM] * n + [BRANCH] * n + [FOLIAGE] * n
-    go = forest.ground_objects()
+    go = forest.ground_objects(obstacles)
     assert go is not None
     _ground_meshes(forest, go, parts, comp, counts, cfg.foliage_facet_m)
     if parts.f:
