@@ -3,8 +3,9 @@ packets, next to the bare cast of the same rays in the same run, on Forests II, 
 512/1024/2048 columns, for Embree and open3d.
 
 Run: ``python benchmarks/bench_lidar.py [--frames 20] [--forests II,V,X]
-[--sensors ideal,os0-64-rev7] [--json OUT]`` (the sensor's physics: footprint, echoes,
-detection and noise, after the cast; the bare cast is the centre rays' alone).
+[--sensors ideal,os0-64-rev7] [--geometries mesh,curves] [--json OUT]`` (the sensor's
+physics: footprint, echoes, detection and noise, after the cast; the bare cast is the centre
+rays' alone).
 
 The pipeline is timed as a run reads it: ``--frames`` consecutive frames from the middle of
 the track (after one frame of warm-up), each made, encoded into its packets and finished
@@ -13,7 +14,9 @@ the pose of a second of frames is asked at once, so one frame in twenty carries 
 bare cast of each frame's very rays, made by a second emulator, is timed between them:
 the backend's own ``cast`` (for Embree the directly bound library the pipeline casts
 through, :mod:`emulators.embree`), and for Embree also embreex's ``run`` on a scene of its
-own ("embreex ms"). Ratio = bare / pipeline.
+own ("embreex ms", meshes only: embreex casts no curves). Ratio = bare / pipeline.
+``--geometries``: the stems and branches as meshes (``stems.tolerance_mm``) and/or as
+Embree's round curves (``stems.geometry``; curves on Embree only).
 """
 
 from __future__ import annotations
@@ -43,20 +46,27 @@ def main() -> None:
     ap.add_argument("--backends", default="embree,open3d")
     ap.add_argument("--sensors", default="ideal",
                     help=f"comma-separated presets: {', '.join(SENSOR_PRESETS)}")
+    ap.add_argument("--geometries", default="mesh",
+                    help="comma-separated: mesh, curves (stems and branches)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     rows = []
-    print(f"{'forest':8} {'sensor':12} {'backend':7} {'mode':8} {'rays':>7} {'bare ms':>8} "
+    print(f"{'forest':14} {'geometry':8} {'prims':>9} {'sensor':12} {'backend':7} {'mode':8} "
+          f"{'rays':>7} {'bare ms':>8} "
           f"{'pipe ms':>8} "
           f"{'ratio':>6} {'x RT':>5} {'Mrays/s':>8} {'finish ms':>9} {'embreex ms':>10}")
     crc = fast_crc_rows()
     for fname in a.forests.split(","):
         forest = generate_forest(load_scenario(fname))
         track = Trajectory.from_config(forest.scenario.track, forest.terrain)
-        for backend in a.backends.split(","):
-            scene = Scene.from_forest(forest, backend=backend)
+        for backend, geometry in itertools.product(a.backends.split(","),
+                                                   a.geometries.split(",")):
+            if geometry == "curves" and backend != "embree":
+                continue
+            scene = Scene.from_forest(forest, backend=backend, geometry=geometry)
+            prims = len(scene.faces) + scene.curve_count
             embreex = EmbreeCaster(scene.vertices, scene.faces, direct=False) \
-                if backend == "embree" else None
+                if backend == "embree" and geometry == "mesh" else None
             for mode, sensor in itertools.product(a.modes.split(","), a.sensors.split(",")):
                 meta = os0_64_metadata(mode)
                 emu = Os0Emulator(meta, scene, track, start_ns=track.t0_ns,
@@ -93,13 +103,15 @@ def main() -> None:
                 b, p, e = (statistics.median(x) for x in (bare, pipe, enc))
                 x = statistics.median(other) if other else float("nan")
                 period = 1.0 / meta.frequency_hz
-                row = {"forest": fname, "sensor": sensor, "backend": backend, "mode": mode,
-                       "rays": rays,
+                row = {"forest": fname, "geometry": geometry, "triangles": len(scene.faces),
+                       "curve_segments": scene.curve_count, "sensor": sensor,
+                       "backend": backend, "mode": mode, "rays": rays,
                        "bare_ms": b * 1e3, "pipeline_ms": p * 1e3, "ratio": b / p,
                        "x_realtime": period / p, "mrays_s": rays / p / 1e6,
                        "finish_ms": e * 1e3, "embreex_ms": x * 1e3}
                 rows.append(row)
-                print(f"{fname:8} {sensor:12} {backend:7} {mode:8} {rays:7d} {b * 1e3:8.1f} "
+                print(f"{fname:14} {geometry:8} {prims:9d} {sensor:12} {backend:7} {mode:8} "
+                      f"{rays:7d} {b * 1e3:8.1f} "
                       f"{p * 1e3:8.1f} "
                       f"{b / p:6.2f} {period / p:5.1f} {rays / p / 1e6:8.2f} {e * 1e3:9.2f} "
                       f"{x * 1e3:10.1f}", flush=True)

@@ -1,11 +1,14 @@
 """Natural stands: what it costs to generate them, and what culling by the track saves.
 
-Run: ``python benchmarks/bench_stands.py [--big-ha 50] [--frames 20] [--json OUT]``
+Run: ``python benchmarks/bench_stands.py [--big-ha 50] [--frames 20]
+[--geometries curves,mesh] [--json OUT]``
 
 1. Generation: each stand in a fresh process (its peak memory is the process's): the stems
-   and their ground truth, then the scenery (branches, foliage, understory, ...), for
-   ``pine-thinning`` (1 ha) and a ``pine-thinning`` of ``--big-ha`` hectares with
-   ``stand.detail_range_m`` = 60 m (the detail the sensor can reach from the track).
+   and their ground truth, then the scenery (branches, foliage, understory, ...), then the
+   scene the lidar casts through (Embree: stems and branches as round curves, or as meshes:
+   ``--geometries``), for ``pine-thinning`` (1 ha) and a ``pine-thinning`` of ``--big-ha``
+   hectares with ``stand.detail_range_m`` = 60 m (the detail the sensor can reach from the
+   track).
 2. Culling: ``pine-thinning``'s first ``--frames`` frames at 1024x10 with the realistic sensor,
    built whole and with ``detail_range_m`` = 20, 30 and 40 m: the triangles each keeps,
    and how many returns differ from the whole stand's (byte for byte: range, signal,
@@ -28,7 +31,8 @@ _CHILD = r"""
 import json, math, resource, sys, time
 from tcf_hil.forest import generate_forest, ground_truth
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
-ha, rng_m = float(sys.argv[1]), float(sys.argv[2])
+from tcf_hil.scene import Scene
+ha, rng_m, geometry = float(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
 d = scenario_to_dict(load_scenario("pine-thinning"))
 side = 100.0 * math.sqrt(ha)
 d["plot"]["size_m"] = [side, side]
@@ -42,16 +46,20 @@ gt = ground_truth(f)
 t2 = time.perf_counter()
 sc = f.scenery()
 t3 = time.perf_counter()
+scene = Scene.from_forest(f, geometry=geometry)
+t4 = time.perf_counter()
 print(json.dumps({"ha": ha, "stems": len(f.stems), "detail_range_m": rng_m,
-                  "stems_s": t1 - t0, "ground_truth_s": t2 - t1, "scenery_s": t3 - t2,
-                  "total_s": t3 - t0, "triangles": len(sc), "counts": sc.counts,
+                  "geometry": geometry, "stems_s": t1 - t0, "ground_truth_s": t2 - t1,
+                  "scenery_s": t3 - t2, "scene_s": t4 - t3, "total_s": t4 - t0,
+                  "scenery_triangles": len(sc), "scene_triangles": len(scene.faces),
+                  "scene_curve_primitives": scene.curve_count, "counts": sc.counts,
                   "peak_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}))
 """
 
 
-def generation(ha: float, rng_m: float) -> dict[str, Any]:
-    out = subprocess.run([sys.executable, "-c", _CHILD, str(ha), str(rng_m)], check=True,
-                         capture_output=True, text=True)
+def generation(ha: float, rng_m: float, geometry: str) -> dict[str, Any]:
+    out = subprocess.run([sys.executable, "-c", _CHILD, str(ha), str(rng_m), geometry],
+                         check=True, capture_output=True, text=True)
     row: dict[str, Any] = json.loads(out.stdout.strip().splitlines()[-1])
     return row
 
@@ -89,16 +97,22 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--json", default=None)
     ap.add_argument("--skip-big", action="store_true")
+    ap.add_argument("--skip-culling", action="store_true")
+    ap.add_argument("--geometries", default="curves,mesh")
     a = ap.parse_args()
     res: dict[str, Any] = {"generation": [], "culling": []}
     for ha, rng_m in ([(1.0, 0.0)] + ([] if a.skip_big else [(a.big_ha, 60.0)])):
-        row = generation(ha, rng_m)
-        res["generation"].append(row)
-        print(f"{ha:g} ha, {row['stems']} stems, detail {rng_m:g} m: stems {row['stems_s']:.1f} s,"
-              f" ground truth {row['ground_truth_s']:.1f} s, scenery {row['scenery_s']:.1f} s,"
-              f" total {row['total_s']:.1f} s, {row['triangles'] / 1e6:.2f} M triangles, peak"
-              f" {row['peak_gb']:.2f} GB", flush=True)
-    res["culling"] = culling(a.frames, [20.0, 30.0, 40.0])
+        for geometry in a.geometries.split(","):
+            row = generation(ha, rng_m, geometry)
+            res["generation"].append(row)
+            print(f"{ha:g} ha, {row['stems']} stems, detail {rng_m:g} m, {geometry}: stems "
+                  f"{row['stems_s']:.1f} s, ground truth {row['ground_truth_s']:.1f} s, "
+                  f"scenery {row['scenery_s']:.1f} s, scene {row['scene_s']:.1f} s, total "
+                  f"{row['total_s']:.1f} s, {row['scene_triangles'] / 1e6:.2f} M triangles + "
+                  f"{row['scene_curve_primitives'] / 1e6:.2f} M curve primitives, peak "
+                  f"{row['peak_gb']:.2f} GB", flush=True)
+    if not a.skip_culling:
+        res["culling"] = culling(a.frames, [20.0, 30.0, 40.0])
     print(f"(this process peak {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6:.2f} GB)")
     if a.json:
         with open(a.json, "w") as fh:

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import ctypes
 import glob
+import math
 import os
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -32,13 +34,16 @@ numba = numba_module()  # its cache directory set before the kernels below are d
 # Embree 4's ABI (rtcore_*.h): enum values, and where RTCRayHit keeps its fields in 32-bit
 # words (RTCRay: org xyz, tnear, dir xyz, time, tfar, mask, id, flags; RTCHit: Ng xyz, u, v,
 # primID, geomID, instID[1], instPrimID[1]); the struct is 16-byte aligned.
-GEOMETRY_TYPE_TRIANGLE = 0
-BUFFER_TYPE_INDEX, BUFFER_TYPE_VERTEX = 0, 1
-FORMAT_UINT3, FORMAT_FLOAT3 = 0x5003, 0x9003
+GEOMETRY_TYPE_TRIANGLE, GEOMETRY_TYPE_ROUND_LINEAR_CURVE = 0, 16
+GEOMETRY_TYPE_ORIENTED_DISC_POINT = 52
+BUFFER_TYPE_INDEX, BUFFER_TYPE_VERTEX, BUFFER_TYPE_NORMAL, BUFFER_TYPE_FLAGS = 0, 1, 3, 32
+FORMAT_UCHAR, FORMAT_UINT, FORMAT_UINT3 = 0x1001, 0x5001, 0x5003
+FORMAT_FLOAT3, FORMAT_FLOAT4 = 0x9003, 0x9004
+CURVE_FLAG_NEIGHBOR_LEFT, CURVE_FLAG_NEIGHBOR_RIGHT = 1, 2
 SCENE_FLAG_ROBUST = 1 << 2
 INVALID_ID = 0xFFFFFFFF
 TNEAR, TIME, TFAR, MASK, RAY_ID, FLAGS = 3, 7, 8, 9, 10, 11
-PRIM_ID, GEOM_ID, INST_ID = 17, 18, 19
+NG_X, NG_Y, NG_Z, PRIM_ID, GEOM_ID, INST_ID = 12, 13, 14, 17, 18, 19
 RAYHIT_WORDS = 32  # 128 bytes: room for the largest RTCRayHit Embree 4 builds
 
 
@@ -74,6 +79,7 @@ def _lib() -> Any:
                 ("rtcCommitScene", None, [vp]), ("rtcNewGeometry", vp, [vp, cint]),
                 ("rtcSetNewGeometryBuffer", vp, [vp, cint, uint, cint, size, size]),
                 ("rtcCommitGeometry", None, [vp]), ("rtcAttachGeometry", uint, [vp, vp]),
+                ("rtcAttachGeometryByID", None, [vp, vp, uint]),
                 ("rtcReleaseGeometry", None, [vp])):
             fn = getattr(lib, name)
             fn.restype, fn.argtypes = res, args
@@ -81,65 +87,153 @@ def _lib() -> Any:
     return _LIB
 
 
-class DirectScene:
-    """One triangle mesh in an Embree scene of its own (robust mode), for compiled kernels:
-    :attr:`intersect` (``rtcIntersect1``'s address) and :attr:`handle` (the ``RTCScene``)
-    go to :func:`cast_rays` or :func:`intersect1`. Released with the object."""
+@dataclass(frozen=True)
+class Curves:
+    """Round linear curves (Embree's ``ROUND_LINEAR_CURVE``): tubes swept by a sphere whose
+    radius changes linearly along each segment, exact surfaces rather than tessellations.
+    ``points`` (m, 4) float32 x, y, z and radius; ``segments`` (k,) uint32, each segment's
+    first point (it ends at the next); ``flags`` (k,) uint8, where a segment has a neighbour
+    before (:data:`CURVE_FLAG_NEIGHBOR_LEFT`) or after (``..._RIGHT``) it sharing the joint
+    (Embree reads that point: it must be there), which Embree then joins without a sphere:
+    a segment flagged with a neighbour after it that no segment is ends open. ``discs``
+    (q, 4) float32 centre and radius and ``disc_normals`` (q, 3): flat discs (Embree's
+    ``ORIENTED_DISC_POINT``), e.g. to close such ends; numbered after the segments."""
 
-    def __init__(self, vertices: NDArray[np.floating], faces: NDArray[np.integer]) -> None:
+    points: NDArray[np.float32]
+    segments: NDArray[np.uint32]
+    flags: NDArray[np.uint8]
+    discs: NDArray[np.float32] | None = None
+    disc_normals: NDArray[np.float32] | None = None
+
+    def __len__(self) -> int:
+        """Primitives: the segments and the discs."""
+        return len(self.segments) + (0 if self.discs is None else len(self.discs))
+
+
+class DirectScene:
+    """A triangle mesh and, optionally, round linear curves (:class:`Curves`) in Embree
+    scenes, for compiled kernels: :attr:`intersect` (``rtcIntersect1``'s address) and
+    :attr:`handles` go to :func:`cast_rays` or :func:`intersect1`, which answer a triangle
+    by its index in ``faces``, curve segment ``j`` as ``-2 - j`` and a miss as -1.
+    Released with the object.
+
+    The triangles ``faces[:loose_from]`` go into a scene in robust mode (rays do not slip
+    between two triangles through the edge they share: closed meshes need it); the rest,
+    loose triangles that share no edge (foliage facets), and the curves go into a second
+    scene without it, which a ray enters first; it then enters the first no farther than
+    what it hit there. Robust mode costs 40 % of a cast through a natural stand's foliage
+    (``pine-thinning``, one thread: 82.6 ms robust, 58.6 ms not), and the curves do not
+    need it (a curve's surface is one primitive's). Embree keeps triangles and curves in
+    separate hierarchies of a scene; a ray walks the second with the length the first left
+    it. The foliage goes first because it stops rays soonest: the other way round a ray
+    walks every branch behind a crown first (``pine-thinning``, one thread: 93 ms against
+    121 ms for meshes, 93 against 98 ms for curves)."""
+
+    def __init__(self, vertices: NDArray[np.floating], faces: NDArray[np.integer],
+                 curves: Curves | None = None, loose_from: int | None = None) -> None:
         lib = _lib()
-        v = np.ascontiguousarray(vertices, np.float32)
-        f = np.ascontiguousarray(faces, np.uint32)
         self._lib = lib
+        self._scenes: list[Any] = []
         self._device = lib.rtcNewDevice(None)
         if not self._device:
             raise OSError("rtcNewDevice failed")
-        self._scene = lib.rtcNewScene(self._device)
-        lib.rtcSetSceneFlags(self._scene, SCENE_FLAG_ROBUST)
-        geom = lib.rtcNewGeometry(self._device, GEOMETRY_TYPE_TRIANGLE)
-        for kind, fmt, arr in ((BUFFER_TYPE_VERTEX, FORMAT_FLOAT3, v),
-                               (BUFFER_TYPE_INDEX, FORMAT_UINT3, f)):
-            dst = lib.rtcSetNewGeometryBuffer(geom, kind, 0, fmt, 12, len(arr))
-            if dst and arr.nbytes:
-                ctypes.memmove(dst, arr.ctypes.data, arr.nbytes)
-        lib.rtcCommitGeometry(geom)
-        lib.rtcAttachGeometry(self._scene, geom)
-        lib.rtcReleaseGeometry(geom)
-        lib.rtcCommitScene(self._scene)
+        v = np.ascontiguousarray(vertices, np.float32)
+        f = np.ascontiguousarray(faces, np.uint32)
+        cut = len(f) if loose_from is None else int(loose_from)
+        self.curve_count = 0 if curves is None else len(curves)
+        rows = []
+        n_seg = 0 if curves is None else len(curves.segments)
+        if cut < len(f) or self.curve_count:  # first: the foliage stops rays soonest
+            rows.append([self._scene_of(0, v, f[cut:], curves), cut, n_seg])
+        if cut > 0 or not rows:
+            rows.append([self._scene_of(SCENE_FLAG_ROBUST, v, f[:cut], None), 0, 0])
+        self.handles: NDArray[np.int64] = np.array(rows, np.int64)
+        """(k, 3): each scene's handle, the index in ``faces`` of its first triangle and the
+        number of its curve segments (its discs' numbers follow them), in the order a ray
+        enters them."""
+        self.intersect: int = int(ctypes.cast(lib.rtcIntersect1, ctypes.c_void_p).value or 0)
+
+    def _scene_of(self, flags: int, v: NDArray[np.float32], f: NDArray[np.uint32],
+                  curves: Curves | None) -> int:
+        """A committed scene (``flags``): the triangles ``f`` of ``v`` as geometry 0, the
+        curves' segments as geometry 1 and their discs as geometry 2, each copied into
+        buffers Embree owns; its handle."""
+        lib = self._lib
+        scene = lib.rtcNewScene(self._device)
+        self._scenes.append(scene)
+        lib.rtcSetSceneFlags(scene, flags)
+        geoms: list[tuple[int, int, tuple[tuple[int, int, int, NDArray[Any]], ...]]] = []
+        if len(f):
+            geoms.append((0, GEOMETRY_TYPE_TRIANGLE, (
+                (BUFFER_TYPE_VERTEX, FORMAT_FLOAT3, 12, v),
+                (BUFFER_TYPE_INDEX, FORMAT_UINT3, 12, f))))
+        if curves is not None and len(curves.segments):
+            geoms.append((1, GEOMETRY_TYPE_ROUND_LINEAR_CURVE, (
+                (BUFFER_TYPE_VERTEX, FORMAT_FLOAT4, 16,
+                 np.ascontiguousarray(curves.points, np.float32)),
+                (BUFFER_TYPE_INDEX, FORMAT_UINT, 4,
+                 np.ascontiguousarray(curves.segments, np.uint32)),
+                (BUFFER_TYPE_FLAGS, FORMAT_UCHAR, 1,
+                 np.ascontiguousarray(curves.flags, np.uint8)))))
+        if curves is not None and curves.discs is not None and len(curves.discs):
+            geoms.append((2, GEOMETRY_TYPE_ORIENTED_DISC_POINT, (
+                (BUFFER_TYPE_VERTEX, FORMAT_FLOAT4, 16,
+                 np.ascontiguousarray(curves.discs, np.float32)),
+                (BUFFER_TYPE_NORMAL, FORMAT_FLOAT3, 12,
+                 np.ascontiguousarray(curves.disc_normals, np.float32)))))
+        for gid, kind, buffers in geoms:
+            geom = lib.rtcNewGeometry(self._device, kind)
+            for btype, fmt, stride, arr in buffers:
+                dst = lib.rtcSetNewGeometryBuffer(geom, btype, 0, fmt, stride, len(arr))
+                if dst and arr.nbytes:
+                    ctypes.memmove(dst, arr.ctypes.data, arr.nbytes)
+            lib.rtcCommitGeometry(geom)
+            lib.rtcAttachGeometryByID(scene, geom, gid)
+            lib.rtcReleaseGeometry(geom)
+        lib.rtcCommitScene(scene)
         err = lib.rtcGetDeviceError(self._device)
         if err:
             raise OSError(f"Embree could not build the scene (RTCError {err})")
-        self.handle: int = int(self._scene)
-        self.intersect: int = int(ctypes.cast(lib.rtcIntersect1, ctypes.c_void_p).value or 0)
+        return int(scene)
 
     def __del__(self) -> None:
         lib = getattr(self, "_lib", None)
         if lib is not None:
-            if getattr(self, "_scene", None):
-                lib.rtcReleaseScene(self._scene)
+            for scene in getattr(self, "_scenes", []):
+                lib.rtcReleaseScene(scene)
             if getattr(self, "_device", None):
                 lib.rtcReleaseDevice(self._device)
 
     def cast(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
              ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
-        """Hit distance (inf on a miss) and triangle id (-1) of (N, 3) float32 rays, on the
-        calling thread without the GIL."""
+        """Hit distance (inf on a miss) and primitive (-1; a curve segment ``-2 - j``) of
+        (N, 3) float32 rays, on the calling thread without the GIL."""
+        t, prim, _ = self.cast_n(origins, directions, False)
+        return t, prim
+
+    def cast_n(self, origins: NDArray[np.float32], directions: NDArray[np.float32],
+               cosines: bool = True
+               ) -> tuple[NDArray[np.float32], NDArray[np.int32], NDArray[np.float32]]:
+        """:meth:`cast`, and |cos| of the incidence on the curves hit (from Embree's
+        geometric normal; 0 elsewhere; an empty array without ``cosines``)."""
         o = np.ascontiguousarray(origins, np.float32)
         d = np.ascontiguousarray(directions, np.float32)
         t = np.empty(len(o), np.float32)
         prim = np.empty(len(o), np.int32)
-        cast_rays(self.intersect, self.handle, o, d, t, prim)
-        return t, prim
+        cn = np.empty(len(o) if cosines else 0, np.float32)
+        cast_rays(self.intersect, self.handles, o, d, t, prim, cn)
+        return t, prim, cn
 
 
-def direct_scene(vertices: NDArray[np.floating], faces: NDArray[np.integer]
+def direct_scene(vertices: NDArray[np.floating], faces: NDArray[np.integer],
+                 curves: Curves | None = None, loose_from: int | None = None
                  ) -> DirectScene | None:
     """A :class:`DirectScene`, or None where compiled kernels are off or the library cannot
     be had (callers fall back to embreex)."""
     if not jit_enabled():
         return None
     try:
-        return DirectScene(vertices, faces)
+        return DirectScene(vertices, faces, curves, loose_from)
     except OSError:
         return None
 
@@ -174,23 +268,44 @@ def new_rayhit() -> tuple[Any, Any, int]:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def intersect1(fn: int, scene: int, rf: Any, ru: Any, addr: int, ox: float, oy: float,
-               oz: float, dx: float, dy: float, dz: float) -> tuple[float, int]:
-    """One ray through ``rtcIntersect1`` (``rf``/``ru``/``addr`` from :func:`new_rayhit`):
-    its hit distance (inf on a miss) and triangle id (-1)."""
+def intersect1(fn: int, scenes: Any, rf: Any, ru: Any, addr: int, ox: float, oy: float,
+               oz: float, dx: float, dy: float, dz: float) -> tuple[float, int, float]:
+    """One ray through ``rtcIntersect1`` (``rf``/``ru``/``addr`` from :func:`new_rayhit`)
+    into each of ``scenes`` (:attr:`DirectScene.handles`) in turn, no farther than what it
+    hit before: its hit distance (inf on a miss), primitive (-1 none; a triangle's index,
+    or ``-2 - j`` for curve primitive ``j``: a segment, or a disc after the segments) and,
+    on a curve, |cos| of the incidence (from the geometric normal Embree reports; 0 on a
+    triangle, whose normal the caller knows)."""
     rf[0], rf[1], rf[2], rf[TNEAR] = ox, oy, oz, 0.0
     rf[4], rf[5], rf[6], rf[TIME] = dx, dy, dz, 0.0
     rf[TFAR] = np.inf
     ru[MASK], ru[RAY_ID], ru[FLAGS] = INVALID_ID, 0, 0
-    ru[PRIM_ID], ru[GEOM_ID], ru[INST_ID] = INVALID_ID, INVALID_ID, INVALID_ID
-    _call_c(fn, scene, addr)  # type: ignore[call-arg]  # numba supplies typingctx
-    return rf[TFAR], (np.int32(ru[PRIM_ID]) if ru[GEOM_ID] != INVALID_ID else np.int32(-1))
+    ru[PRIM_ID], ru[INST_ID] = INVALID_ID, INVALID_ID
+    prim: Any = np.int32(-1)
+    c = 0.0
+    for k in range(scenes.shape[0]):
+        ru[GEOM_ID] = INVALID_ID  # tfar stays: only a nearer hit answers
+        _call_c(fn, scenes[k, 0], addr)  # type: ignore[call-arg]  # numba: typingctx
+        g = ru[GEOM_ID]
+        if g == 0:
+            prim = np.int32(scenes[k, 1] + np.int64(ru[PRIM_ID]))
+            c = 0.0
+        elif g != INVALID_ID:  # a curve segment (1) or a disc (2), numbered after them
+            prim = np.int32(-2 - np.int64(ru[PRIM_ID]) - (scenes[k, 2] if g == 2 else 0))
+            nx, ny, nz = np.float64(rf[NG_X]), np.float64(rf[NG_Y]), np.float64(rf[NG_Z])
+            nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+            c = min(abs(nx * dx + ny * dy + nz * dz) / nn, 1.0) if nn > 0.0 else 1.0
+    return rf[TFAR], prim, c
 
 
 @_njit
-def cast_rays(fn: int, scene: int, o: Any, d: Any, t: Any, prim: Any) -> None:
-    """(N, 3) float32 rays into ``t`` (N,) float32 and ``prim`` (N,) int32."""
+def cast_rays(fn: int, scenes: Any, o: Any, d: Any, t: Any, prim: Any, cn: Any) -> None:
+    """(N, 3) float32 rays into ``t`` (N,) float32 and ``prim`` (N,) int32, and the curve
+    hits' |cos incidence| into ``cn`` (N,) float32 where it is not empty."""
     rf, ru, addr = new_rayhit()
+    keep = cn.shape[0] > 0
     for i in range(o.shape[0]):
-        t[i], prim[i] = intersect1(fn, scene, rf, ru, addr, o[i, 0], o[i, 1], o[i, 2],
-                                   d[i, 0], d[i, 1], d[i, 2])
+        t[i], prim[i], c = intersect1(fn, scenes, rf, ru, addr, o[i, 0], o[i, 1], o[i, 2],
+                                      d[i, 0], d[i, 1], d[i, 2])
+        if keep:
+            cn[i] = c

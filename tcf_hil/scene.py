@@ -33,7 +33,7 @@ from tcf_hil.errors import ConfigError
 from tcf_hil.forest import Forest, stem_mesh, terrain_mesh
 
 if TYPE_CHECKING:
-    from emulators.embree import DirectScene
+    from emulators.embree import Curves, DirectScene
     from emulators.lidar import FastRayScene, Surfaces
 
 FloatArray = NDArray[np.float64]
@@ -52,6 +52,8 @@ BACKEND_MODULES: dict[str, tuple[str, ...]] = {
     "trimesh": ("trimesh", "trimesh.ray.ray_triangle"),
 }
 MATERIAL_GROUND, MATERIAL_BARK = 0, 1
+_NO_COS = np.zeros(0, np.float32)
+GEOMETRIES = ("auto", "curves", "mesh")
 
 
 class Caster(Protocol):
@@ -139,14 +141,20 @@ class EmbreeCaster:
     PARTS_PER_THREAD = 4
 
     def __init__(self, vertices: FloatArray, faces: NDArray[np.int64],
-                 threads: int | None = None, direct: bool = True) -> None:
+                 threads: int | None = None, direct: bool = True,
+                 curves: Curves | None = None, loose_from: int | None = None) -> None:
+        """``curves``: round curves beside the triangles (Embree bound directly only);
+        ``loose_from``: the triangles from there on share no edges (foliage facets) and are
+        cast without robust mode where Embree is bound directly (:class:`DirectScene`)."""
         from emulators.jit import jit_enabled
 
         self.direct_scene: DirectScene | None = None
         if direct and jit_enabled():
             from emulators.embree import direct_scene
 
-            self.direct_scene = direct_scene(vertices, faces)
+            self.direct_scene = direct_scene(vertices, faces, curves, loose_from)
+        if self.direct_scene is None and curves is not None:
+            raise OSError("round curves need Embree bound directly (compiled kernels on)")
         if self.direct_scene is None:
             from embreex import rtcore_scene
             from embreex.mesh_construction import TriangleMesh
@@ -160,11 +168,12 @@ class EmbreeCaster:
         self._pool_lock = threading.Lock()
 
     def _run(self, o: NDArray[np.float32], d: NDArray[np.float32], t: NDArray[np.float32],
-             prim: NDArray[np.int32]) -> None:
+             prim: NDArray[np.int32], cn: NDArray[np.float32] | None = None) -> None:
         if self.direct_scene is not None:
             from emulators.embree import cast_rays
 
-            cast_rays(self.direct_scene.intersect, self.direct_scene.handle, o, d, t, prim)
+            cast_rays(self.direct_scene.intersect, self.direct_scene.handles, o, d, t, prim,
+                      cn if cn is not None else _NO_COS)
             return
         # t comes in as inf and is traced in place: the hit distance, inf on a miss (and the
         # primitive RTC_INVALID_GEOMETRY_ID, -1 as int32)
@@ -186,30 +195,49 @@ class EmbreeCaster:
         r = self._scene.run(o, d, dists=t, output=1)
         return r["tfar"], r["primID"]
 
+    def cast1_n(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
+                ) -> tuple[NDArray[np.float32], NDArray[np.int32], NDArray[np.float32]]:
+        """:meth:`cast1`, and the round curves' |cos incidence| as :meth:`cast_n` gives."""
+        if self.direct_scene is not None:
+            curves = self.direct_scene.curve_count > 0
+            return self.direct_scene.cast_n(origins, directions, curves)
+        return (*self.cast1(origins, directions), _NO_COS)
+
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+        t, prim, _ = self.cast_n(origins, directions, False)
+        return t, prim
+
+    def cast_n(self, origins: NDArray[np.floating], directions: NDArray[np.floating],
+               cosines: bool = True
+               ) -> tuple[NDArray[np.float32], NDArray[np.int32], NDArray[np.float32]]:
+        """:meth:`cast`, and the |cos incidence| of the round curves hit (0 elsewhere; an
+        empty array without ``cosines`` or where the scene has no curves)."""
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
         n = len(o)
         t = np.empty(n, np.float32)
         prim = np.empty(n, np.int32)
+        curves = self.direct_scene is not None and self.direct_scene.curve_count > 0
+        cn = np.empty(n if cosines and curves else 0, np.float32)
+        part = (lambda a, b: cn[a:b]) if len(cn) else (lambda a, b: cn)
         threads = self.threads or 1
         # a few parts a thread: rays cost by what they meet (a stem's silhouette several
         # times the sky), and two halves of a set of rays are rarely alike
         parts = min(self.PARTS_PER_THREAD * threads, n // self.MIN_RAYS_PER_THREAD)
         if parts <= 1:
-            self._run(o, d, t, prim)
+            self._run(o, d, t, prim, cn)
         else:
             with self._pool_lock:  # casts may come from several threads (column chunks)
                 if self._pool is None or self._pool_pid != os.getpid():  # threads die in a fork
                     self._pool = ThreadPoolExecutor(threads, thread_name_prefix="embree")
                     self._pool_pid = os.getpid()
             cuts = np.linspace(0, n, parts + 1).astype(int)
-            jobs = [self._pool.submit(self._run, o[a:b], d[a:b], t[a:b], prim[a:b])
+            jobs = [self._pool.submit(self._run, o[a:b], d[a:b], t[a:b], prim[a:b], part(a, b))
                     for a, b in itertools.pairwise(cuts.tolist())]
             for j in jobs:
                 j.result()
-        return t, prim
+        return t, prim, cn
 
 
 class Open3dCaster:
@@ -345,6 +373,17 @@ class TrimeshCaster:
         return self.cast(origins, directions)
 
 
+def _loose_last(faces: NDArray[np.int64], ids: NDArray[np.int32], mat: NDArray[np.uint8]
+                ) -> tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.uint8], int]:
+    """The triangles reordered (stably) so that the foliage's, loose facets that share no
+    edge, come last; and where they begin (:class:`EmbreeCaster`'s ``loose_from``)."""
+    from emulators.lidar import MATERIALS
+
+    loose = mat == MATERIALS.index("foliage")
+    order = np.argsort(loose, kind="stable")
+    return faces[order], ids[order], mat[order], int(len(loose) - np.count_nonzero(loose))
+
+
 def make_caster(name: str, vertices: FloatArray, faces: NDArray[np.int64]) -> Caster:
     """Build the named backend, or ``auto``'s (:func:`resolve_backend`; imports it only
     now). A named backend that cannot be imported is a ConfigError."""
@@ -360,13 +399,17 @@ def make_caster(name: str, vertices: FloatArray, faces: NDArray[np.int64]) -> Ca
 
 @dataclass
 class Scene:
-    """Terrain plus stems as one mesh in local coordinates, with per-triangle stem ids."""
+    """Terrain plus stems in local coordinates: triangles with per-triangle object ids and,
+    where the stems and branches are round curves (``stems.geometry``), the curve segments'
+    object ids and materials (the curves themselves live in the caster's Embree scene)."""
 
     vertices: FloatArray
     faces: NDArray[np.int64]
     stem_id: NDArray[np.int32]  # per triangle: the object id, 0 = terrain
     caster: Caster
     material: NDArray[np.uint8] | None = None  # per triangle; None: terrain ground, else bark
+    curve_id: NDArray[np.int32] | None = None  # per curve segment: the object id
+    curve_material: NDArray[np.uint8] | None = None  # per curve segment
     _sid_of_prim: tuple[NDArray[np.int32], NDArray[np.int32]] | None = field(
         default=None, init=False, repr=False, compare=False)
     _surfaces: tuple[NDArray[np.int32], Surfaces] | None = field(
@@ -376,19 +419,32 @@ class Scene:
     def from_forest(cls, forest: Forest, backend: str = AUTO,
                     stem_tolerance_m: float | None = None,
                     terrain_tolerance_m: float | None = None,
-                    margin_m: float | None = None) -> Scene:
+                    margin_m: float | None = None, geometry: str | None = None) -> Scene:
+        """The forest's scene. ``geometry`` (default the scenario's ``stems.geometry``):
+        ``curves`` casts stems and branches as Embree's round linear curves (exact to
+        :data:`~tcf_hil.forest.mesh.CURVE_TOLERANCE_M`; Embree bound directly, i.e. the
+        embree backend with compiled kernels on, else a ConfigError), ``mesh`` tessellates
+        them (``stems.tolerance_mm``; every backend casts meshes), ``auto`` takes curves
+        where they can be cast and meshes elsewhere (open3d and trimesh cast no curves)."""
         scn = forest.scenario
-        tubes, ids = forest.tubes()
-        st = stem_mesh(tubes, stem_tolerance_m if stem_tolerance_m is not None
-                       else scn.stems.tolerance_mm / 1000.0, ids=ids)
+        geometry = geometry or scn.stems.geometry
+        if geometry not in GEOMETRIES:
+            raise ConfigError("stems.geometry", geometry, ", ".join(GEOMETRIES))
         tr = terrain_mesh(forest.terrain, forest.bounds(margin_m),
                           terrain_tolerance_m if terrain_tolerance_m is not None
                           else scn.terrain.tolerance_mm / 1000.0)
+        sc = forest.scenery()
+        if geometry != "mesh":
+            scene = cls._with_curves(forest, tr, backend, geometry == "curves")
+            if scene is not None:
+                return scene
+        tubes, ids = forest.tubes()
+        st = stem_mesh(tubes, stem_tolerance_m if stem_tolerance_m is not None
+                       else scn.stems.tolerance_mm / 1000.0, ids=ids)
         verts = np.vstack([tr.vertices, st.vertices])
         faces = np.vstack([tr.faces, st.faces + len(tr.vertices)]).astype(np.int64)
         ids = np.concatenate([np.zeros(len(tr.faces), np.int32),
                               np.asarray(st.face_attributes.get("stem_id", []), np.int32)])
-        sc = forest.scenery()
         if sc is None or len(sc) == 0:
             return cls(verts, faces, ids, make_caster(backend, verts, faces))
         # natural stands: branches, foliage, ... after the stems, with their materials
@@ -400,7 +456,73 @@ class Scene:
         faces = np.vstack([faces, sc.faces + len(verts)])
         verts = np.vstack([verts, sc.vertices])
         ids = np.concatenate([ids, sc.face_id])
-        return cls(verts, faces, ids, make_caster(backend, verts, faces), mat)
+        faces, ids, mat, loose_from = _loose_last(faces, ids, mat)
+        name = resolve_backend(backend)[0]
+        caster = (EmbreeCaster(verts, faces, loose_from=loose_from) if name == "embree"
+                  else make_caster(name, verts, faces))
+        return cls(verts, faces, ids, caster, mat)
+
+    @classmethod
+    def _with_curves(cls, forest: Forest, tr: Any, backend: str, required: bool
+                     ) -> Scene | None:
+        """The scene with stems and branches as round curves, or None where they cannot be
+        cast here (a ConfigError where ``required``)."""
+        from emulators.jit import jit_enabled
+
+        name = resolve_backend(backend)[0]
+        why = (f"the {name} backend casts no curves" if name != "embree"
+               else None if jit_enabled() else "compiled kernels are off (TCF_HIL_NO_JIT)")
+        if why is None and backend_unavailable("embree") is not None:
+            why = backend_unavailable("embree")
+        if why is not None:
+            if required:
+                raise ConfigError("stems.geometry", "curves",
+                                  f"'auto' or 'mesh' here ({why})")
+            return None
+        from emulators.embree import Curves
+        from emulators.lidar import MATERIALS
+        from tcf_hil.forest.mesh import stem_curves
+
+        tubes, ids = forest.tubes()
+        tc = stem_curves(tubes, ids)
+        pts, seg, flags, seg_id = tc.points, tc.segments, tc.flags, tc.segment_id
+        bark = MATERIALS.index("bark")
+        verts, faces = tr.vertices, np.asarray(tr.faces, np.int64)
+        tri_id = np.zeros(len(faces), np.int32)
+        tri_mat = np.full(len(faces), MATERIALS.index("ground"), np.uint8)
+        sc = forest.scenery()
+        seg_mat = np.full(len(seg), bark, np.uint8)
+        if sc is not None and len(sc):
+            rp, rs, rf = sc.rods.curves()
+            seg = np.concatenate([seg, rs + len(pts)])
+            pts = np.vstack([pts, rp])
+            flags = np.concatenate([flags, rf])
+            seg_id = np.concatenate([seg_id, sc.rods.ids])
+            seg_mat = np.concatenate([seg_mat, sc.rods.material])
+            faces = np.vstack([faces, sc.tri_faces + len(verts)])
+            verts = np.vstack([verts, sc.tri_vertices])
+            tri_id = np.concatenate([tri_id, sc.tri_id])
+            tri_mat = np.concatenate([tri_mat, sc.tri_material])
+        # curve primitives: the segments, then the tops' discs
+        seg_id = np.concatenate([seg_id, tc.disc_id])
+        seg_mat = np.concatenate([seg_mat, np.full(len(tc.disc_id), bark, np.uint8)])
+        curves = Curves(pts.astype(np.float32), seg.astype(np.uint32), flags,
+                        tc.discs.astype(np.float32), tc.disc_normals.astype(np.float32))
+        faces, tri_id, tri_mat, loose_from = _loose_last(faces, tri_id, tri_mat)
+        try:
+            caster = EmbreeCaster(verts, faces, curves=curves, loose_from=loose_from)
+        except OSError as err:
+            if required:
+                raise ConfigError("stems.geometry", "curves", f"'auto' or 'mesh' here ({err})"
+                                  ) from err
+            return None
+        return cls(verts, faces, tri_id, caster, tri_mat if sc is not None else None,
+                   seg_id.astype(np.int32), seg_mat)
+
+    @property
+    def curve_count(self) -> int:
+        """Round curve segments in the scene (0: all triangles)."""
+        return 0 if self.curve_id is None else len(self.curve_id)
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
@@ -439,37 +561,49 @@ class Scene:
         t, prim = self.caster.cast1(origins, directions)
         return t, self._stem_ids(prim)
 
-    def direct(self) -> tuple[int, int, NDArray[np.int32]] | None:
+    def direct(self) -> tuple[int, NDArray[np.int64], NDArray[np.int32]] | None:
         """For compiled kernels that cast themselves (the lidar emulator's): ``(address of
-        rtcIntersect1, the RTCScene, stem id by triangle with -1 last)``, or None where the
+        rtcIntersect1, the RTCScene, object id by primitive as :meth:`_stem_table` lays it
+        out)``, or None where the
         backend has no directly bound Embree scene (:class:`EmbreeCaster`)."""
         ds = self.caster.direct_scene
         if ds is None:
             return None
-        return ds.intersect, ds.handle, self._stem_table()
+        return ds.intersect, ds.handles, self._stem_table()
 
     def surfaces(self) -> Surfaces:
-        """For the physical sensor model: the stem id, unit normal and material of every
-        triangle (terrain ground, stems bark), and the caster's casts that answer triangles
-        (:class:`emulators.lidar.Surfaces`)."""
+        """For the physical sensor model: the object id and material of every primitive
+        (triangles, then the curve segments last to first, then the miss: terrain ground,
+        stems bark), the triangles' unit normals, and the caster's casts that answer
+        primitives (:class:`emulators.lidar.Surfaces`)."""
         from emulators.lidar import Surfaces
 
         if self._surfaces is None or self._surfaces[0] is not self.stem_id:
             v = self.vertices[self.faces]
             n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
             n /= np.maximum(np.linalg.norm(n, axis=1), 1e-30)[:, None]
-            mat = np.append(np.where(self.stem_id > 0, 1, 0) if self.material is None
-                            else self.material, 0).astype(np.uint8)
+            tri = (np.where(self.stem_id > 0, 1, 0) if self.material is None
+                   else self.material)
+            cm = (self.curve_material[::-1] if self.curve_material is not None
+                  else np.zeros(0, np.uint8))
+            mat = np.concatenate([tri, cm, [0]]).astype(np.uint8)
+            c = self.caster
+            cast: Any = c.cast_n if isinstance(c, EmbreeCaster) \
+                else (lambda o, d: (*c.cast(o, d), _NO_COS))
+            cast1: Any = c.cast1_n if isinstance(c, EmbreeCaster) \
+                else (lambda o, d: (*c.cast1(o, d), _NO_COS))
             self._surfaces = (self.stem_id, Surfaces(
-                self._stem_table(), n.astype(np.float32), mat, self.caster.cast,
-                self.caster.cast1))
+                self._stem_table(), n.astype(np.float32), mat, cast, cast1))
         return self._surfaces[1]
 
     def _stem_table(self) -> NDArray[np.int32]:
-        """Stem id by triangle, then -1 last: a miss (triangle -1) looks itself up."""
+        """Object id by primitive: the triangles', then the curve segments' last to first,
+        then -1 last, so a miss (-1) and curve segment j (-2 - j) look themselves up from
+        the end."""
         if self._sid_of_prim is None or self._sid_of_prim[0] is not self.stem_id:
-            self._sid_of_prim = (self.stem_id,
-                                 np.append(self.stem_id, np.int32(-1)).astype(np.int32))
+            curves = self.curve_id[::-1] if self.curve_id is not None else np.zeros(0, np.int32)
+            self._sid_of_prim = (self.stem_id, np.concatenate(
+                [self.stem_id, curves, [-1]]).astype(np.int32))
         return self._sid_of_prim[1]
 
     def _stem_ids(self, prim: NDArray[np.integer]) -> NDArray[np.int32]:

@@ -19,12 +19,17 @@ from emulators.jit import compiled
 SQRT2 = math.sqrt(2.0)
 
 
-def surface(p: int, dx: float, dy: float, dz: float, stem_of_prim: Any,
+def surface(p: int, cn: float, dx: float, dy: float, dz: float, stem_of_prim: Any,
             material_of_prim: Any, normals: Any, surf: bool) -> tuple[int, int, float]:
-    """What a ray of direction (dx, dy, dz) hit, from ``p`` (the triangle, -1 none; or,
-    without ``surf``, the stem id): its stem id (-1 none), material and |cos incidence|."""
+    """What a ray of direction (dx, dy, dz) hit, from ``p`` (the triangle, -1 none, or
+    ``-2 - j`` curve segment ``j``, whose |cos incidence| ``cn`` the cast reported; or,
+    without ``surf``, the stem id): its stem id (-1 none), material and |cos incidence|.
+    The tables hold the triangles, then the curve segments last to first, then the miss:
+    a negative ``p`` indexes them from the end."""
     if not surf:
         return p, (1 if p > 0 else 0), 1.0
+    if p < -1:
+        return stem_of_prim[p], material_of_prim[p], cn
     q = p if p >= 0 else stem_of_prim.shape[0] - 1
     qn = p if p > 0 else 0
     c = float(abs(np.float64(normals[qn, 0]) * np.float64(dx)
@@ -44,7 +49,7 @@ def wrap(x: int, n: int) -> int:
     return x
 
 
-def centre_echoes(prim: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim: Any,
+def centre_echoes(prim: Any, cn: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim: Any,
                   normals: Any, refl: Any, surf: bool, n_m: float, r_near: float,
                   ambient: float, i0: int, i1: int, ss: Any, r: Any, e: Any,
                   nir: Any) -> None:
@@ -53,8 +58,9 @@ def centre_echoes(prim: Any, t: Any, d: Any, stem_of_prim: Any, material_of_prim
     inf none), echo energy ``refl cos / max(r, r_near)^2`` (``e``, ``cos`` of the
     incidence) and the NEAR_IR the surface reflects (uint32)."""
     for i in range(i0, i1):
-        s, m, c = surface(prim[i], d[i, 0], d[i, 1], d[i, 2], stem_of_prim, material_of_prim,
-                          normals, surf)
+        p = prim[i]
+        s, m, c = surface(p, cn[i] if p < -1 else 0.0, d[i, 0], d[i, 1], d[i, 2],
+                          stem_of_prim, material_of_prim, normals, surf)
         tt = t[i]
         if np.isfinite(tt) and s >= 0:
             rr = tt + n_m
@@ -166,7 +172,7 @@ def lattice_rays(o: Any, d: Any, pix: Any, ra: Any, rb: Any, n0: int, n1: int, o
 
 def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
                      grid_j: Any, grid_i: Any, S: int, V: int, pos: Any, H: int, ss: Any,
-                     r: Any, e: Any, t_sub: Any, prim_sub: Any, dd: Any,
+                     r: Any, e: Any, t_sub: Any, prim_sub: Any, cn_sub: Any, dd: Any,
                      stem_of_prim: Any, material_of_prim: Any, normals: Any, refl: Any,
                      surf: bool, n_m: float, r_near: float, resolution: float, order: int,
                      e1: Any, r1: Any, s1: Any, e2: Any, r2: Any, s2: Any) -> None:
@@ -175,7 +181,8 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
     with flag bit 1 the row's others (``row_j`` virtual columns away, ``S`` to a column);
     with bit 2 (always with bit 1) the other rows' (``grid_j`` virtual columns and
     ``grid_i`` rows away). A sample on a column's centre row is that column's centre ray;
-    any other is the lattice ray cast at ``pos[(x H + h)(2 V + 1) + i + V]``. Unused slots
+    any other is the lattice ray cast at ``pos[(x H + h)(2 V + 1) + i + V]`` (its distance
+    ``t_sub``, primitive ``prim_sub`` and, on a curve, |cos| ``cn_sub``). Unused slots
     are left out. A sample of weight ``wt[flags, slot]`` has the energy
     ``w refl cos / max(r, r_near)^2`` (a centre ray's: ``w e``, ``e`` its energy). A
     footprint that one object fills (every sample hits the centre ray's object) answers as
@@ -226,8 +233,9 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
                 if ss[src] >= 0:
                     rs[n], es[n], sids[n] = r[src], w * e[src], ss[src]
             else:
-                s, m, cc = surface(prim_sub[row], dd[row, 0], dd[row, 1], dd[row, 2],
-                                   stem_of_prim, material_of_prim, normals, surf)
+                p = prim_sub[row]
+                s, m, cc = surface(p, cn_sub[row] if p < -1 else 0.0, dd[row, 0], dd[row, 1],
+                                   dd[row, 2], stem_of_prim, material_of_prim, normals, surf)
                 tt = np.float64(t_sub[row])
                 if np.isfinite(tt) and s >= 0:
                     rr = tt + n_m

@@ -132,9 +132,10 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
         p0, p1 = a // C, b // C
         for c in range(width):
             for h in range(H):
-                t[c, h], prim = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
-                                           o[c, h, 2], d[c, h, 0], d[c, h, 1], d[c, h, 2])
-                sid[c, h] = stem_of_prim[prim]
+                t[c, h], prim, _ = intersect1(fn, scene, rf, ru, addr, o[c, h, 0],
+                                              o[c, h, 1], o[c, h, 2], d[c, h, 0], d[c, h, 1],
+                                              d[c, h, 2])
+                sid[c, h] = stem_of_prim[prim]  # -1 (a miss) and a curve's -2 - j: from the end
                 if keep:
                     for q in range(3):
                         o_all[a + c, h, q] = o[c, h, q]
@@ -154,7 +155,7 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
 def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts: Any,
                        counter: Any, wait_all: bool, width: int, o_all: Any, d_all: Any,
                        template: Any, packets: Any, ts_words: Any, ts: Any, n_m: float,
-                       reach: float, prim_all: Any, t_all: Any, stem_of_prim: Any,
+                       reach: float, prim_all: Any, cn_all: Any, t_all: Any, stem_of_prim: Any,
                        material_of_prim: Any, normals: Any, refl: Any, r_near: float,
                        ambient: float, ss: Any, r: Any, e: Any, nir: Any) -> None:
     """:func:`cast_answer_blocks` for the physical sensor model: each block's packets
@@ -162,7 +163,8 @@ def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts
     ``d_all`` (W, H, 3), each column's origin into ``o_all[:, 0]``) and cast, and instead
     of the ideal answer the centre rays' echoes
     (:func:`~emulators.lidar._footprint.centre_echoes`, whole-frame (N,) column-major
-    arrays from ``ss`` on) from the triangles hit (``prim_all``, -1 none) and distances
+    arrays from ``ss`` on) from the primitives hit (``prim_all``, -1 none; a curve's |cos
+    incidence| into ``cn_all``) and distances
     (``t_all``, inf none or beyond ``reach`` from the lidar axis): the pixel words are the
     physics' to write."""
     H = beams.shape[0]
@@ -179,9 +181,10 @@ def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts
         b = a + width
         for c in range(width):
             for h in range(H):
-                t, prim = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
-                                     o[c, h, 2], d[c, h, 0], d[c, h, 1], d[c, h, 2])
+                t, prim, cc = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
+                                         o[c, h, 2], d[c, h, 0], d[c, h, 1], d[c, h, 2])
                 k = (a + c) * H + h
+                cn_all[k] = cc
                 tt = np.float64(t)
                 rr = tt + n_m
                 ok = rr >= 0.0 and rr <= reach
@@ -192,8 +195,8 @@ def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts
             for q in range(3):  # a column's beams all start at its origin
                 o_all[a + c, 0, q] = o[c, 0, q]
         _centre_echoes(  # type: ignore[misc]  # compiled: this module needs numba
-            prim_all, t_all, d_flat, stem_of_prim, material_of_prim, normals, refl, True, n_m,
-            r_near, ambient, a * H, b * H, ss, r, e, nir)
+            prim_all, cn_all, t_all, d_flat, stem_of_prim, material_of_prim, normals, refl,
+            True, n_m, r_near, ambient, a * H, b * H, ss, r, e, nir)
         _fetch_add(counter, 2, 1)  # type: ignore[call-arg]
     if wait_all and go:
         _wait_blocks(counter, starts.shape[0])

@@ -41,10 +41,12 @@ from protocols.ouster import (
 FloatArray = NDArray[np.float64]
 
 
-DirectCast = tuple[int, int, NDArray[np.int32]]
+DirectCast = tuple[int, NDArray[np.int64], NDArray[np.int32]]
 """An Embree scene the emulator's compiled kernel casts through itself
-(:mod:`emulators.embree`): rtcIntersect1's address, an RTCScene handle, and the stem id by
-triangle with -1 last."""
+(:mod:`emulators.embree`): rtcIntersect1's address, the RTCScene handles (triangles, then
+round curves or 0: :attr:`emulators.embree.DirectScene.handles`), and the stem id by
+primitive: the triangles', the curve segments' last to first, then -1 (the miss), so that
+a miss (-1) and curve segment j (-2 - j) index it from the end."""
 
 
 class RayScene(Protocol):
@@ -233,7 +235,7 @@ class _Nothing:
 
     def direct(self) -> DirectCast | None:
         e = self._embree
-        return None if e is None else (e.intersect, e.handle, np.array([0, -1], np.int32))
+        return None if e is None else (e.intersect, e.handles, np.array([0, -1], np.int32))
 
     def surfaces(self) -> Surfaces | None:
         return None
@@ -279,6 +281,7 @@ class _FrameJob:
     d_all: NDArray[np.float32] | None
     t_all: FloatArray | None
     ok_all: NDArray[np.bool_] | None
+    cn_all: NDArray[np.float32] | None = None  # (W, H) the curve hits' |cos|, physics only
 
 
 class Os0Emulator:
@@ -527,10 +530,11 @@ class Os0Emulator:
             self._direct = self._scene.direct()
             self._direct_asked = True
             surfaces = self._scene_surfaces() if self.physics is not None else None
-            if self._direct is not None and surfaces is not None:  # answer triangles
-                n = len(surfaces.normals)
-                self._direct = (*self._direct[:2],
-                                np.append(np.arange(n, dtype=np.int32), np.int32(-1)))
+            if self._direct is not None and surfaces is not None:  # answer primitives
+                n = len(surfaces.normals)  # triangles; then curve segments, the miss last
+                m = len(surfaces.stem_of_prim) - n - 1
+                self._direct = (*self._direct[:2], np.concatenate(
+                    [np.arange(n, dtype=np.int32), np.arange(-1 - m, 0, dtype=np.int32)]))
         return self._direct
 
     def rays(self, k: int, dtype: type[np.floating] = np.float64
@@ -591,7 +595,7 @@ class Os0Emulator:
         ok_all = np.empty((W, H), bool) if keep else None
         mt, oc = np.empty((3, W, 3), np.float32), np.empty((W, 3), np.float32)
         job = _FrameJob(mt, oc, noise, sid_out, arr, self._views(arr), ts, o_all, d_all, t_all,
-                        ok_all)
+                        ok_all, np.zeros((W, H), np.float32) if physics is not None else None)
         direct = self._direct_scene()
         fused = fused_kernel() if direct is not None else None
         centre: tuple[Any, ...] | None = None
@@ -605,7 +609,8 @@ class Os0Emulator:
             centre = (np.empty(N, np.int32), np.empty(N), np.empty(N), np.empty(N, np.uint32))
             prim_all, t_phys = np.empty(N, np.int32), np.empty(N)
             tail = (o_all, d_all, self._template_here(), job.packets, job.views[-1], job.ts,
-                    self.n_m, float(self._reach[0]), prim_all, t_phys, surfaces.stem_of_prim,
+                    self.n_m, float(self._reach[0]), prim_all, np.empty(N, np.float32), t_phys,
+                    surfaces.stem_of_prim,
                     surfaces.material_of_prim, surfaces.normals, physics.refl,
                     physics.R_NEAR, physics.model.ambient, *centre)
             pos, rot = self._fused_frame(cast_centre_blocks, (*direct[:2], self._beams32),
@@ -624,7 +629,7 @@ class Os0Emulator:
         if physics is not None and o_all is not None and d_all is not None \
                 and t_all is not None and ok_all is not None:
             sid_out, sid2 = self._physical(physics, k, arr, o_all, d_all, t_all, ok_all,
-                                           sid_out, dual, centre)
+                                           sid_out, dual, centre, job.cn_all)
         elif o_all is not None and d_all is not None and t_all is not None \
                 and ok_all is not None:  # only what the profile carries
             second: dict[str, NDArray[np.uint32]] = {}
@@ -643,7 +648,8 @@ class Os0Emulator:
     def _physical(self, physics: Physics, k: int, arr: NDArray[np.uint8],
                   o_all: NDArray[np.float32], d_all: NDArray[np.float32], t_all: FloatArray,
                   ok_all: NDArray[np.bool_], hits: NDArray[np.int32], dual: bool,
-                  centre: tuple[Any, ...] | None = None
+                  centre: tuple[Any, ...] | None = None,
+                  cn_all: NDArray[np.float32] | None = None
                   ) -> tuple[NDArray[np.int32], NDArray[np.int32] | None]:
         """The physical sensor's answer to frame k's first cast (``hits`` (W, H): the
         triangle hit where the scene tells triangles, else the stem id; -1 none; or the
@@ -656,7 +662,8 @@ class Os0Emulator:
         rng = np.random.default_rng([self._seed, 0x0501, k])
         physics.jit = self.jit
         out = physics.respond(o_all[:, 0], d_all.reshape(-1, 3), t, hits.reshape(-1),
-                              surfaces, cast, self.n_m, rng, dual, self._run, centre)
+                              surfaces, cast, self.n_m, rng, dual, self._run, centre,
+                              cn=cn_all.reshape(-1) if cn_all is not None else None)
         if self.meta.profile == "RNG15_RFL8_NIR8":
             out["NEAR_IR"] = np.minimum(out["NEAR_IR"], 4080) // 16 * 16
         encode_pixel_fields(self._fmt, arr, 0, {n: v for n, v in out.items()
@@ -761,7 +768,10 @@ class Os0Emulator:
         self._make_rays(job.mt, job.oc, a, o, d)
         surfaces = self._scene_surfaces() if self.physics is not None else None
         cast32 = surfaces.cast1 if surfaces is not None else self._scene.cast32
-        t32, sid_cm = cast32(o.reshape(-1, 3), d.reshape(-1, 3))
+        got: tuple[Any, ...] = cast32(o.reshape(-1, 3), d.reshape(-1, 3))
+        t32, sid_cm = got[0], got[1]
+        if len(got) > 2 and len(got[2]) and job.cn_all is not None:  # physics: curve hits
+            job.cn_all[a:b] = np.asarray(got[2]).reshape(n, H)
         t = np.asarray(t32, np.float32).reshape(n, H)  # column-major, as cast
         sid = np.asarray(sid_cm, np.int32).reshape(n, H)
         kernel = answer_kernel() if self.jit else None

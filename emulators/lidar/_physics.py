@@ -169,14 +169,18 @@ DEFAULT_SENSOR = "os0-64-rev7"
 
 @dataclass(frozen=True)
 class Surfaces:
-    """What a scene tells about the triangles its casts hit (``prim``, -1 a miss): the stem
-    id by triangle with -1 last, unit normals, material index (:data:`MATERIALS`), and its
-    casts answering triangles: ``cast`` spread over threads as the backend does, ``cast1``
-    on the calling thread."""
+    """What a scene tells about the primitives its casts hit (``prim``: a triangle ``>= 0``,
+    -1 a miss, ``-2 - j`` the round curve segment ``j`` where the scene has curves): the
+    stem id by primitive, triangles first, then the curve segments last to first, then -1
+    for the miss (so a negative ``prim`` indexes from the end); the triangles' unit normals;
+    the material index (:data:`MATERIALS`) in the stem id's order; and its casts answering
+    primitives, returning the distance, the primitive and the curve hits' |cos incidence|
+    (an empty array where the scene has no curves): ``cast`` spread over threads as the
+    backend does, ``cast1`` on the calling thread."""
 
-    stem_of_prim: NDArray[np.int32]  # (n + 1,)
+    stem_of_prim: NDArray[np.int32]  # (n + m + 1,)
     normals: NDArray[np.float32]  # (n, 3)
-    material_of_prim: NDArray[np.uint8]  # (n + 1,), ground last (unused: misses)
+    material_of_prim: NDArray[np.uint8]  # (n + m + 1,), ground last (unused: misses)
     cast: Any
     cast1: Any
 
@@ -345,17 +349,20 @@ class Physics:
                 rng: np.random.Generator, dual: bool,
                 run: Callable[[Any, list[tuple[Any, ...]]], None] | None = None,
                 centre: tuple[Any, ...] | None = None,
-                submit: Callable[..., Any] | None = None) -> dict[str, Any]:
+                submit: Callable[..., Any] | None = None,
+                cn: NDArray[np.float32] | None = None) -> dict[str, Any]:
         """The frame's returns from the centre cast: ``o`` (W, 3) each column's origin (every
         beam of a column starts there), ``d`` (N, 3) column-major ray directions,
-        ``t`` (N,) distances (inf: a miss), ``prim`` (N,) the triangle hit (or the stem id
-        where the scene tells no triangles, ``surfaces`` None); ``cast`` casts float32 rays
-        to (distance, triangle or stem id as ``prim``); ``run(fn, calls)`` calls ``fn(*c)``
-        for each of ``calls``, spread over threads (here, by default); ``centre``: the
-        centre rays' echoes where the cast made them already (``ss, r, e, nir,
-as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
-        ``t`` and ``prim`` are then not read); ``submit(fn, *args)``: runs ``fn`` in the
-        background (a thread pool's ``submit``), for work nothing waits on at once.
+        ``t`` (N,) distances (inf: a miss), ``prim`` (N,) the primitive hit (or the stem id
+        where the scene tells no primitives, ``surfaces`` None) and ``cn`` (N,) the curve
+        hits' |cos incidence| (where the scene has curves); ``cast`` casts float32 rays
+        to (distance, primitive or stem id as ``prim``, the curve hits' |cos|);
+        ``run(fn, calls)`` calls ``fn(*c)`` for each of ``calls``, spread over threads
+        (here, by default); ``centre``: the centre rays' echoes where the cast made them
+        already (``ss, r, e, nir``, as :func:`~emulators.lidar._footprint.centre_echoes`
+        writes them; ``t`` and ``prim`` are then not read); ``submit(fn, *args)``: runs
+        ``fn`` in the background (a thread pool's ``submit``), for work nothing waits on at
+        once.
         Returns the pixel words as (H, W) uint32 images ``RANGE`` (mm, 0 none), ``SIGNAL``,
         ``REFLECTIVITY``, ``NEAR_IR`` and, with ``dual``, ``RANGE2``, ``SIGNAL2``,
         ``REFLECTIVITY2``; and the stem ids (W, H) ``sid`` (-1 none) and ``sid2``."""
@@ -371,6 +378,7 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
         sop, mop, nrm = ((surfaces.stem_of_prim, surfaces.material_of_prim, surfaces.normals)
                          if surfaces is not None else _NO_SURFACES)
         parts = _parts(N, H, 8)
+        cn0 = cn if cn is not None else np.zeros(0, np.float32)
         # 0. the draws of detection and noise, each return's in two halves by two threads
         # at once; with ``submit``, in the background while the footprint is worked out
         draws = []
@@ -386,11 +394,11 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
             ss, r, e = np.empty(N, np.int32), np.empty(N), np.empty(N)
             nir = np.empty(N, np.uint32)
         if centre is None and k is not None:
-            run(k.centre_echoes, [(prim, t, d, sop, mop, nrm, self.refl, surf, n_m, self.R_NEAR,
-                                   m.ambient, a, b, ss, r, e, nir)
+            run(k.centre_echoes, [(prim, cn0, t, d, sop, mop, nrm, self.refl, surf, n_m,
+                                   self.R_NEAR, m.ambient, a, b, ss, r, e, nir)
                                   for a, b in parts])
         elif centre is None:
-            self._centre_np(prim, t, d, sop, mop, nrm, surf, n_m, ss, r, e, nir)
+            self._centre_np(prim, cn0, t, d, sop, mop, nrm, surf, n_m, ss, r, e, nir)
         # 2. the footprint where it can straddle an edge (the second return: where the
         # profile carries one)
         e1, r1, s1 = e, r, ss  # the first return: the centre's, changed where sampled
@@ -437,7 +445,7 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
                 hits = self._lattice_cast(o, d, ent_p, W, H, turn, cast, k, run)
                 lat.append((ent_p, *hits))
                 pr = hits[3]
-                sid_p = (sop[np.where(pr >= 0, pr, len(sop) - 1)] if surf else pr)
+                sid_p = sop[pr] if surf else pr  # -1 (and a curve's -2 - j) from the end
                 sid_p = np.where(np.isfinite(hits[2]), sid_p, -1)
                 differs = np.zeros(len(pv), bool)
                 differs[who[sid_p != ss[pv[who]]]] = True
@@ -459,10 +467,10 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
             ent, pos = g.needed(idx, fl, W, H, k, run, lat[0][0] if lat else None)
             self.last_cast += len(ent)
             lat.append((ent, *self._lattice_cast(o, d, ent, W, H, turn, cast, k, run)))
-            dd, ts, ps = (np.concatenate([x[n] for x in lat]) if len(lat) > 1
-                          else lat[0][n] for n in range(2, 5))
+            dd, ts, ps, cs = (np.concatenate([x[n] for x in lat]) if len(lat) > 1
+                              else lat[0][n] for n in range(2, 6))
             args = (g.weights, g.row_j, g.grid_j, g.grid_i, g.sub, g.rows, pos, H, ss, r, e,
-                    ts, ps, dd, sop, mop, nrm, self.refl, surf, n_m, self.R_NEAR,
+                    ts, ps, cs, dd, sop, mop, nrm, self.refl, surf, n_m, self.R_NEAR,
                     m.range_resolution_m, self.ORDERS[m.return_order], *echoes)
             if k is not None:
                 run(k.footprint_echoes, [(idx, fl, a, b, *args)
@@ -529,9 +537,11 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
     def _lattice_cast(self, o: NDArray[np.float32], d: NDArray[np.float32],
                       ent: NDArray[np.intp], W: int, H: int, turn: float, cast: Any,
                       k: Any, run: Any) -> tuple[NDArray[np.float32], NDArray[np.float32],
-                                                 FloatArray, NDArray[np.int32]]:
+                                                 FloatArray, NDArray[np.int32],
+                                                 NDArray[np.float32]]:
         """The lattice rays ``ent`` (flat lattice indices, see :meth:`FootprintGrid.needed`)
-        made and cast: their origins, directions, distances and triangles hit."""
+        made and cast: their origins, directions, distances, primitives hit and the curve
+        hits' |cos incidence| (empty where the cast tells none)."""
         g = self.grid
         n_sub = len(ent)
         oo = np.empty((n_sub, 3), np.float32)
@@ -546,15 +556,18 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
                                  for a, b in _parts(n_sub, 1, 8)])
         else:
             self._rays_np(o, d, pix, ra, rb, oo, dd)
-        ts, ps = cast(oo, dd) if n_sub else (np.empty(0), np.empty(0, np.int32))
+        res: tuple[Any, ...] = (cast(oo, dd) if n_sub
+                                else (np.empty(0), np.empty(0, np.int32)))
+        ts, ps = res[0], res[1]
+        cs = res[2] if len(res) > 2 else np.zeros(0, np.float32)
         return (oo, dd, np.ascontiguousarray(ts, np.float64),
-                np.ascontiguousarray(ps, np.int32))
+                np.ascontiguousarray(ps, np.int32), np.ascontiguousarray(cs, np.float32))
 
     # ---- the numpy path: what the kernels of emulators.lidar._footprint compute -------
-    def _centre_np(self, prim: NDArray[np.int32], t: FloatArray, d: NDArray[np.float32],
-                   sop: Any, mop: Any, nrm: Any, surf: bool, n_m: float, ss: Any, r: Any,
-                   e: Any, nir: Any) -> None:
-        sid, mt, cos = _surface_np(prim, d, sop, mop, nrm, surf)
+    def _centre_np(self, prim: NDArray[np.int32], cn: NDArray[np.float32], t: FloatArray,
+                   d: NDArray[np.float32], sop: Any, mop: Any, nrm: Any, surf: bool,
+                   n_m: float, ss: Any, r: Any, e: Any, nir: Any) -> None:
+        sid, mt, cos = _surface_np(prim, cn, d, sop, mop, nrm, surf)
         hit = np.isfinite(t) & (sid >= 0)
         rr = np.where(hit, t + n_m, np.inf)
         rn = np.maximum(rr, self.R_NEAR)
@@ -606,7 +619,8 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
     def _echoes_np(self, idx: NDArray[np.intp], fl: NDArray[np.uint8], wt: FloatArray,
                    row_j: Any, grid_j: Any, grid_i: Any, S: int, V: int, pos: Any, H: int,
                    ss: Any, r: Any, e: Any, ts: FloatArray,
-                   ps: NDArray[np.int32], dd: NDArray[np.float32], sop: Any, mop: Any,
+                   ps: NDArray[np.int32], cs: NDArray[np.float32], dd: NDArray[np.float32],
+                   sop: Any, mop: Any,
                    nrm: Any, refl: FloatArray, surf: bool, n_m: float, r_near: float,
                    resolution: float, order: int, e1: Any, r1: Any, s1: Any, e2: Any,
                    r2: Any, s2: Any) -> None:
@@ -643,7 +657,8 @@ as :func:`~emulators.lidar._footprint.centre_echoes` writes them;
         at = np.flatnonzero(row.reshape(-1) >= 0)
         if len(at):
             rw = row.reshape(-1)[at]
-            sid, mt, cos = _surface_np(ps[rw], dd[rw], sop, mop, nrm, surf)
+            sid, mt, cos = _surface_np(ps[rw], cs[rw] if len(cs) else cs, dd[rw], sop, mop,
+                                       nrm, surf)
             tt = ts[rw]
             ok = np.isfinite(tt) & (sid >= 0)
             rr = np.where(ok, tt + n_m, np.inf)
@@ -762,17 +777,21 @@ def _parts(n: int, align: int, k: int, size: int = 1) -> list[tuple[int, int]]:
     return [(a, min(a + step, n)) for a in range(0, n, step)]
 
 
-def _surface_np(prim: NDArray[np.int32], d: NDArray[np.float32], sop: Any, mop: Any,
-                nrm: Any, surf: bool) -> tuple[NDArray[np.int32], NDArray[np.intp], FloatArray]:
-    """Stem id, material index and |cos incidence| of each hit (-1: none)."""
+def _surface_np(prim: NDArray[np.int32], cn: NDArray[np.float32], d: NDArray[np.float32],
+                sop: Any, mop: Any, nrm: Any, surf: bool
+                ) -> tuple[NDArray[np.int32], NDArray[np.intp], FloatArray]:
+    """Stem id, material index and |cos incidence| of each hit (-1: none; ``-2 - j`` curve
+    segment ``j``, its |cos| in ``cn``, which may be empty where there is none)."""
     if not surf:
         sid = prim.astype(np.int32)
         return sid, np.where(sid > 0, 1, 0), np.ones(len(sid))
-    q = np.where(prim >= 0, prim, len(sop) - 1)
     n = nrm[np.maximum(prim, 0)].astype(np.float64)
     dd = d.astype(np.float64)
     cos = np.abs(n[:, 0] * dd[:, 0] + n[:, 1] * dd[:, 1] + n[:, 2] * dd[:, 2])
-    return sop[q], mop[q].astype(np.intp), np.minimum(cos, 1.0)
+    curve = prim < -1
+    if curve.any():
+        cos = np.where(curve, cn.astype(np.float64) if len(cn) else 0.0, cos)
+    return sop[prim], mop[prim].astype(np.intp), np.minimum(cos, 1.0)
 
 
 class _Kernels:

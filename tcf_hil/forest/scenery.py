@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -58,19 +59,90 @@ _SAPLING_BASE_DIAMETER_PER_M = 0.015  # a 2 m sapling is 3 cm thick at its foot 
 _STREAM_SCENERY = 7
 
 
+@dataclass(frozen=True)
+class Rods:
+    """Straight tapered rods (the branches), one per row: from ``base`` (k, 3) along the unit
+    ``axis`` for ``length``, radius ``r0`` at the base and ``r1`` at the tip, an object id
+    and a material each. Cast as
+    round curves where the ray backend can (:meth:`curves`), else as 5-sided open cones
+    (:meth:`mesh`)."""
+
+    base: FloatArray
+    axis: FloatArray
+    length: FloatArray
+    r0: FloatArray
+    r1: FloatArray
+    ids: NDArray[np.int32]
+    material: NDArray[np.uint8]
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @staticmethod
+    def empty() -> Rods:
+        z, e = np.zeros((0, 3)), np.zeros(0)
+        return Rods(z, z, e, e, e, np.zeros(0, np.int32), np.zeros(0, np.uint8))
+
+    def mesh(self) -> tuple[FloatArray, IntArray, NDArray[np.int32], NDArray[np.uint8]]:
+        """Vertices, faces, and each face's object id and material: five sides, whose chord
+        error 0.19 r is within 2 mm up to r = 1 cm (most branches); open ends (a branch's
+        base is inside its stem and its tip is a few millimetres)."""
+        v, f = cones(self.base, self.axis, self.length, self.r0, self.r1, _BRANCH_SIDES,
+                     caps=False)
+        per = 2 * _BRANCH_SIDES
+        return v, f, np.repeat(self.ids, per), np.repeat(self.material, per)
+
+    def curves(self) -> tuple[FloatArray, IntArray, NDArray[np.uint8]]:
+        """As round linear curves: points (2k, 4) x, y, z, radius, one segment per rod
+        (its first point) and no neighbours (flags 0)."""
+        pts = np.empty((2 * len(self), 4))
+        pts[0::2, :3] = self.base
+        pts[1::2, :3] = self.base + self.length[:, None] * self.axis
+        pts[0::2, 3], pts[1::2, 3] = self.r0, self.r1
+        return pts, np.arange(0, 2 * len(self), 2, dtype=np.int64), np.zeros(len(self), np.uint8)
+
+
 @dataclass
 class Scenery:
-    """Triangles in local coordinates with an object id and a material each."""
+    """Triangles in local coordinates with an object id and a material each (``tri_*``: the
+    foliage and the ground objects), and the branches as :class:`Rods`; ``vertices``,
+    ``faces``, ``face_id`` and ``face_material`` give it all as one mesh, the rods' cones
+    first."""
 
-    vertices: FloatArray
-    faces: IntArray
-    face_id: NDArray[np.int32]
-    face_material: NDArray[np.uint8]
+    rods: Rods
+    tri_vertices: FloatArray
+    tri_faces: IntArray
+    tri_id: NDArray[np.int32]
+    tri_material: NDArray[np.uint8]
     component_of_id: NDArray[np.uint8]  # component code of every id 0..max
     counts: dict[str, int]  # objects drawn per kind (branches, facets, logs, ...)
 
     def __len__(self) -> int:
-        return len(self.faces)
+        return len(self.rods) * 2 * _BRANCH_SIDES + len(self.tri_faces)
+
+    @cached_property
+    def _mesh(self) -> tuple[FloatArray, IntArray, NDArray[np.int32], NDArray[np.uint8]]:
+        v, f, ids, mat = self.rods.mesh()
+        return (np.vstack([v, self.tri_vertices]),
+                np.vstack([f, self.tri_faces + len(v)]).astype(np.int64),
+                np.concatenate([ids, self.tri_id]).astype(np.int32),
+                np.concatenate([mat, self.tri_material]).astype(np.uint8))
+
+    @property
+    def vertices(self) -> FloatArray:
+        return self._mesh[0]
+
+    @property
+    def faces(self) -> IntArray:
+        return self._mesh[1]
+
+    @property
+    def face_id(self) -> NDArray[np.int32]:
+        return self._mesh[2]
+
+    @property
+    def face_material(self) -> NDArray[np.uint8]:
+        return self._mesh[3]
 
 
 class _Parts:
@@ -155,19 +227,30 @@ class _Obstacles:
                 k: int = 12) -> NDArray[np.bool_]:
         """Whether points ``q`` (with their own radius) come within the clearance of a tube
         of a tree other than ``me`` (0: of any tree)."""
+        out: NDArray[np.bool_] = np.zeros(len(q), dtype=bool)
         if self.tree is None or len(q) == 0:
-            return np.zeros(len(q), dtype=bool)
+            return out
         k = min(k, len(self.p))
-        d, j = self.tree.query(q, k=k, distance_upper_bound=self.r_max + 0.5 + self.step)
+        rad = np.asarray(radius, dtype=np.float64)
+        # the farthest a sample can be and still block (below), a hair more
+        bound = self.r_max + float(np.max(rad, initial=0.0)) + _CLEARANCE_M \
+            + 0.5 * self.step + 1e-9
+        # points with no sample within reach need no more: one neighbour tells, and only
+        # the others are asked for k
+        d1, _ = self.tree.query(q, k=1, distance_upper_bound=bound, workers=-1)
+        ask = np.flatnonzero(np.isfinite(d1))
+        if len(ask) == 0:
+            return out
+        d, j = self.tree.query(q[ask], k=k, distance_upper_bound=bound, workers=-1)
         ok = np.isfinite(d)
         jj = np.where(ok, j, 0)
-        other = self.own[jj] != np.asarray(me).reshape(-1, 1) if np.ndim(me) else \
-            self.own[jj] != me
-        rad = np.asarray(radius, dtype=np.float64)
-        rad = rad.reshape(-1, 1) if rad.ndim else rad
+        mine = np.asarray(me)
+        other = (self.own[jj] != mine[ask].reshape(-1, 1) if mine.ndim
+                 else self.own[jj] != mine)
+        rad = rad[ask].reshape(-1, 1) if rad.ndim else rad
         # a centre-line sample stands for the stretch half a step either side of it
         near = d < self.r[jj] + rad + _CLEARANCE_M + 0.5 * self.step
-        out: NDArray[np.bool_] = np.any(ok & other & near, axis=1)
+        out[ask] = np.any(ok & other & near, axis=1)
         return out
 
 
@@ -206,8 +289,7 @@ def _object_rng(seed: int, part: int, k: int) -> np.random.Generator:
     return np.random.default_rng([seed, _STREAM_SCENERY, part, k])
 
 
-def _branches(forest: object, obstacles: _Obstacles, parts: _Parts,
-              counts: dict[str, int]) -> None:
+def _branches(forest: object, obstacles: _Obstacles, counts: dict[str, int]) -> Rods:
     from tcf_hil.forest.generate import Forest
 
     assert isinstance(forest, Forest) and forest.natural is not None
@@ -257,7 +339,7 @@ def _branches(forest: object, obstacles: _Obstacles, parts: _Parts,
         rows_len.append(ln)
         rows_dead.append(dead)
     if not rows_i:
-        return
+        return Rods.empty()
     idx = np.concatenate(rows_i)
     s = np.concatenate(rows_s)
     ln = np.concatenate(rows_len)
@@ -284,11 +366,10 @@ def _branches(forest: object, obstacles: _Obstacles, parts: _Parts,
     ok = ln > r_stem + 0.03
     counts["branches_cut"] = int(np.count_nonzero(keep_frac < 1.0))
     idx, base, direction, ln, r0, dead = idx[ok], base[ok], direction[ok], ln[ok], r0[ok], dead[ok]
-    # five sides: the chord error 0.19 r is within 2 mm up to r = 1 cm (most branches)
-    v, f = cones(base, direction, ln, r0, np.full(len(r0), 0.002), _BRANCH_SIDES, caps=False)
-    parts.add(v, f, np.repeat((n + idx + 1).astype(np.int32), 2 * _BRANCH_SIDES), MAT_BARK)
     counts["branches"] = len(idx)
     counts["dead_branches"] = int(np.count_nonzero(dead))
+    return Rods(base, direction, ln, r0, np.full(len(r0), 0.002),
+                (n + idx + 1).astype(np.int32), np.full(len(idx), MAT_BARK, np.uint8))
 
 
 def _facets(centres: FloatArray, edge: float, rng: np.random.Generator
@@ -642,8 +723,7 @@ def build_scenery(forest: object) -> Scenery:
     obstacles = _Obstacles(tubes, owner)
     parts = _Parts()
     counts: dict[str, int] = {}
-    if cfg.branches:
-        _branches(forest, obstacles, parts, counts)
+    rods = _branches(forest, obstacles, counts) if cfg.branches else Rods.empty()
     if cfg.foliage:
         _foliage(forest, obstacles, parts, counts, cfg.foliage_facet_m)
     comp = [GROUND] + [STEM] * n + [BRANCH] * n + [FOLIAGE] * n
@@ -658,7 +738,7 @@ def build_scenery(forest: object) -> Scenery:
     else:
         v, f = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
         ids, mat = np.zeros(0, np.int32), np.zeros(0, np.uint8)
-    return Scenery(v, f, ids, mat, np.asarray(comp, np.uint8), counts)
+    return Scenery(rods, v, f, ids, mat, np.asarray(comp, np.uint8), counts)
 
 
 def scenery_mesh(sc: Scenery) -> trimesh.Trimesh:

@@ -20,6 +20,7 @@ Natural stems (:mod:`tcf_hil.forest.natural`) add three things, each only where 
 - ``species`` >= 0: the radius follows the species' taper curve (:mod:`~.species`) scaled
   to the radius at breast height, ``r(s) = r_bh P(1 - s/T) / P(1 - 1.3/T)`` with T the
   ``taper_length`` (the intact length: a broken top keeps the thickness it broke at);
+  below the base it goes on with the butt's slope, ``r(0) + r'(0) s``;
 - a crook: a sideways shift ``K`` (perpendicular to A) over a short stretch from ``crook_s``
   to ``crook_s + crook_w``, ``C(s) += K g((s - crook_s)/crook_w)`` with g the quintic
   smoothstep (C2, 0 below the stretch, 1 above it).
@@ -185,7 +186,14 @@ class StemSet:
         scale = self.r_bh[idx] / taper_poly(sp, 1.0 - BREAST_HEIGHT_M / T)
         inside = (s <= T) & (s >= 0.0)
         d = taper_poly(sp, 1.0 - s / T, derivative) * (-1.0 / T) ** derivative
-        return scale * np.where(inside | (derivative == 0), d, 0.0)
+        out = scale * np.where(inside | (derivative == 0), d, 0.0)
+        below = s < 0.0
+        if derivative < 2 and below.any():
+            # below the base the butt's slope goes on straight (C1: no kink where the stem
+            # meets the ground, which a slope shows on its downhill side)
+            slope = scale[below] * taper_poly(sp[below], np.ones(int(below.sum())), 1) / -T[below]
+            out[below] = slope if derivative == 1 else out[below] + slope * s[below]
+        return out
 
     def radius_d2(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """|d2r/ds2| (1/m)."""

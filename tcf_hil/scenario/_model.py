@@ -109,6 +109,9 @@ class StemsConfig:
     tolerance_mm: float = _f(
         2.0, "stem mesh: maximum chord error (sets sides and ring spacing)",
         gt=0.01, le=100.0)
+    geometry: Literal["auto", "curves", "mesh"] = _f(
+        "auto", "stems and branches as exact round curves (Embree cast from compiled "
+        "kernels), as meshes (any backend), or auto: curves where the backend casts them")
     below_ground_m: float = _f(
         0.5, "stem meshes reach this far below the base (no gap on slopes)", ge=0.0, le=5.0)
 

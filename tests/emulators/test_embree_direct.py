@@ -28,7 +28,7 @@ SCN = scenario_from_dict({
 def world() -> tuple[Scene, Scene, Trajectory]:
     """The forest twice: cast directly (the default) and through embreex's own scene."""
     forest = generate_forest(SCN)
-    direct = Scene.from_forest(forest)
+    direct = Scene.from_forest(forest, geometry="mesh")  # embreex casts no curves
     plain = Scene(direct.vertices, direct.faces, direct.stem_id,
                   EmbreeCaster(direct.vertices, direct.faces, direct=False))
     return direct, plain, Trajectory.from_config(SCN.track, forest.terrain)

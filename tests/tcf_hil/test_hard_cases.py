@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from emulators.jit import jit_enabled
 from protocols.harvester._codec import encode_pose
 from protocols.ouster import decode_lidar_packet
 from tcf_hil.experiments.offline import OfflineSic, run_offline
@@ -139,15 +140,43 @@ def _terrain_edge_rays(scene: Scene, forest: Forest, rng: np.random.Generator, n
     return o[k], d[k], dist[k]
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+def _grazing_curve_rays(forest: Forest, rng: np.random.Generator, n: int,
+                        depth_m: float = 2e-4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_grazing_rays` for the true surface (what round curves cast): each ray runs in
+    the plane tangent to a stem at a random point, ``depth_m`` inside it."""
+    st = forest.stems
+    sid = rng.integers(0, len(st), 2 * n)
+    s = rng.uniform(0.1, 0.95, 2 * n) * st.length[sid]
+    u, b = st.ring_frame(sid, s)
+    th = rng.uniform(0.0, 2.0 * math.pi, 2 * n)[:, None]
+    out = np.cos(th) * u + np.sin(th) * b
+    target = st.centre(sid, s) + (st.radius(sid, s) - depth_m)[:, None] * out
+    ax = st.tangent(sid, s)
+    e = np.cross(out, ax) * rng.choice([-1.0, 1.0], 2 * n)[:, None]
+    e += rng.uniform(-0.3, 0.3, 2 * n)[:, None] * ax
+    d = e - np.einsum("ij,ij->i", e, out)[:, None] * out
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    dist = rng.uniform(3.0, 30.0, 2 * n)
+    o = target - dist[:, None] * d
+    k = np.flatnonzero(_inside_bounds(forest, o, target))[:n]
+    return o[k], d[k], dist[k]
+
+
+@pytest.mark.parametrize("backend", [*BACKENDS, "embree-curves"])
 def test_grazing_rays_never_pass_through_geometry(backend: str, forest_iv: Forest) -> None:
     """Rays grazing stem silhouettes and skimming the terrain across its shared mesh edges,
     each aimed 0.2 mm inside the geometry: every one must report a hit no later than that
-    point (a watertight caster; Embree runs in robust mode for exactly this)."""
-    scene = Scene.from_forest(forest_iv, backend=backend)
+    point (a watertight caster; Embree runs in robust mode for exactly this). Stems as
+    meshes on every backend, and as Embree's round curves, aimed inside the true surface."""
+    curves = backend == "embree-curves"
+    if curves and not jit_enabled():
+        pytest.skip("round curves need compiled kernels (TCF_HIL_NO_JIT or no numba)")
+    scene = Scene.from_forest(forest_iv, backend="embree" if curves else backend,
+                              geometry="curves" if curves else "mesh")
     rng = np.random.default_rng(7)
-    for o, d, dist in (_grazing_rays(scene, forest_iv, rng, 40_000),
-                       _terrain_edge_rays(scene, forest_iv, rng, 40_000)):
+    stems = (_grazing_curve_rays(forest_iv, rng, 40_000) if curves
+             else _grazing_rays(scene, forest_iv, rng, 40_000))
+    for o, d, dist in (stems, _terrain_edge_rays(scene, forest_iv, rng, 40_000)):
         assert len(o) > 30_000
         t, sid = scene.cast(o, d)
         through = ~(t <= dist + 1e-4)
