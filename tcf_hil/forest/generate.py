@@ -110,17 +110,29 @@ class Forest:
     _volume: FloatArray | None = field(default=None, repr=False)
     _scenery: Scenery | None = field(default=None, repr=False)
     _ground: GroundObjects | None = field(default=None, repr=False)
+    _obstacles: Any = field(default=None, repr=False)
+
+    def obstacles(self) -> Any:
+        """The index of every tube (stems and their parts) that keeps branches, foliage and
+        ground objects clear of other trees (built once, when first asked for)."""
+        if self._obstacles is None:
+            from tcf_hil.forest.scenery import Obstacles
+
+            tubes, owner = self.tubes()
+            self._obstacles = Obstacles(tubes, owner)
+        return self._obstacles
 
     def ground_objects(self, obstacles: Any = None) -> GroundObjects | None:
         """Understory, lying dead wood, stumps and boulders of a natural stand (drawn when
-        first asked for; None for the paper's forests). ``obstacles``: the stems' index the
-        scenery already built, if any (else built here)."""
+        first asked for; None for the paper's forests). ``obstacles``: the stems' index
+        (default :meth:`obstacles`)."""
         if self.natural is None:
             return None
         if self._ground is None:
             from tcf_hil.forest.scenery import ground_objects
 
-            self._ground = ground_objects(self, obstacles)
+            self._ground = ground_objects(self, obstacles if obstacles is not None
+                                          else self.obstacles())
         return self._ground
 
     def scenery(self) -> Scenery | None:

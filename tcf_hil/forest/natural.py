@@ -237,23 +237,29 @@ def build(scn: Scenario, dr: _Draw) -> tuple[StemSet, StemSet, IntArray, list[st
     return stems, parts, idx, kinds
 
 
-def _deviation(stems: StemSet, i: int, a: float, b: float, samples: int = 257) -> float:
-    """Largest distance of stem ``i``'s centre line between axial ``a`` and ``b`` from the
-    chord between them."""
-    s = np.linspace(a, b, samples)
-    c = stems.centre(np.full(samples, i), s)
-    chord = c[-1] - c[0]
-    norm = float(np.linalg.norm(chord))
-    if norm == 0.0:
-        return 0.0
-    return float(np.max(np.linalg.norm(np.cross(c - c[0], chord), axis=1)) / norm)
+def _deviations(stems: StemSet, idx: IntArray, a: FloatArray, b: FloatArray,
+                samples: int = 257, chunk: int = 1024) -> FloatArray:
+    """Largest distance of each stem ``idx[k]``'s centre line between axial ``a[k]`` and
+    ``b[k]`` from the chord between them (vectorised over stems, ``chunk`` at a time)."""
+    out = np.zeros(len(idx))
+    u = np.linspace(0.0, 1.0, samples)
+    for lo in range(0, len(idx), chunk):
+        hi = min(lo + chunk, len(idx))
+        m = hi - lo
+        s = a[lo:hi, None] + (b[lo:hi] - a[lo:hi])[:, None] * u[None, :]
+        c = stems.centre(np.repeat(idx[lo:hi], samples), s.ravel()).reshape(m, samples, 3)
+        chord = c[:, -1] - c[:, 0]
+        norm = np.linalg.norm(chord, axis=1)
+        dev = np.linalg.norm(np.cross(c - c[:, :1], chord[:, None, :]), axis=2).max(axis=1)
+        out[lo:hi] = np.where(norm > 0.0, dev / np.where(norm > 0.0, norm, 1.0), 0.0)
+    return out
 
 
 def maxcurve(stems: StemSet) -> FloatArray:
     """The paper's maxcurve, measured on the centre line (base to top): with a crook it is
     more than the bow's sweep."""
-    return np.array([_deviation(stems, i, 0.0, float(stems.length[i]))
-                     for i in range(len(stems))])
+    n = len(stems)
+    return _deviations(stems, np.arange(n), np.zeros(n), stems.length.astype(np.float64))
 
 
 Defects = list[list[dict[str, Any]]]
@@ -267,14 +273,17 @@ def defects_of(scn: Scenario, dr: _Draw, stems: StemSet, parts: StemSet, owner: 
     n = len(stems)
     az = stems.axis[:, 2]
     out: list[list[dict[str, Any]]] = [[] for _ in range(n)]
+    # every stem's whole logs from the base, their sweep at once
+    n_logs = np.floor((stems.length + 1e-9) / df.log_length_m).astype(np.int64)
+    log_stem = np.repeat(np.arange(n), n_logs)
+    log_k = np.arange(len(log_stem)) - np.repeat(np.cumsum(n_logs) - n_logs, n_logs)
+    log_a: FloatArray = (log_k * df.log_length_m).astype(np.float64)
+    log_b: FloatArray = log_a + df.log_length_m
+    sweep = (100.0 * _deviations(stems, log_stem, log_a, log_b) / df.log_length_m).tolist()
+    first_log = np.cumsum(n_logs) - n_logs
     for i in range(n):
         L = float(stems.length[i])
-        logs = []
-        a = 0.0
-        while a + df.log_length_m <= L + 1e-9:
-            logs.append(round(100.0 * _deviation(stems, i, a, a + df.log_length_m)
-                              / df.log_length_m, 2))
-            a += df.log_length_m
+        logs = [round(v, 2) for v in sweep[first_log[i]:first_log[i] + n_logs[i]]]
         out[i].append({"type": "sweep", "height_m": round(float(dr.peak[i] * L * az[i]), 3),
                        "magnitude_m": round(float(dr.sweep[i]), 4),
                        "per_log_cm_per_m": logs, "log_length_m": df.log_length_m})

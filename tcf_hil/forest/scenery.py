@@ -203,22 +203,21 @@ def _perp(axis: FloatArray, angle: FloatArray) -> FloatArray:
     return out
 
 
-class _Obstacles:
+class Obstacles:
     """Other trees' tubes, sampled along their centre lines, to keep branches, foliage and
     ground objects clear of them."""
 
     def __init__(self, tubes: StemSet, owner: NDArray[np.int32], step: float = 0.15) -> None:
-        pts, rad, own = [], [], []
-        for k in range(len(tubes)):
-            s = np.arange(0.0, float(tubes.length[k]) + step, step)
-            s = np.minimum(s, float(tubes.length[k]))
-            idx = np.full(len(s), k)
-            pts.append(tubes.centre(idx, s))
-            rad.append(tubes.radius(idx, s))
-            own.append(np.full(len(s), owner[k]))
-        self.p = np.vstack(pts) if pts else np.zeros((0, 3))
-        self.r = np.concatenate(rad) if rad else np.zeros(0)
-        self.own = np.concatenate(own) if own else np.zeros(0, np.int32)
+        # every tube sampled from its base every ``step`` to its top (np.arange's samples,
+        # the last clipped to the top), all at once
+        length = np.asarray(tubes.length, np.float64)
+        counts = np.ceil((length + step) / step).astype(np.int64)
+        idx = np.repeat(np.arange(len(tubes)), counts)
+        k = np.arange(len(idx)) - np.repeat(np.cumsum(counts) - counts, counts)
+        s = np.minimum(k * step, length[idx])
+        self.p = tubes.centre(idx, s) if len(idx) else np.zeros((0, 3))
+        self.r = tubes.radius(idx, s) if len(idx) else np.zeros(0)
+        self.own = np.asarray(owner)[idx] if len(idx) else np.zeros(0, np.int32)
         self.tree = cKDTree(self.p) if len(self.p) else None
         self.r_max = float(self.r.max()) if len(self.r) else 0.0
         self.step = step
@@ -289,7 +288,7 @@ def _object_rng(seed: int, part: int, k: int) -> np.random.Generator:
     return np.random.default_rng([seed, _STREAM_SCENERY, part, k])
 
 
-def _branches(forest: object, obstacles: _Obstacles, counts: dict[str, int]) -> Rods:
+def _branches(forest: object, obstacles: Obstacles, counts: dict[str, int]) -> Rods:
     from tcf_hil.forest.generate import Forest
 
     assert isinstance(forest, Forest) and forest.natural is not None
@@ -417,7 +416,7 @@ def crown_points(rng: np.random.Generator, apex: FloatArray, axis: FloatArray,
     return out
 
 
-def _foliage(forest: object, obstacles: _Obstacles, parts: _Parts, counts: dict[str, int],
+def _foliage(forest: object, obstacles: Obstacles, parts: _Parts, counts: dict[str, int],
              edge: float) -> None:
     from tcf_hil.forest.generate import Forest
 
@@ -530,7 +529,7 @@ def _road_test(forest: object) -> Any:
 
 
 def _free_spots(forest: object, rng: np.random.Generator, count: int, clearance: float,
-                obstacles: _Obstacles, off_roads: bool) -> FloatArray:
+                obstacles: Obstacles, off_roads: bool) -> FloatArray:
     """Up to ``count`` (x, y) uniform in the plot, clear of every stem by ``clearance`` (and
     of the strip roads, ``off_roads``)."""
     from tcf_hil.forest.generate import Forest
@@ -553,7 +552,7 @@ def _free_spots(forest: object, rng: np.random.Generator, count: int, clearance:
     return out
 
 
-def ground_objects(forest: object, obstacles: _Obstacles | None = None) -> GroundObjects:
+def ground_objects(forest: object, obstacles: Obstacles | None = None) -> GroundObjects:
     """Draw the stand's understory, dead wood, stumps and boulders (own random stream)."""
     from tcf_hil.forest.generate import Forest
 
@@ -563,8 +562,7 @@ def ground_objects(forest: object, obstacles: _Obstacles | None = None) -> Groun
     w, h = forest.scenario.plot.size_m
     ha = w * h / 10_000.0
     if obstacles is None:
-        tubes, owner = forest.tubes()
-        obstacles = _Obstacles(tubes, owner)
+        obstacles = forest.obstacles()
     terrain = forest.terrain
     kinds: list[str] = []
     base, tip, rad, spc = [], [], [], []
@@ -719,8 +717,7 @@ def build_scenery(forest: object) -> Scenery:
     assert isinstance(forest, Forest) and forest.natural is not None
     cfg = forest.scenario.stand
     n = len(forest.stems)
-    tubes, owner = forest.tubes()
-    obstacles = _Obstacles(tubes, owner)
+    obstacles = forest.obstacles()
     parts = _Parts()
     counts: dict[str, int] = {}
     rods = _branches(forest, obstacles, counts) if cfg.branches else Rods.empty()
