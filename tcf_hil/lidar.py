@@ -236,6 +236,7 @@ class LidarRun:
         vis: dict[str, Any] = {
             "frames": self.frames, "mode": self.meta.mode, "profile": self.meta.profile,
             "backend": self.backend, "sensor": self.sensor.preset,
+            "stems_geometry": "curves" if self.scene.curve_count else "mesh",
             "terrain_returns": int(c[0]),
             "stem_returns": int(c[1:self.n_stems + 1].sum()), "stems_seen": self.stems_seen(),
             "stems_total": self.n_stems,
