@@ -408,6 +408,7 @@ def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerance
         footprint_label,
         parse_footprint,
         run_bench,
+        tol_label,
         write_bench,
     )
 
@@ -441,13 +442,13 @@ def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerance
     paths = write_bench(rows, notes, grid, out, time.perf_counter() - t0)
     t = Table(title=f"Speed against error, {grid.forest} "
                     f"({'whole track' if grid.frames is None else f'{grid.frames} frames'})")
-    for col in ("mode", "tol mm", "backend", "preset", "sensor", "footprint", "emu x RT",
+    for col in ("mode", "stems", "backend", "preset", "sensor", "footprint", "emu x RT",
                 "return p50/p99 mm", "SIC ms p50/p99", "wc seen %", "pos mm", "DBH mm",
                 "DBH bias mm"):
-        t.add_column(col, justify="left" if col in ("mode", "backend", "preset", "sensor",
-                                                    "footprint") else "right")
+        t.add_column(col, justify="left" if col in ("mode", "stems", "backend", "preset",
+                                                    "sensor", "footprint") else "right")
     for r in rows:
-        t.add_row(r["mode"], f"{r['tolerance_mm']:g}", r["backend"], r["preset"], r["sensor"],
+        t.add_row(r["mode"], tol_label(r), r["backend"], r["preset"], r["sensor"],
                   footprint_label(r), f"{r['emulator_x_realtime']:.1f}",
                   f"{r['return_err_p50_mm']:.1f}/{r['return_err_p99_mm']:.0f}",
                   f"{r['sic_ms_p50']:.1f}/{r['sic_ms_p99']:.1f}", f"{r['wc_seen']:.1f}",

@@ -50,7 +50,7 @@ BENCH_COLUMNS = ("forest", "mode", "tolerance_mm", "backend", "preset", "sensor"
                  "return_bias_mm", "returns_on_stems_pct", "sic_ms_p50", "sic_ms_p99",
                  "stem_s", "stems_seen",
                  "wc_all", "wc_seen", "f1_seen", "position_rmse_m", "dbh_rmse_m",
-                 "dbh_bias_m")
+                 "dbh_bias_m", "stems_geometry")
 
 
 def backend_available(name: str) -> str | None:
@@ -136,12 +136,21 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
             notes.append(f"backend {b} skipped: {why}")
         else:
             backends.append(b)
-    combos = [(m, t, fp, b) for m in grid.modes for t in grid.tolerances_mm
+    # each tolerance meshes the stems; where Embree casts round curves (bound directly),
+    # one more row per mode casts them instead (tolerance 0: exact)
+    from emulators.jit import jit_enabled
+
+    curves = ["embree"] if "embree" in backends and jit_enabled() else []
+    combos = [(m, t, fp, b, "mesh") for m in grid.modes for t in grid.tolerances_mm
               for fp in grid.footprints for b in backends]
-    for mode, tol, fp, backend in combos:
-        scn: Scenario = _with_footprint(dataclasses.replace(
-            base, stems=dataclasses.replace(base.stems, tolerance_mm=tol)), fp)
-        say(f"{mode}, {tol:g} mm, {fp or scn.sensor.footprint}, {backend}")
+    combos += [(m, 0.0, fp, b, "curves") for m in grid.modes for fp in grid.footprints
+               for b in curves]
+    for mode, tol, fp, backend, geometry in combos:
+        stems = (dataclasses.replace(base.stems, tolerance_mm=tol, geometry="mesh")
+                 if geometry == "mesh" else dataclasses.replace(base.stems, geometry="curves"))
+        scn: Scenario = _with_footprint(dataclasses.replace(base, stems=stems), fp)
+        say(f"{mode}, {f'{tol:g} mm' if geometry == 'mesh' else 'curves'}, "
+            f"{fp or scn.sensor.footprint}, {backend}")
         run = LidarRun(scn, mode=mode, backend=backend, max_frames=grid.frames,
                        t0_ns=RUN_T0_NS, faults=False)
         model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed,
@@ -184,7 +193,7 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
                 "wc_all": a["evaluation_score_percent"],
                 "wc_seen": s["evaluation_score_percent"], "f1_seen": s["f1"],
                 "position_rmse_m": s["position_rmse_m"], "dbh_rmse_m": s["dbh_rmse_m"],
-                "dbh_bias_m": s["dbh_bias_m"],
+                "dbh_bias_m": s["dbh_bias_m"], "stems_geometry": geometry,
             })
     return rows, notes
 
@@ -222,7 +231,7 @@ def pareto_png(rows: Sequence[dict[str, Any]], title: str) -> bytes:
         for i, r in enumerate(rows):
             ax.scatter(cost[i], err[i], marker=markers.get(r["preset"], "^"),
                        c="#1f5fbf" if r["backend"] == "embree" else "#d9822b", s=40)
-            ax.annotate(f"{r['mode']} {r['tolerance_mm']:g}mm {r['preset']}", (cost[i], err[i]),
+            ax.annotate(f"{r['mode']} {tol_label(r)} {r['preset']}", (cost[i], err[i]),
                         fontsize=6.5, xytext=(3, 3), textcoords="offset points")
         front = pareto(cost, err)
         ax.plot([cost[i] for i in front], [err[i] for i in front], "k--", lw=1,
@@ -244,8 +253,13 @@ def footprint_label(r: dict[str, Any]) -> str:
     return "off" if r["footprint"] == "off" else f"{r['footprint']}:{r['footprint_samples']}"
 
 
+def tol_label(r: dict[str, Any]) -> str:
+    """The stems' tessellation tolerance (``2mm``), or ``curves`` (exact)."""
+    return "curves" if r.get("stems_geometry") == "curves" else f"{r['tolerance_mm']:g}mm"
+
+
 def _md(rows: Sequence[dict[str, Any]]) -> str:
-    head = ["mode", "tol mm", "backend", "preset", "sensor", "footprint", "supersampled %",
+    head = ["mode", "stems", "backend", "preset", "sensor", "footprint", "supersampled %",
             "emu ms/frame", "emu × RT", "mesh range p99 mm", "return err p50/p99 mm",
             "SIC ms p50", "SIC ms p99", "stem s", "wc all %", "wc seen %", "F1 seen",
             "pos RMSE mm", "DBH RMSE mm", "DBH bias mm", "Pareto"]
@@ -254,7 +268,7 @@ def _md(rows: Sequence[dict[str, Any]]) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for i, r in enumerate(rows):
         lines.append("| " + " | ".join([
-            r["mode"], f"{r['tolerance_mm']:g}", r["backend"], r["preset"], r["sensor"],
+            r["mode"], tol_label(r), r["backend"], r["preset"], r["sensor"],
             footprint_label(r), f"{r['supersampled_pct']:.1f}",
             f"{r['emulator_ms_frame']:.1f}", f"{r['emulator_x_realtime']:.1f}",
             f"{r['range_err_p99_mm']:.2f}",

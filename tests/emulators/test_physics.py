@@ -288,28 +288,46 @@ def test_the_compiled_physics_writes_the_numpy_paths_bytes_in_a_forest(
     """Forest X (dense: a third of the pixels on an edge) from its track, DUAL: the numba
     kernels of emulators.lidar._footprint and the numpy path write the same packets and
     stem ids, threaded or not."""
+    sensor = dataclasses.replace(REV7, return_order=order, footprint=footprint,
+                                 false_positive_rate=0.01)
+    got = _every_path("forest-x", sensor, 40)
+    assert np.count_nonzero(got[0].fields["RANGE2"]) > 100
+
+
+def _every_path(forest_name: str, sensor: SensorModel, k: int) -> list:
+    """Frame k of the forest from its track, DUAL at 512x10, through the fused compiled
+    cast (2 threads), the numpy path (1 thread) and the numpy path (2 threads): all three
+    write the same packets and stem ids (asserted here); the frames."""
     from tcf_hil.forest import generate_forest
     from tcf_hil.scenario import load_scenario
     from tcf_hil.trajectory import Trajectory
 
-    forest = generate_forest(load_scenario("forest-x"))
+    forest = generate_forest(load_scenario(forest_name))
     track = Trajectory.from_config(forest.scenario.track, forest.terrain)
     scn = Scene.from_forest(forest)
     meta = os0_64_metadata(mode="512x10", profile="RNG19_RFL8_SIG16_NIR16_DUAL")
-    sensor = dataclasses.replace(REV7, return_order=order, footprint=footprint,
-                                 false_positive_rate=0.01)
     got = []
     for threads, jit in ((2, True), (1, False), (2, False)):
         emu = Os0Emulator(meta, scn, track, start_ns=track.t0_ns, sensor=sensor, seed=5,
                           threads=threads)
         emu.jit = jit
-        got.append(emu.frame(40))
+        got.append(emu.frame(k))
         assert emu.physics is not None and emu.physics.last_flagged > 1000
     for other in got[1:]:
         assert np.array_equal(got[0].packets, other.packets)
         assert np.array_equal(got[0].stem_id, other.stem_id)
         assert np.array_equal(got[0].stem_id2, other.stem_id2)
-    assert np.count_nonzero(got[0].fields["RANGE2"]) > 100
+    return got
+
+
+def test_every_path_writes_the_same_bytes_in_a_natural_stand() -> None:
+    """forest-v-natural: stems and branches as round curves (where compiled kernels are
+    on: the curves' |cos incidence| from Embree's normal reaches every path), foliage as
+    loose facets: the same bytes on every path, and stems and branches among the returns."""
+    got = _every_path("forest-v-natural", REV7, 20)
+    sid, n = got[0].stem_id, 550
+    assert np.count_nonzero((sid > 0) & (sid <= n)) > 30  # stems
+    assert np.count_nonzero((sid > n) & (sid <= 2 * n)) > 0  # branches
 
 
 def test_the_grid_at_every_edge_is_the_full_footprint_in_a_forest() -> None:

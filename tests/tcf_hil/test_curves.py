@@ -1,12 +1,10 @@
 """Stems and branches as Embree's round curves (``stems.geometry``): hits within half a
 millimetre of the true surface on natural stems (taper, butt swell, bow, crook, lean) and
 the paper's, the choice of geometry per backend, a one-line error where curves cannot be
-cast, and the lidar's physics on curves: the compiled and numpy paths agree, and stems
-lit as curves return as brightly as their meshes do."""
+cast, and stems lit as curves return as brightly as their meshes do (every path of the
+physics on curves: tests/emulators/test_physics.py)."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import numpy as np
 import pytest
@@ -124,36 +122,6 @@ def test_auto_casts_curves_on_embree_with_compiled_kernels() -> None:
     assert scene.backend == "embree" and scene.curve_count > 0
     # the triangles left are the terrain's: every stem id answers from the curves
     assert set(np.unique(scene.stem_id).tolist()) == {0}
-
-
-@needs_jit
-def test_the_physics_on_curves_writes_the_same_bytes_on_every_path() -> None:
-    """A natural stand with branches as curves seen through the realistic sensor from its
-    track: the fused cast, the chunked compiled kernels and the numpy path write the same
-    packets and stem ids."""
-    from emulators.lidar import SENSOR_PRESETS, Os0Emulator
-    from protocols.ouster import os0_64_metadata
-    from tcf_hil.trajectory import Trajectory
-
-    cfg = {**NATURAL, "stand": {**NATURAL["stand"], "branches": True, "foliage": True}}
-    forest = generate_forest(scenario_from_dict(cfg))
-    scene = Scene.from_forest(forest, geometry="curves")
-    track = Trajectory.from_config(forest.scenario.track, forest.terrain)
-    meta = os0_64_metadata(mode="512x10", profile="RNG19_RFL8_SIG16_NIR16_DUAL")
-    sensor = dataclasses.replace(SENSOR_PRESETS["os0-64-rev7"], false_positive_rate=0.0)
-    got = []
-    for threads, jit in ((2, True), (1, False), (2, False)):
-        emu = Os0Emulator(meta, scene, track, start_ns=track.t0_ns, sensor=sensor, seed=5,
-                          threads=threads)
-        emu.jit = jit
-        got.append(emu.frame(3))
-    for other in got[1:]:
-        assert np.array_equal(got[0].packets, other.packets)
-        assert np.array_equal(got[0].stem_id, other.stem_id)
-    n = len(forest.stems)
-    sid = got[0].stem_id
-    assert np.count_nonzero((sid > 0) & (sid <= n)) > 30  # stems, lit as curves
-    assert np.count_nonzero((sid > n) & (sid <= 2 * n)) > 0  # branches
 
 
 @needs_jit

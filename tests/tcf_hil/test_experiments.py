@@ -18,6 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from emulators.jit import jit_enabled
 from tcf_hil.experiments.bench import pareto
 from tcf_hil.experiments.cells import COLUMN_NAMES, SAMPLED, make_cell, run_cell
 from tcf_hil.experiments.offline import run_offline
@@ -223,10 +224,16 @@ def test_bench_quick(tmp_path: Path) -> None:
                        text=True, env=ENV, timeout=600)
     assert p.returncode == 0, p.stderr
     _, rows = _read_csv(tmp_path / "bench.csv")
-    backends = {r["backend"] for r in rows}
-    assert len(rows) == 4 * len(backends) and "embree" in backends
-    err = {float(r["tolerance_mm"]): float(r["range_err_p99_mm"]) for r in rows}
+    mesh = [r for r in rows if r["stems_geometry"] == "mesh"]
+    curves = [r for r in rows if r["stems_geometry"] == "curves"]
+    backends = {r["backend"] for r in mesh}
+    assert len(mesh) == 4 * len(backends) and "embree" in backends
+    # and a row per preset with the stems as Embree's round curves (compiled kernels on)
+    assert len(curves) == (2 if jit_enabled() else 0)
+    assert all(r["backend"] == "embree" for r in curves)
+    err = {float(r["tolerance_mm"]): float(r["range_err_p99_mm"]) for r in mesh}
     assert err[10.0] > err[2.0] > 0.0  # a coarser mesh costs range error
+    assert all(float(r["range_err_p99_mm"]) < err[2.0] / 5 for r in curves)
     assert all(float(r["emulator_x_realtime"]) > 0 and float(r["sic_ms_p50"]) > 0 for r in rows)
     assert (tmp_path / "pareto.png").read_bytes()[:4] == b"\x89PNG"
 

@@ -107,18 +107,24 @@ def _grazing_rays(scene: Scene, forest: Forest, rng: np.random.Generator, n: int
     nrm = nrm / np.maximum(area2, 1e-300)[:, None]
     nrm *= np.sign(np.einsum("ij,ij->i", nrm, out))[:, None]  # outward
     target = c - depth_m * nrm
-    # a direction in the triangle's plane, across the stem (as a lidar ray meets it) and
-    # tilted up or down by up to 17 degrees; along the stem it would start inside it
-    ax = st.tangent(sid, s)
-    e = np.cross(nrm, ax) * rng.choice([-1.0, 1.0], 2 * n)[:, None]
-    e += rng.uniform(-0.3, 0.3, 2 * n)[:, None] * ax
-    d = e - np.einsum("ij,ij->i", e, nrm)[:, None] * nrm
-    d /= np.linalg.norm(d, axis=1)[:, None]
-    dist = rng.uniform(3.0, 30.0, 2 * n)
-    o = target - dist[:, None] * d
+    o, d, dist = _across(target, nrm, st.tangent(sid, s), rng)
     keep &= _inside_bounds(forest, o, target)
     k = np.flatnonzero(keep)[:n]
     return o[k], d[k], dist[k]
+
+
+def _across(target: np.ndarray, nrm: np.ndarray, ax: np.ndarray, rng: np.random.Generator
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays to ``target`` from 3-30 m away, each in the plane normal to ``nrm``, across the
+    stem whose axis is ``ax`` (as a lidar ray meets it) and tilted up or down by up to 17
+    degrees (along the stem it would start inside it): origins, directions, distances."""
+    m = len(target)
+    e = np.cross(nrm, ax) * rng.choice([-1.0, 1.0], m)[:, None]
+    e += rng.uniform(-0.3, 0.3, m)[:, None] * ax
+    d = e - np.einsum("ij,ij->i", e, nrm)[:, None] * nrm
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    dist = rng.uniform(3.0, 30.0, m)
+    return target - dist[:, None] * d, d, dist
 
 
 def _terrain_edge_rays(scene: Scene, forest: Forest, rng: np.random.Generator, n: int,
@@ -151,13 +157,7 @@ def _grazing_curve_rays(forest: Forest, rng: np.random.Generator, n: int,
     th = rng.uniform(0.0, 2.0 * math.pi, 2 * n)[:, None]
     out = np.cos(th) * u + np.sin(th) * b
     target = st.centre(sid, s) + (st.radius(sid, s) - depth_m)[:, None] * out
-    ax = st.tangent(sid, s)
-    e = np.cross(out, ax) * rng.choice([-1.0, 1.0], 2 * n)[:, None]
-    e += rng.uniform(-0.3, 0.3, 2 * n)[:, None] * ax
-    d = e - np.einsum("ij,ij->i", e, out)[:, None] * out
-    d /= np.linalg.norm(d, axis=1)[:, None]
-    dist = rng.uniform(3.0, 30.0, 2 * n)
-    o = target - dist[:, None] * d
+    o, d, dist = _across(target, out, st.tangent(sid, s), rng)
     k = np.flatnonzero(_inside_bounds(forest, o, target))[:n]
     return o[k], d[k], dist[k]
 
