@@ -176,6 +176,8 @@ class DirectScene:
                 (BUFFER_TYPE_FLAGS, FORMAT_UCHAR, 1,
                  np.ascontiguousarray(curves.flags, np.uint8)))))
         if curves is not None and curves.discs is not None and len(curves.discs):
+            if curves.disc_normals is None or len(curves.disc_normals) != len(curves.discs):
+                raise ValueError("Curves: every disc needs a normal (disc_normals)")
             geoms.append((2, GEOMETRY_TYPE_ORIENTED_DISC_POINT, (
                 (BUFFER_TYPE_VERTEX, FORMAT_FLOAT4, 16,
                  np.ascontiguousarray(curves.discs, np.float32)),

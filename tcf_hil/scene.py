@@ -384,14 +384,18 @@ def _loose_last(faces: NDArray[np.int64], ids: NDArray[np.int32], mat: NDArray[n
     return faces[order], ids[order], mat[order], int(len(loose) - np.count_nonzero(loose))
 
 
-def make_caster(name: str, vertices: FloatArray, faces: NDArray[np.int64]) -> Caster:
+def make_caster(name: str, vertices: FloatArray, faces: NDArray[np.int64],
+                loose_from: int | None = None) -> Caster:
     """Build the named backend, or ``auto``'s (:func:`resolve_backend`; imports it only
-    now). A named backend that cannot be imported is a ConfigError."""
+    now). A named backend that cannot be imported is a ConfigError. ``loose_from``: the
+    triangles from there on share no edges (Embree casts them without robust mode)."""
     name = resolve_backend(name)[0]
     module, cls = BACKENDS[name]
     try:
         factory = getattr(importlib.import_module(module), cls)
-        caster: Caster = factory(vertices, faces)
+        caster: Caster = (factory(vertices, faces, loose_from=loose_from)
+                          if name == "embree" and loose_from is not None
+                          else factory(vertices, faces))
         return caster
     except ImportError as err:
         raise ConfigError("ray backend", name, f"an installed backend ({err})") from err
@@ -420,14 +424,16 @@ class Scene:
                     stem_tolerance_m: float | None = None,
                     terrain_tolerance_m: float | None = None,
                     margin_m: float | None = None, geometry: str | None = None) -> Scene:
-        """The forest's scene. ``geometry`` (default the scenario's ``stems.geometry``):
+        """The forest's scene. ``geometry`` (default the scenario's ``stems.geometry``, or
+        ``mesh`` where ``stem_tolerance_m`` asks for a tessellation):
         ``curves`` casts stems and branches as Embree's round linear curves (exact to
         :data:`~tcf_hil.forest.mesh.CURVE_TOLERANCE_M`; Embree bound directly, i.e. the
         embree backend with compiled kernels on, else a ConfigError), ``mesh`` tessellates
         them (``stems.tolerance_mm``; every backend casts meshes), ``auto`` takes curves
         where they can be cast and meshes elsewhere (open3d and trimesh cast no curves)."""
         scn = forest.scenario
-        geometry = geometry or scn.stems.geometry
+        geometry = geometry or ("mesh" if stem_tolerance_m is not None
+                                else scn.stems.geometry)
         if geometry not in GEOMETRIES:
             raise ConfigError("stems.geometry", geometry, ", ".join(GEOMETRIES))
         tr = terrain_mesh(forest.terrain, forest.bounds(margin_m),
@@ -457,10 +463,7 @@ class Scene:
         verts = np.vstack([verts, sc.vertices])
         ids = np.concatenate([ids, sc.face_id])
         faces, ids, mat, loose_from = _loose_last(faces, ids, mat)
-        name = resolve_backend(backend)[0]
-        caster = (EmbreeCaster(verts, faces, loose_from=loose_from) if name == "embree"
-                  else make_caster(name, verts, faces))
-        return cls(verts, faces, ids, caster, mat)
+        return cls(verts, faces, ids, make_caster(backend, verts, faces, loose_from), mat)
 
     @classmethod
     def _with_curves(cls, forest: Forest, tr: Any, backend: str, required: bool
@@ -521,7 +524,8 @@ class Scene:
 
     @property
     def curve_count(self) -> int:
-        """Round curve segments in the scene (0: all triangles)."""
+        """Curve primitives in the scene, round segments and the discs closing stem tops
+        (0: all triangles)."""
         return 0 if self.curve_id is None else len(self.curve_id)
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]

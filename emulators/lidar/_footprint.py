@@ -53,14 +53,15 @@ def centre_echoes(prim: Any, cn: Any, t: Any, d: Any, stem_of_prim: Any, materia
                   normals: Any, refl: Any, surf: bool, n_m: float, r_near: float,
                   ambient: float, i0: int, i1: int, ss: Any, r: Any, e: Any,
                   nir: Any) -> None:
-    """Pixels i0 .. i1 of the centre cast (``prim`` the triangle hit, -1 none; or, without
-    ``surf``, the stem id): stem id (``ss``, -1 no hit), range from the lidar axis (``r``,
+    """Pixels i0 .. i1 of the centre cast (``prim`` the triangle hit, -1 none, or a curve
+    primitive, whose |cos incidence| ``cn`` holds, read only there; or, without ``surf``,
+    the stem id): stem id (``ss``, -1 no hit), range from the lidar axis (``r``,
     inf none), echo energy ``refl cos / max(r, r_near)^2`` (``e``, ``cos`` of the
     incidence) and the NEAR_IR the surface reflects (uint32)."""
     for i in range(i0, i1):
         p = prim[i]
-        s, m, c = surface(p, cn[i] if p < -1 else 0.0, d[i, 0], d[i, 1], d[i, 2],
-                          stem_of_prim, material_of_prim, normals, surf)
+        s, m, c = surface(p, cn[i] if p < -1 and cn.shape[0] > 0 else 0.0, d[i, 0], d[i, 1],
+                          d[i, 2], stem_of_prim, material_of_prim, normals, surf)
         tt = t[i]
         if np.isfinite(tt) and s >= 0:
             rr = tt + n_m
@@ -234,7 +235,8 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
                     rs[n], es[n], sids[n] = r[src], w * e[src], ss[src]
             else:
                 p = prim_sub[row]
-                s, m, cc = surface(p, cn_sub[row] if p < -1 else 0.0, dd[row, 0], dd[row, 1],
+                s, m, cc = surface(p, cn_sub[row] if p < -1 and cn_sub.shape[0] > 0 else 0.0,
+                                   dd[row, 0], dd[row, 1],
                                    dd[row, 2], stem_of_prim, material_of_prim, normals, surf)
                 tt = np.float64(t_sub[row])
                 if np.isfinite(tt) and s >= 0:

@@ -43,8 +43,8 @@ FloatArray = NDArray[np.float64]
 
 DirectCast = tuple[int, NDArray[np.int64], NDArray[np.int32]]
 """An Embree scene the emulator's compiled kernel casts through itself
-(:mod:`emulators.embree`): rtcIntersect1's address, the RTCScene handles (triangles, then
-round curves or 0: :attr:`emulators.embree.DirectScene.handles`), and the stem id by
+(:mod:`emulators.embree`): rtcIntersect1's address, the RTCScene handles in the order a ray
+enters them (:attr:`emulators.embree.DirectScene.handles`), and the stem id by
 primitive: the triangles', the curve segments' last to first, then -1 (the miss), so that
 a miss (-1) and curve segment j (-2 - j) index it from the end."""
 
@@ -601,7 +601,7 @@ class Os0Emulator:
         centre: tuple[Any, ...] | None = None
         surfaces = self._scene_surfaces() if physics is not None else None
         if direct is not None and fused is not None and physics is not None \
-                and surfaces is not None:
+                and surfaces is not None and job.cn_all is not None:
             # cast and the centre rays' echoes in one call (the physics writes the words)
             from emulators.lidar._fused import cast_centre_blocks
 
@@ -609,7 +609,7 @@ class Os0Emulator:
             centre = (np.empty(N, np.int32), np.empty(N), np.empty(N), np.empty(N, np.uint32))
             prim_all, t_phys = np.empty(N, np.int32), np.empty(N)
             tail = (o_all, d_all, self._template_here(), job.packets, job.views[-1], job.ts,
-                    self.n_m, float(self._reach[0]), prim_all, np.empty(N, np.float32), t_phys,
+                    self.n_m, float(self._reach[0]), prim_all, job.cn_all.reshape(-1), t_phys,
                     surfaces.stem_of_prim,
                     surfaces.material_of_prim, surfaces.normals, physics.refl,
                     physics.R_NEAR, physics.model.ambient, *centre)

@@ -107,8 +107,8 @@ class StemsConfig:
     lean_deg: tuple[float, float] = _f(
         (0.0, 0.0), "lean from vertical, uniform range (paper: upright)", ge=0.0, le=30.0)
     tolerance_mm: float = _f(
-        2.0, "stem mesh: maximum chord error (sets sides and ring spacing)",
-        gt=0.01, le=100.0)
+        2.0, "stem mesh: maximum chord error (sets sides and ring spacing), where stems are "
+        "meshes (stems.geometry)", gt=0.01, le=100.0)
     geometry: Literal["auto", "curves", "mesh"] = _f(
         "auto", "stems and branches as exact round curves (Embree cast from compiled "
         "kernels), as meshes (any backend), or auto: curves where the backend casts them")
