@@ -3,7 +3,8 @@ packets, next to the bare cast of the same rays in the same run, on Forests II, 
 512/1024/2048 columns, for Embree and open3d.
 
 Run: ``python benchmarks/bench_lidar.py [--frames 20] [--forests II,V,X]
-[--sensors ideal,os0-64-rev7] [--geometries mesh,curves] [--json OUT]`` (the sensor's
+[--sensors ideal,os0-64-rev7] [--geometries mesh,curves] [--foliage volume,facets]
+[--json OUT]`` (the sensor's
 physics: footprint, echoes, detection and noise, after the cast; the bare cast is the centre
 rays' alone).
 
@@ -16,7 +17,9 @@ the backend's own ``cast`` (for Embree the directly bound library the pipeline c
 through, :mod:`emulators.embree`), and for Embree also embreex's ``run`` on a scene of its
 own ("embreex ms", meshes only: embreex casts no curves). Ratio = bare / pipeline.
 ``--geometries``: the stems and branches as meshes (``stems.tolerance_mm``) and/or as
-Embree's round curves (``stems.geometry``; curves on Embree only).
+Embree's round curves (``stems.geometry``; curves on Embree only); ``--foliage``: a natural
+stand's foliage as porous crowns (``volume``, beside curves only) and/or facets
+(``stand.foliage_as``).
 """
 
 from __future__ import annotations
@@ -48,10 +51,13 @@ def main() -> None:
                     help=f"comma-separated presets: {', '.join(SENSOR_PRESETS)}")
     ap.add_argument("--geometries", default="mesh",
                     help="comma-separated: mesh, curves (stems and branches)")
+    ap.add_argument("--foliage", default="auto",
+                    help="comma-separated: auto, volume, facets (natural stands' foliage)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     rows = []
-    print(f"{'forest':14} {'geometry':8} {'prims':>9} {'sensor':12} {'backend':7} {'mode':8} "
+    print(f"{'forest':14} {'geometry':8} {'foliage':7} {'prims':>9} {'sensor':12} "
+          f"{'backend':7} {'mode':8} "
           f"{'rays':>7} {'bare ms':>8} "
           f"{'pipe ms':>8} "
           f"{'ratio':>6} {'x RT':>5} {'Mrays/s':>8} {'finish ms':>9} {'embreex ms':>10}")
@@ -59,11 +65,13 @@ def main() -> None:
     for fname in a.forests.split(","):
         forest = generate_forest(load_scenario(fname))
         track = Trajectory.from_config(forest.scenario.track, forest.terrain)
-        for backend, geometry in itertools.product(a.backends.split(","),
-                                                   a.geometries.split(",")):
-            if geometry == "curves" and backend != "embree":
+        for backend, geometry, foliage in itertools.product(
+                a.backends.split(","), a.geometries.split(","), a.foliage.split(",")):
+            if (geometry == "curves" and backend != "embree") or (
+                    foliage == "volume" and geometry == "mesh"):
                 continue
-            scene = Scene.from_forest(forest, backend=backend, geometry=geometry)
+            scene = Scene.from_forest(forest, backend=backend, geometry=geometry,
+                                      foliage_as=foliage)
             prims = len(scene.faces) + scene.curve_count
             embreex = EmbreeCaster(scene.vertices, scene.faces, direct=False) \
                 if backend == "embree" and geometry == "mesh" else None
@@ -103,14 +111,16 @@ def main() -> None:
                 b, p, e = (statistics.median(x) for x in (bare, pipe, enc))
                 x = statistics.median(other) if other else float("nan")
                 period = 1.0 / meta.frequency_hz
-                row = {"forest": fname, "geometry": geometry, "triangles": len(scene.faces),
+                row = {"forest": fname, "geometry": geometry, "foliage": foliage,
+                       "crowns": scene.crown_count, "triangles": len(scene.faces),
                        "curve_segments": scene.curve_count, "sensor": sensor,
                        "backend": backend, "mode": mode, "rays": rays,
                        "bare_ms": b * 1e3, "pipeline_ms": p * 1e3, "ratio": b / p,
                        "x_realtime": period / p, "mrays_s": rays / p / 1e6,
                        "finish_ms": e * 1e3, "embreex_ms": x * 1e3}
                 rows.append(row)
-                print(f"{fname:14} {geometry:8} {prims:9d} {sensor:12} {backend:7} {mode:8} "
+                print(f"{fname:14} {geometry:8} {foliage:7} {prims:9d} {sensor:12} "
+                      f"{backend:7} {mode:8} "
                       f"{rays:7d} {b * 1e3:8.1f} "
                       f"{p * 1e3:8.1f} "
                       f"{b / p:6.2f} {period / p:5.1f} {rays / p / 1e6:8.2f} {e * 1e3:9.2f} "

@@ -27,6 +27,7 @@ from numba import types
 from numba.extending import intrinsic
 from numpy.typing import NDArray
 
+from emulators import media
 from emulators.jit import jit_enabled, numba_module
 
 numba = numba_module()  # its cache directory set before the kernels below are declared
@@ -45,6 +46,8 @@ INVALID_ID = 0xFFFFFFFF
 TNEAR, TIME, TFAR, MASK, RAY_ID, FLAGS = 3, 7, 8, 9, 10, 11
 NG_X, NG_Y, NG_Z, PRIM_ID, GEOM_ID, INST_ID = 12, 13, 14, 17, 18, 19
 RAYHIT_WORDS = 32  # 128 bytes: room for the largest RTCRayHit Embree 4 builds
+SCRATCH_WORDS = 8 * media.MAX_CROWNS
+"""After the RTCRayHit: room for the crowns a ray meets (:func:`_through`)."""
 
 
 def _library_path() -> str | None:
@@ -130,7 +133,8 @@ class DirectScene:
     121 ms for meshes, 93 against 98 ms for curves)."""
 
     def __init__(self, vertices: NDArray[np.floating], faces: NDArray[np.integer],
-                 curves: Curves | None = None, loose_from: int | None = None) -> None:
+                 curves: Curves | None = None, loose_from: int | None = None,
+                 crowns: media.Crowns | None = None) -> None:
         lib = _lib()
         self._lib = lib
         self._scenes: list[Any] = []
@@ -147,10 +151,23 @@ class DirectScene:
             rows.append([self._scene_of(0, v, f[cut:], curves), cut, n_seg])
         if cut > 0 or not rows:
             rows.append([self._scene_of(SCENE_FLAG_ROBUST, v, f[:cut], None), 0, 0])
-        self.handles: NDArray[np.int64] = np.array(rows, np.int64)
-        """(k, 3): each scene's handle, the index in ``faces`` of its first triangle and the
-        number of its curve segments (its discs' numbers follow them), in the order a ray
-        enters them."""
+        self.crown_count = 0 if crowns is None else len(crowns)
+        c = crowns if crowns is not None else media.Crowns(
+            *(np.zeros((0, 3)),) * 2, *(np.zeros(0),) * 3, np.zeros(0, np.int8), np.zeros(0))
+        head, start, items, zr = c.grid()
+        self._crown_arrays = (np.ascontiguousarray(c.table()), head, start, items,
+                              np.ascontiguousarray(zr))  # kept alive: the kernels read them
+        self.handles: tuple[Any, ...] = (
+            np.array(rows, np.int64), self.crown_count, self.curve_count,
+            *(int(a.ctypes.data) for a in self._crown_arrays), len(start) - 1, len(items))
+        """What the kernels cast through: (k, 3) each scene's handle, the index in ``faces``
+        of its first triangle and the number of its curve segments (its discs' numbers
+        follow them), in the order a ray enters them; then the porous crowns
+        (:mod:`emulators.media`): their number, the number of the curve primitives before
+        them (crown ``c`` is primitive ``-2 - curve_count - c``), the addresses of their
+        table and of their grid's arrays (:meth:`emulators.media.Crowns.grid`; addresses,
+        not arrays: passing an array to a compiled call counts a reference, which costs
+        more than the search itself), and the grid's cells and entries."""
         self.intersect: int = int(ctypes.cast(lib.rtcIntersect1, ctypes.c_void_p).value or 0)
 
     def _scene_of(self, flags: int, v: NDArray[np.float32], f: NDArray[np.uint32],
@@ -228,14 +245,14 @@ class DirectScene:
 
 
 def direct_scene(vertices: NDArray[np.floating], faces: NDArray[np.integer],
-                 curves: Curves | None = None, loose_from: int | None = None
-                 ) -> DirectScene | None:
+                 curves: Curves | None = None, loose_from: int | None = None,
+                 crowns: media.Crowns | None = None) -> DirectScene | None:
     """A :class:`DirectScene`, or None where compiled kernels are off or the library cannot
     be had (callers fall back to embreex)."""
     if not jit_enabled():
         return None
     try:
-        return DirectScene(vertices, faces, curves, loose_from)
+        return DirectScene(vertices, faces, curves, loose_from, crowns)
     except OSError:
         return None
 
@@ -262,10 +279,11 @@ _njit = numba.njit(cache=True, nogil=True)
 
 @_njit
 def new_rayhit() -> tuple[Any, Any, int]:
-    """A 64-byte aligned RTCRayHit: its float32 and uint32 words, and its address."""
-    raw = np.empty(RAYHIT_WORDS + 16, np.float32)
+    """A 64-byte aligned RTCRayHit: its float32 and uint32 words (and after them, room for
+    the crowns a ray meets), and its address."""
+    raw = np.empty(RAYHIT_WORDS + SCRATCH_WORDS + 16, np.float32)
     skip = ((-raw.ctypes.data) % 64) // 4
-    f = raw[skip:skip + RAYHIT_WORDS]
+    f = raw[skip:skip + RAYHIT_WORDS + SCRATCH_WORDS]
     return f, f.view(np.uint32), f.ctypes.data
 
 
@@ -285,19 +303,88 @@ def intersect1(fn: int, scenes: Any, rf: Any, ru: Any, addr: int, ox: float, oy:
     ru[PRIM_ID], ru[INST_ID] = INVALID_ID, INVALID_ID
     prim: Any = np.int32(-1)
     c = 0.0
-    for k in range(scenes.shape[0]):
+    if scenes[1] > 0:  # the porous crowns first: where the ray stops there bounds the rest
+        tm, cm, c = _through(scenes, addr, ru, ox, oy, oz, dx, dy, dz, np.inf)
+        if cm >= 0:
+            prim = np.int32(-2 - scenes[2] - cm)
+            rf[TFAR] = np.float32(tm)
+    rows = scenes[0]
+    for k in range(rows.shape[0]):
         ru[GEOM_ID] = INVALID_ID  # tfar stays: only a nearer hit answers
-        _call_c(fn, scenes[k, 0], addr)  # type: ignore[call-arg]  # numba: typingctx
+        _call_c(fn, rows[k, 0], addr)  # type: ignore[call-arg]  # numba: typingctx
         g = ru[GEOM_ID]
         if g == 0:
-            prim = np.int32(scenes[k, 1] + np.int64(ru[PRIM_ID]))
+            prim = np.int32(rows[k, 1] + np.int64(ru[PRIM_ID]))
             c = 0.0
         elif g != INVALID_ID:  # a curve segment (1) or a disc (2), numbered after them
-            prim = np.int32(-2 - np.int64(ru[PRIM_ID]) - (scenes[k, 2] if g == 2 else 0))
+            prim = np.int32(-2 - np.int64(ru[PRIM_ID]) - (rows[k, 2] if g == 2 else 0))
             nx, ny, nz = np.float64(rf[NG_X]), np.float64(rf[NG_Y]), np.float64(rf[NG_Z])
             nn = math.sqrt(nx * nx + ny * ny + nz * nz)
             c = min(abs(nx * dx + ny * dy + nz * dz) / nn, 1.0) if nn > 0.0 else 1.0
     return rf[TFAR], prim, c
+
+
+@intrinsic
+def _to_ptr(typingctx: Any, addr: Any) -> Any:
+    """An address (int) as a ``void*``, for :func:`numba.carray`."""
+    sig = types.voidptr(types.intp)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        return builder.inttoptr(args[0], ir.IntType(8).as_pointer())
+
+    return sig, codegen
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _f64(addr: int, shape: Any) -> Any:
+    """The float64 array of ``shape`` at ``addr`` (no reference counted: see
+    :attr:`DirectScene.handles`)."""
+    return numba.carray(_to_ptr(addr), shape, np.float64)  # type: ignore[call-arg]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _i64(addr: int, n: int) -> Any:
+    """The int64 array of ``n`` at ``addr``."""
+    return numba.carray(_to_ptr(addr), n, np.int64)  # type: ignore[call-arg]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _through(scenes: Any, addr: int, ru: Any, ox: float, oy: float, oz: float, dx: float,
+             dy: float, dz: float, t_max: float) -> tuple[float, int, float]:
+    """The ray (its RTCRayHit at ``addr``, words ``ru``, origin and direction set: its
+    draws are a hash of them) through the porous crowns of ``scenes``
+    (:attr:`DirectScene.handles`) short of ``t_max``: (where it stops, the crown it stops
+    in, |cos incidence| there), or (inf, -1, 0) where it passes them all
+    (:func:`emulators.media.march`)."""
+    K = media.MAX_CROWNS
+    nc, n_cells, n_items = scenes[1], scenes[8], scenes[9]
+    tab = _f64(scenes[3], (nc, media.COLUMNS))
+    head = _f64(scenes[4], (7,))
+    start = _i64(scenes[5], n_cells + 1)
+    items = _i64(scenes[6], n_items)
+    zr = _f64(scenes[7], (n_cells + n_items, 2))
+    fv = _f64(addr + RAYHIT_WORDS * 4, (3 * K,))
+    ids = _i64(addr + RAYHIT_WORDS * 4 + 24 * K, K)
+    a, b, s = fv[0:K], fv[K:2 * K], fv[2 * K:3 * K]
+    key = media.ray_key(ru)
+    stop, n = media.march(tab, head, start, items, zr, ox, oy, oz, dx, dy, dz, t_max,
+                          -math.log(media.uniform(key, 0)), a, b, s, ids)
+    if not stop < np.inf:
+        return np.inf, -1, 0.0
+    # of several crowns that overlap where it stops, one by its share of the density there
+    tot = 0.0
+    for j in range(n):
+        if a[j] <= stop <= b[j]:
+            tot += s[j]
+    pick = media.uniform(key, 1) * tot
+    hit = np.int64(-1)
+    for j in range(n):
+        if a[j] <= stop <= b[j] and s[j] > 0.0:
+            hit = ids[j]
+            pick -= s[j]
+            if pick <= 0.0:
+                break
+    return stop, int(hit), math.sqrt(media.uniform(key, 2))
 
 
 @_njit

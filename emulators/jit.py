@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 _PACKAGE = Path(__file__).resolve().parent
-KERNEL_SOURCES = ("jit.py", "embree.py", "lidar/_kernel.py", "lidar/_fused.py",
+KERNEL_SOURCES = ("jit.py", "embree.py", "media.py", "lidar/_kernel.py", "lidar/_fused.py",
                   "lidar/_footprint.py")
 """The files of this package with kernels in them (this one: how they are built), relative
 to it; modules elsewhere register theirs (:func:`register_kernel_source`)."""

@@ -233,10 +233,13 @@ class LidarRun:
         write_bytes_atomic(out / "metadata.json", self.meta.dumps().encode())
         write_json_atomic(out / "ground_truth.json", self.ground_truth())
         c = self.counts
+        sc = self.forest.scenery()
         vis: dict[str, Any] = {
             "frames": self.frames, "mode": self.meta.mode, "profile": self.meta.profile,
             "backend": self.backend, "sensor": self.sensor.preset,
             "stems_geometry": "curves" if self.scene.curve_count else "mesh",
+            "foliage_as": ("volume" if self.scene.crown_count else "facets")
+            if sc is not None and len(sc.foliage) else "none",
             "terrain_returns": int(c[0]),
             "stem_returns": int(c[1:self.n_stems + 1].sum()), "stems_seen": self.stems_seen(),
             "stems_total": self.n_stems,

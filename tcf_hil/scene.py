@@ -35,6 +35,7 @@ from tcf_hil.forest import Forest, stem_mesh, terrain_mesh
 if TYPE_CHECKING:
     from emulators.embree import Curves, DirectScene
     from emulators.lidar import FastRayScene, Surfaces
+    from emulators.media import Crowns
 
 FloatArray = NDArray[np.float64]
 
@@ -54,6 +55,7 @@ BACKEND_MODULES: dict[str, tuple[str, ...]] = {
 MATERIAL_GROUND, MATERIAL_BARK = 0, 1
 _NO_COS = np.zeros(0, np.float32)
 GEOMETRIES = ("auto", "curves", "mesh")
+FOLIAGE_AS = ("auto", "volume", "facets")
 
 
 class Caster(Protocol):
@@ -142,8 +144,10 @@ class EmbreeCaster:
 
     def __init__(self, vertices: FloatArray, faces: NDArray[np.int64],
                  threads: int | None = None, direct: bool = True,
-                 curves: Curves | None = None, loose_from: int | None = None) -> None:
-        """``curves``: round curves beside the triangles (Embree bound directly only);
+                 curves: Curves | None = None, loose_from: int | None = None,
+                 crowns: Crowns | None = None) -> None:
+        """``curves``: round curves beside the triangles, ``crowns``: porous crowns
+        (:mod:`emulators.media`), both where Embree is bound directly only;
         ``loose_from``: the triangles from there on share no edges (foliage facets) and are
         cast without robust mode where Embree is bound directly (:class:`DirectScene`)."""
         from emulators.jit import jit_enabled
@@ -152,9 +156,10 @@ class EmbreeCaster:
         if direct and jit_enabled():
             from emulators.embree import direct_scene
 
-            self.direct_scene = direct_scene(vertices, faces, curves, loose_from)
-        if self.direct_scene is None and curves is not None:
-            raise OSError("round curves need Embree bound directly (compiled kernels on)")
+            self.direct_scene = direct_scene(vertices, faces, curves, loose_from, crowns)
+        if self.direct_scene is None and (curves is not None or crowns is not None):
+            raise OSError("round curves and porous crowns need Embree bound directly "
+                          "(compiled kernels on)")
         if self.direct_scene is None:
             from embreex import rtcore_scene
             from embreex.mesh_construction import TriangleMesh
@@ -199,8 +204,8 @@ class EmbreeCaster:
                 ) -> tuple[NDArray[np.float32], NDArray[np.int32], NDArray[np.float32]]:
         """:meth:`cast1`, and the round curves' |cos incidence| as :meth:`cast_n` gives."""
         if self.direct_scene is not None:
-            curves = self.direct_scene.curve_count > 0
-            return self.direct_scene.cast_n(origins, directions, curves)
+            ds = self.direct_scene
+            return ds.cast_n(origins, directions, ds.curve_count + ds.crown_count > 0)
         return (*self.cast1(origins, directions), _NO_COS)
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
@@ -218,7 +223,8 @@ class EmbreeCaster:
         n = len(o)
         t = np.empty(n, np.float32)
         prim = np.empty(n, np.int32)
-        curves = self.direct_scene is not None and self.direct_scene.curve_count > 0
+        ds = self.direct_scene
+        curves = ds is not None and ds.curve_count + ds.crown_count > 0
         cn = np.empty(n if cosines and curves else 0, np.float32)
         part = (lambda a, b: cn[a:b]) if len(cn) else (lambda a, b: cn)
         threads = self.threads or 1
@@ -423,27 +429,42 @@ class Scene:
     def from_forest(cls, forest: Forest, backend: str = AUTO,
                     stem_tolerance_m: float | None = None,
                     terrain_tolerance_m: float | None = None,
-                    margin_m: float | None = None, geometry: str | None = None) -> Scene:
+                    margin_m: float | None = None, geometry: str | None = None,
+                    foliage_as: str | None = None) -> Scene:
         """The forest's scene. ``geometry`` (default the scenario's ``stems.geometry``, or
         ``mesh`` where ``stem_tolerance_m`` asks for a tessellation):
         ``curves`` casts stems and branches as Embree's round linear curves (exact to
         :data:`~tcf_hil.forest.mesh.CURVE_TOLERANCE_M`; Embree bound directly, i.e. the
         embree backend with compiled kernels on, else a ConfigError), ``mesh`` tessellates
         them (``stems.tolerance_mm``; every backend casts meshes), ``auto`` takes curves
-        where they can be cast and meshes elsewhere (open3d and trimesh cast no curves)."""
+        where they can be cast and meshes elsewhere (open3d and trimesh cast no curves).
+        ``foliage_as`` (default the scenario's ``stand.foliage_as``): a natural stand's
+        foliage as porous crowns (``volume``, beside round curves only), as facets, or
+        ``auto``: crowns where the stems are curves, facets elsewhere."""
         scn = forest.scenario
         geometry = geometry or ("mesh" if stem_tolerance_m is not None
                                 else scn.stems.geometry)
         if geometry not in GEOMETRIES:
             raise ConfigError("stems.geometry", geometry, ", ".join(GEOMETRIES))
+        foliage = foliage_as or scn.stand.foliage_as
+        if foliage not in FOLIAGE_AS:
+            raise ConfigError("stand.foliage_as", foliage, ", ".join(FOLIAGE_AS))
+        if foliage == "volume" and geometry == "mesh":
+            raise ConfigError("stand.foliage_as", "volume", "'auto' or 'facets' where stems "
+                              "are meshes (stems.geometry = 'mesh'): porous crowns are cast "
+                              "beside round curves")
         tr = terrain_mesh(forest.terrain, forest.bounds(margin_m),
                           terrain_tolerance_m if terrain_tolerance_m is not None
                           else scn.terrain.tolerance_mm / 1000.0)
         sc = forest.scenery()
         if geometry != "mesh":
-            scene = cls._with_curves(forest, tr, backend, geometry == "curves")
+            scene = cls._with_curves(forest, tr, backend, geometry == "curves", foliage)
             if scene is not None:
                 return scene
+        if foliage == "volume":
+            raise ConfigError("stand.foliage_as", "volume", "'auto' or 'facets' here (stems "
+                              "are meshes on this backend, and porous crowns are cast beside "
+                              "round curves only)")
         tubes, ids = forest.tubes()
         st = stem_mesh(tubes, stem_tolerance_m if stem_tolerance_m is not None
                        else scn.stems.tolerance_mm / 1000.0, ids=ids)
@@ -466,10 +487,11 @@ class Scene:
         return cls(verts, faces, ids, make_caster(backend, verts, faces, loose_from), mat)
 
     @classmethod
-    def _with_curves(cls, forest: Forest, tr: Any, backend: str, required: bool
-                     ) -> Scene | None:
-        """The scene with stems and branches as round curves, or None where they cannot be
-        cast here (a ConfigError where ``required``)."""
+    def _with_curves(cls, forest: Forest, tr: Any, backend: str, required: bool,
+                     foliage: str = "auto") -> Scene | None:
+        """The scene with stems and branches as round curves and (``foliage`` auto or
+        volume) the foliage as porous crowns, or None where they cannot be cast here (a
+        ConfigError where ``required``)."""
         from emulators.jit import jit_enabled
 
         name = resolve_backend(backend)[0]
@@ -495,25 +517,41 @@ class Scene:
         tri_mat = np.full(len(faces), MATERIALS.index("ground"), np.uint8)
         sc = forest.scenery()
         seg_mat = np.full(len(seg), bark, np.uint8)
-        if sc is not None and len(sc):
+        crowns = None
+        if sc is not None:
             rp, rs, rf = sc.rods.curves()
             seg = np.concatenate([seg, rs + len(pts)])
             pts = np.vstack([pts, rp])
             flags = np.concatenate([flags, rf])
             seg_id = np.concatenate([seg_id, sc.rods.ids])
             seg_mat = np.concatenate([seg_mat, sc.rods.material])
-            faces = np.vstack([faces, sc.tri_faces + len(verts)])
-            verts = np.vstack([verts, sc.tri_vertices])
-            tri_id = np.concatenate([tri_id, sc.tri_id])
-            tri_mat = np.concatenate([tri_mat, sc.tri_material])
-        # curve primitives: the segments, then the tops' discs
+            tv, tf, ti, tm = sc.tri_vertices, sc.tri_faces, sc.tri_id, sc.tri_material
+            if foliage == "facets":
+                fv, ff, fi = sc.facets()
+                tf = np.vstack([tf, ff + len(tv)])
+                tv = np.vstack([tv, fv])
+                ti = np.concatenate([ti, fi])
+                tm = np.concatenate([tm, np.full(len(ff), MATERIALS.index("foliage"),
+                                                 np.uint8)])
+            elif len(sc.foliage):
+                crowns = sc.foliage.crowns
+            faces = np.vstack([faces, tf + len(verts)])
+            verts = np.vstack([verts, tv])
+            tri_id = np.concatenate([tri_id, ti])
+            tri_mat = np.concatenate([tri_mat, tm])
+        # curve primitives: the segments, the tops' discs, then the porous crowns
         seg_id = np.concatenate([seg_id, tc.disc_id])
         seg_mat = np.concatenate([seg_mat, np.full(len(tc.disc_id), bark, np.uint8)])
+        if crowns is not None and sc is not None:
+            seg_id = np.concatenate([seg_id, sc.foliage.ids])
+            seg_mat = np.concatenate([seg_mat, np.full(len(crowns), MATERIALS.index("foliage"),
+                                                       np.uint8)])
         curves = Curves(pts.astype(np.float32), seg.astype(np.uint32), flags,
                         tc.discs.astype(np.float32), tc.disc_normals.astype(np.float32))
         faces, tri_id, tri_mat, loose_from = _loose_last(faces, tri_id, tri_mat)
         try:
-            caster = EmbreeCaster(verts, faces, curves=curves, loose_from=loose_from)
+            caster = EmbreeCaster(verts, faces, curves=curves, loose_from=loose_from,
+                                  crowns=crowns)
         except OSError as err:
             if required:
                 raise ConfigError("stems.geometry", "curves", f"'auto' or 'mesh' here ({err})"
@@ -524,9 +562,16 @@ class Scene:
 
     @property
     def curve_count(self) -> int:
-        """Curve primitives in the scene, round segments and the discs closing stem tops
-        (0: all triangles)."""
+        """Curve primitives in the scene, round segments and the discs closing stem tops,
+        and the porous crowns numbered after them (0: all triangles)."""
         return 0 if self.curve_id is None else len(self.curve_id)
+
+    @property
+    def crown_count(self) -> int:
+        """Porous crowns in the scene (foliage cast as a turbid medium; 0: none, or the
+        foliage is facets)."""
+        ds = self.caster.direct_scene
+        return 0 if ds is None else ds.crown_count
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
              ) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
@@ -565,7 +610,7 @@ class Scene:
         t, prim = self.caster.cast1(origins, directions)
         return t, self._stem_ids(prim)
 
-    def direct(self) -> tuple[int, NDArray[np.int64], NDArray[np.int32]] | None:
+    def direct(self) -> tuple[int, tuple[Any, ...], NDArray[np.int32]] | None:
         """For compiled kernels that cast themselves (the lidar emulator's): ``(address of
         rtcIntersect1, the RTCScene, object id by primitive as :meth:`_stem_table` lays it
         out)``, or None where the

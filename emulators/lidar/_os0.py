@@ -41,7 +41,7 @@ from protocols.ouster import (
 FloatArray = NDArray[np.float64]
 
 
-DirectCast = tuple[int, NDArray[np.int64], NDArray[np.int32]]
+DirectCast = tuple[int, tuple[Any, ...], NDArray[np.int32]]
 """An Embree scene the emulator's compiled kernel casts through itself
 (:mod:`emulators.embree`): rtcIntersect1's address, the RTCScene handles in the order a ray
 enters them (:attr:`emulators.embree.DirectScene.handles`), and the stem id by

@@ -198,11 +198,15 @@ class StandConfig:
     defects: DefectsConfig = field(default_factory=DefectsConfig,
                                    metadata={"doc": "defects of natural stems"})
     branches: bool = _f(True, "living branches in whorls in the crown, dead ones below it")
-    foliage: bool = _f(True, "foliage in the crowns, as facets that stop a beam as "
-                       "Beer-Lambert says")
+    foliage: bool = _f(True, "foliage in the crowns (and in saplings and shrubs): a "
+                       "porous volume that stops a beam as Beer-Lambert says")
+    foliage_as: Literal["auto", "volume", "facets"] = _f(
+        "auto", "foliage cast as a turbid medium (a free path drawn per ray through each "
+        "crown; Embree cast from compiled kernels), as facets (triangles; any backend), or "
+        "auto: volume where the backend casts it")
     foliage_facet_m: float = _f(
-        0.10, "foliage: side of a facet (a shoot's size); smaller is finer and costs "
-              "memory", ge=0.02, le=0.5)
+        0.10, "foliage as facets: side of a facet (a shoot's size); its count follows from "
+              "the crown's extinction", ge=0.02, le=0.5)
     saplings_per_ha: float = _f(0.0, "understory trees (a stem and a crown)", ge=0.0,
                                 le=100_000.0)
     sapling_height_m: tuple[float, float] = _f(

@@ -328,6 +328,7 @@ def test_every_natural_variant_keeps_its_paper_forest_plot_count_and_placement()
     ({"stand": {"kind": "natural", "birch": {"share": 1.0, "dbh_mean_m": 0.9}}},
      "stand.birch.dbh_mean_m"),
     ({"stand": {"kind": "natural", "firs": {"share": 1.0}}}, "stand.firs"),
+    ({"stand": {"kind": "natural", "foliage_as": "voxels"}}, "stand.foliage_as"),
 ])
 def test_bad_stand_input_names_the_key(patch: dict, key: str) -> None:
     with pytest.raises(ConfigError) as ei:
@@ -337,6 +338,8 @@ def test_bad_stand_input_names_the_key(patch: dict, key: str) -> None:
 
 
 # --- branches, foliage, understory, dead wood, stumps, boulders -------------------------
+
+FOLIAGE_CODE = 3  # tcf_hil.forest.scenery.FOLIAGE
 
 SCENERY = {**NATURAL_STRESS, "name": "natural-scenery",
            "terrain": {"kind": "flat", "roughness_m": 0.03},
@@ -454,6 +457,7 @@ def test_returns_are_counted_by_component(tmp_path: Path) -> None:
     assert comp["stem"] == vis["stem_returns"] == sum(o["returns"] for o in gt["objects"])
     for name in ("ground", "stem", "branch", "foliage", "understory"):
         assert comp[name] > 0, name
+    assert vis["foliage_as"] == ("volume" if vis["stems_geometry"] == "curves" else "facets")
     assert sum(o["returns_by_component"]["foliage"] for o in gt["objects"]) == comp["foliage"]
     assert vis["stems_seen"] == sum(1 for o in gt["objects"] if o["returns"])
     import jsonschema
@@ -493,8 +497,9 @@ def test_forest_generate_writes_the_scenery_when_asked(tmp_path: Path) -> None:
 
 
 def test_every_backend_sees_the_same_natural_stand(scenery_forest) -> None:  # type: ignore[no-untyped-def]
-    """Branches, foliage facets and ground objects are triangles: Embree and open3d (and
-    trimesh, the numpy fallback) cast them all; none needs a primitive another lacks."""
+    """Meshed (``stems.geometry = "mesh"``, the foliage then as facets), branches, foliage
+    and ground objects are triangles: Embree and open3d (and trimesh, the numpy fallback)
+    cast them all; none needs a primitive another lacks."""
     from tcf_hil.scene import Scene, backend_unavailable
 
     rng = np.random.default_rng(3)
@@ -506,7 +511,7 @@ def test_every_backend_sees_the_same_natural_stand(scenery_forest) -> None:  # t
     for backend in ("embree", "open3d"):
         if backend_unavailable(backend):
             continue
-        _, sid = Scene.from_forest(scenery_forest, backend=backend).cast(o, d)
+        _, sid = Scene.from_forest(scenery_forest, backend=backend, geometry="mesh").cast(o, d)
         ids[backend] = sid
     assert len(ids) >= 2
     first = next(iter(ids.values()))
@@ -552,3 +557,48 @@ def test_culling_by_the_track_changes_nothing_of_what_it_keeps() -> None:
         a = whole.vertices[whole.faces[whole.face_id == oid]]
         b = near.vertices[near.faces[near.face_id == oid]]
         assert np.array_equal(a, b), oid
+
+
+def test_foliage_as_crowns_and_as_facets_stop_the_same_rays(scenery_forest) -> None:  # type: ignore[no-untyped-def]
+    """The two ways to cast foliage, porous crowns with a free path drawn per ray and facets
+    at the same extinction, give a stand the same look: the share of rays each component
+    stops and how far the foliage stops them, within their sampling error (200,000 rays
+    from inside the stand, in every direction)."""
+    from tcf_hil.scene import Scene
+
+    f = scenery_forest
+    try:
+        volume = Scene.from_forest(f, foliage_as="volume")
+    except ConfigError as err:
+        pytest.skip(f"porous crowns are not cast here: {err}")
+    facets = Scene.from_forest(f, foliage_as="facets")
+    assert volume.crown_count == len(f.scenery().foliage) > 0 and facets.crown_count == 0
+    rng = np.random.default_rng(3)
+    m = 200_000
+    o = np.column_stack([rng.uniform(-4.0, 4.0, (m, 2)), rng.uniform(1.0, 8.0, m)])
+    d = rng.normal(size=(m, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    comp = f.scenery().component_of_id
+    got = []
+    for s in (volume, facets):
+        t, sid = s.cast(o, d)
+        c = np.where(sid >= 0, comp[np.maximum(sid, 0)], 255)
+        got.append((np.bincount(np.minimum(c, 8), minlength=9) / m,
+                    float(t[c == FOLIAGE_CODE].mean())))
+    (share_v, range_v), (share_f, range_f) = got
+    assert share_v[FOLIAGE_CODE] > 0.3
+    se = np.sqrt(share_f * (1 - share_f) / m)
+    assert np.all(np.abs(share_v - share_f) < 5 * np.sqrt(2) * se + 2e-3), (share_v, share_f)
+    assert range_v == pytest.approx(range_f, rel=0.02)
+
+
+def test_porous_crowns_need_round_curves() -> None:
+    from tcf_hil.scene import Scene
+
+    f = generate_forest(scenario_from_dict(SCENERY))
+    with pytest.raises(ConfigError) as ei:
+        Scene.from_forest(f, geometry="mesh", foliage_as="volume")
+    assert ei.value.key == "stand.foliage_as" and "\n" not in str(ei.value)
+    mesh = Scene.from_forest(f, geometry="mesh")  # auto: facets beside meshes
+    assert mesh.crown_count == 0
+    assert np.count_nonzero(mesh.material == 2) == len(f.scenery().facets()[1])
