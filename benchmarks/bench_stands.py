@@ -51,7 +51,8 @@ t4 = time.perf_counter()
 print(json.dumps({"ha": ha, "stems": len(f.stems), "detail_range_m": rng_m,
                   "geometry": geometry, "stems_s": t1 - t0, "ground_truth_s": t2 - t1,
                   "scenery_s": t3 - t2, "scene_s": t4 - t3, "total_s": t4 - t0,
-                  "scenery_triangles": len(sc), "scene_triangles": len(scene.faces),
+                  "scenery_triangles": sc.solid_triangles, "crowns": len(sc.foliage),
+                  "scene_triangles": len(scene.faces),
                   "scene_curve_primitives": scene.curve_count, "counts": sc.counts,
                   "peak_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}))
 """
@@ -84,7 +85,8 @@ def culling(frames: int, ranges: list[float]) -> list[dict[str, Any]]:
         diff = sum(int(np.count_nonzero(a[1] != b[1])) for a, b in zip(got, ref, strict=True))
         bytes_same = all(np.array_equal(a[0], b[0]) for a, b in zip(got, ref, strict=True))
         rows.append({"detail_range_m": r, "triangles": len(run.scene.faces),
-                     "scenery_triangles": len(sc) if sc else 0,
+                     "scenery_triangles": sc.solid_triangles if sc is not None else 0,
+                     "crowns": len(sc.foliage) if sc is not None else 0,
                      "pixels_whose_object_differs": diff, "packets_identical": bytes_same,
                      "ms_per_frame": 1000.0 * dt})
         print(rows[-1], flush=True)

@@ -35,11 +35,13 @@ numba = numba_module()  # its cache directory set before the kernels below are d
 # Embree 4's ABI (rtcore_*.h): enum values, and where RTCRayHit keeps its fields in 32-bit
 # words (RTCRay: org xyz, tnear, dir xyz, time, tfar, mask, id, flags; RTCHit: Ng xyz, u, v,
 # primID, geomID, instID[1], instPrimID[1]); the struct is 16-byte aligned.
-GEOMETRY_TYPE_TRIANGLE, GEOMETRY_TYPE_ROUND_LINEAR_CURVE = 0, 16
+GEOMETRY_TYPE_TRIANGLE, GEOMETRY_TYPE_GRID, GEOMETRY_TYPE_ROUND_LINEAR_CURVE = 0, 2, 16
 GEOMETRY_TYPE_ORIENTED_DISC_POINT = 52
-BUFFER_TYPE_INDEX, BUFFER_TYPE_VERTEX, BUFFER_TYPE_NORMAL, BUFFER_TYPE_FLAGS = 0, 1, 3, 32
+BUFFER_TYPE_INDEX, BUFFER_TYPE_VERTEX, BUFFER_TYPE_NORMAL, BUFFER_TYPE_GRID = 0, 1, 3, 8
+BUFFER_TYPE_FLAGS = 32
 FORMAT_UCHAR, FORMAT_UINT, FORMAT_UINT3 = 0x1001, 0x5001, 0x5003
-FORMAT_FLOAT3, FORMAT_FLOAT4 = 0x9003, 0x9004
+FORMAT_FLOAT3, FORMAT_FLOAT4, FORMAT_GRID = 0x9003, 0x9004, 0xA001
+GRID_TILE = 512  # cells a side of one RTCGrid (their borders shared)
 CURVE_FLAG_NEIGHBOR_LEFT, CURVE_FLAG_NEIGHBOR_RIGHT = 1, 2
 SCENE_FLAG_ROBUST = 1 << 2
 INVALID_ID = 0xFFFFFFFF
@@ -91,6 +93,40 @@ def _lib() -> Any:
 
 
 @dataclass(frozen=True)
+class HeightGrid:
+    """A regular grid of vertices (a terrain), cast as Embree's grid geometry (``GRID``:
+    the vertices and a few tile records, no triangles stored; each cell two triangles, in
+    robust mode watertight as a mesh): ``vertices`` (ny, nx, 3) float32, row by row
+    (:meth:`lattice`). A hit on it answers one primitive, the terrain's, and its |cos
+    incidence| from the normal Embree reports."""
+
+    vertices: NDArray[np.float32]
+
+    @staticmethod
+    def lattice(xs: NDArray[np.floating], ys: NDArray[np.floating],
+                z: NDArray[np.floating]) -> HeightGrid:
+        """The heights ``z`` (ny, nx) over the lattice ``xs`` by ``ys``, laid out so that
+        Embree splits each cell along the diagonal from (x_i, y_j) to (x_i+1, y_j+1) (as
+        :func:`tcf_hil.forest.mesh.terrain_mesh` does): each row reversed."""
+        v = np.empty((len(ys), len(xs), 3), np.float32)
+        v[:, :, 0] = np.asarray(xs, np.float64)[None, ::-1]
+        v[:, :, 1] = np.asarray(ys, np.float64)[:, None]
+        v[:, :, 2] = np.asarray(z, np.float64)[:, ::-1]
+        return HeightGrid(v)
+
+    def tiles(self) -> NDArray[np.uint32]:
+        """RTCGrid records (startVertexID, stride, width | height << 16) of at most
+        :data:`GRID_TILE` cells a side, sharing their borders."""
+        ny, nx = self.vertices.shape[:2]
+        rows = []
+        for j in range(0, max(ny - 1, 1), GRID_TILE):
+            for i in range(0, max(nx - 1, 1), GRID_TILE):
+                w, h = min(GRID_TILE + 1, nx - i), min(GRID_TILE + 1, ny - j)
+                rows.append((j * nx + i, nx, w | (h << 16)))
+        return np.array(rows, np.uint32)
+
+
+@dataclass(frozen=True)
 class Curves:
     """Round linear curves (Embree's ``ROUND_LINEAR_CURVE``): tubes swept by a sphere whose
     radius changes linearly along each segment, exact surfaces rather than tessellations.
@@ -134,7 +170,8 @@ class DirectScene:
 
     def __init__(self, vertices: NDArray[np.floating], faces: NDArray[np.integer],
                  curves: Curves | None = None, loose_from: int | None = None,
-                 crowns: media.Crowns | None = None) -> None:
+                 crowns: media.Crowns | None = None, terrain: HeightGrid | None = None
+                 ) -> None:
         lib = _lib()
         self._lib = lib
         self._scenes: list[Any] = []
@@ -147,11 +184,15 @@ class DirectScene:
         self.curve_count = 0 if curves is None else len(curves)
         rows = []
         n_seg = 0 if curves is None else len(curves.segments)
-        if cut < len(f) or self.curve_count:  # first: the foliage stops rays soonest
-            rows.append([self._scene_of(0, v, f[cut:], curves), cut, n_seg])
-        if cut > 0 or not rows:
-            rows.append([self._scene_of(SCENE_FLAG_ROBUST, v, f[:cut], None), 0, 0])
         self.crown_count = 0 if crowns is None else len(crowns)
+        self.terrain = terrain is not None
+        self.terrain_prim = -2 - self.curve_count - self.crown_count
+        """The primitive every terrain hit answers (after the curves and the crowns)."""
+        if cut < len(f) or self.curve_count:  # first: the foliage stops rays soonest
+            rows.append([self._scene_of(0, v, f[cut:], curves), cut, n_seg, 0])
+        if cut > 0 or not rows or terrain is not None:
+            rows.append([self._scene_of(SCENE_FLAG_ROBUST, v, f[:cut], None, terrain), 0, 0,
+                         self.terrain_prim])
         c = crowns if crowns is not None else media.Crowns(
             *(np.zeros((0, 3)),) * 2, *(np.zeros(0),) * 3, np.zeros(0, np.int8), np.zeros(0))
         head, start, items, zr = c.grid()
@@ -160,9 +201,10 @@ class DirectScene:
         self.handles: tuple[Any, ...] = (
             np.array(rows, np.int64), self.crown_count, self.curve_count,
             *(int(a.ctypes.data) for a in self._crown_arrays), len(start) - 1, len(items))
-        """What the kernels cast through: (k, 3) each scene's handle, the index in ``faces``
-        of its first triangle and the number of its curve segments (its discs' numbers
-        follow them), in the order a ray enters them; then the porous crowns
+        """What the kernels cast through: (k, 4) each scene's handle, the index in ``faces``
+        of its first triangle, the number of its curve segments (its discs' numbers
+        follow them) and the primitive its terrain grid answers, in the order a ray enters
+        them; then the porous crowns
         (:mod:`emulators.media`): their number, the number of the curve primitives before
         them (crown ``c`` is primitive ``-2 - curve_count - c``), the addresses of their
         table and of their grid's arrays (:meth:`emulators.media.Crowns.grid`; addresses,
@@ -171,10 +213,10 @@ class DirectScene:
         self.intersect: int = int(ctypes.cast(lib.rtcIntersect1, ctypes.c_void_p).value or 0)
 
     def _scene_of(self, flags: int, v: NDArray[np.float32], f: NDArray[np.uint32],
-                  curves: Curves | None) -> int:
+                  curves: Curves | None, terrain: HeightGrid | None = None) -> int:
         """A committed scene (``flags``): the triangles ``f`` of ``v`` as geometry 0, the
-        curves' segments as geometry 1 and their discs as geometry 2, each copied into
-        buffers Embree owns; its handle."""
+        curves' segments as geometry 1, their discs as geometry 2 and the terrain's grid
+        as geometry 3, each copied into buffers Embree owns; its handle."""
         lib = self._lib
         scene = lib.rtcNewScene(self._device)
         self._scenes.append(scene)
@@ -200,6 +242,11 @@ class DirectScene:
                  np.ascontiguousarray(curves.discs, np.float32)),
                 (BUFFER_TYPE_NORMAL, FORMAT_FLOAT3, 12,
                  np.ascontiguousarray(curves.disc_normals, np.float32)))))
+        if terrain is not None:
+            geoms.append((3, GEOMETRY_TYPE_GRID, (
+                (BUFFER_TYPE_VERTEX, FORMAT_FLOAT3, 12,
+                 np.ascontiguousarray(terrain.vertices, np.float32).reshape(-1, 3)),
+                (BUFFER_TYPE_GRID, FORMAT_GRID, 12, terrain.tiles()))))
         for gid, kind, buffers in geoms:
             geom = lib.rtcNewGeometry(self._device, kind)
             for btype, fmt, stride, arr in buffers:
@@ -246,13 +293,14 @@ class DirectScene:
 
 def direct_scene(vertices: NDArray[np.floating], faces: NDArray[np.integer],
                  curves: Curves | None = None, loose_from: int | None = None,
-                 crowns: media.Crowns | None = None) -> DirectScene | None:
+                 crowns: media.Crowns | None = None, terrain: HeightGrid | None = None
+                 ) -> DirectScene | None:
     """A :class:`DirectScene`, or None where compiled kernels are off or the library cannot
     be had (callers fall back to embreex)."""
     if not jit_enabled():
         return None
     try:
-        return DirectScene(vertices, faces, curves, loose_from, crowns)
+        return DirectScene(vertices, faces, curves, loose_from, crowns, terrain)
     except OSError:
         return None
 
@@ -316,8 +364,10 @@ def intersect1(fn: int, scenes: Any, rf: Any, ru: Any, addr: int, ox: float, oy:
         if g == 0:
             prim = np.int32(rows[k, 1] + np.int64(ru[PRIM_ID]))
             c = 0.0
-        elif g != INVALID_ID:  # a curve segment (1) or a disc (2), numbered after them
-            prim = np.int32(-2 - np.int64(ru[PRIM_ID]) - (rows[k, 2] if g == 2 else 0))
+        elif g != INVALID_ID:  # a curve segment (1), a disc (2, numbered after them), the
+            # terrain (3: one primitive)
+            prim = np.int32(rows[k, 3] if g == 3 else
+                            -2 - np.int64(ru[PRIM_ID]) - (rows[k, 2] if g == 2 else 0))
             nx, ny, nz = np.float64(rf[NG_X]), np.float64(rf[NG_Y]), np.float64(rf[NG_Z])
             nn = math.sqrt(nx * nx + ny * ny + nz * nz)
             c = min(abs(nx * dx + ny * dy + nz * dz) / nn, 1.0) if nn > 0.0 else 1.0

@@ -33,7 +33,7 @@ from tcf_hil.errors import ConfigError
 from tcf_hil.forest import Forest, stem_mesh, terrain_mesh
 
 if TYPE_CHECKING:
-    from emulators.embree import Curves, DirectScene
+    from emulators.embree import Curves, DirectScene, HeightGrid
     from emulators.lidar import FastRayScene, Surfaces
     from emulators.media import Crowns
 
@@ -145,9 +145,10 @@ class EmbreeCaster:
     def __init__(self, vertices: FloatArray, faces: NDArray[np.int64],
                  threads: int | None = None, direct: bool = True,
                  curves: Curves | None = None, loose_from: int | None = None,
-                 crowns: Crowns | None = None) -> None:
+                 crowns: Crowns | None = None, terrain: HeightGrid | None = None) -> None:
         """``curves``: round curves beside the triangles, ``crowns``: porous crowns
         (:mod:`emulators.media`), both where Embree is bound directly only;
+        ``terrain``: a grid cast as Embree's grid geometry, Embree bound directly only;
         ``loose_from``: the triangles from there on share no edges (foliage facets) and are
         cast without robust mode where Embree is bound directly (:class:`DirectScene`)."""
         from emulators.jit import jit_enabled
@@ -156,9 +157,11 @@ class EmbreeCaster:
         if direct and jit_enabled():
             from emulators.embree import direct_scene
 
-            self.direct_scene = direct_scene(vertices, faces, curves, loose_from, crowns)
-        if self.direct_scene is None and (curves is not None or crowns is not None):
-            raise OSError("round curves and porous crowns need Embree bound directly "
+            self.direct_scene = direct_scene(vertices, faces, curves, loose_from, crowns,
+                                             terrain)
+        if self.direct_scene is None and (curves is not None or crowns is not None
+                                          or terrain is not None):
+            raise OSError("round curves, porous crowns and grids need Embree bound directly "
                           "(compiled kernels on)")
         if self.direct_scene is None:
             from embreex import rtcore_scene
@@ -205,7 +208,8 @@ class EmbreeCaster:
         """:meth:`cast1`, and the round curves' |cos incidence| as :meth:`cast_n` gives."""
         if self.direct_scene is not None:
             ds = self.direct_scene
-            return ds.cast_n(origins, directions, ds.curve_count + ds.crown_count > 0)
+            return ds.cast_n(origins, directions, ds.curve_count + ds.crown_count > 0
+                             or ds.terrain)
         return (*self.cast1(origins, directions), _NO_COS)
 
     def cast(self, origins: NDArray[np.floating], directions: NDArray[np.floating]
@@ -224,7 +228,7 @@ class EmbreeCaster:
         t = np.empty(n, np.float32)
         prim = np.empty(n, np.int32)
         ds = self.direct_scene
-        curves = ds is not None and ds.curve_count + ds.crown_count > 0
+        curves = ds is not None and (ds.curve_count + ds.crown_count > 0 or ds.terrain)
         cn = np.empty(n if cosines and curves else 0, np.float32)
         part = (lambda a, b: cn[a:b]) if len(cn) else (lambda a, b: cn)
         threads = self.threads or 1
@@ -410,8 +414,12 @@ def make_caster(name: str, vertices: FloatArray, faces: NDArray[np.int64],
 @dataclass
 class Scene:
     """Terrain plus stems in local coordinates: triangles with per-triangle object ids and,
-    where the stems and branches are round curves (``stems.geometry``), the curve segments'
-    object ids and materials (the curves themselves live in the caster's Embree scene)."""
+    where the stems and branches are round curves (``stems.geometry``), the object ids and
+    materials of the other primitives the caster's Embree scene holds (``curve_id``,
+    ``curve_material``): the curve segments, the discs closing stem tops, the porous crowns
+    (``stand.foliage_as``) and last the terrain, cast there as one grid primitive (Embree's
+    grid geometry: its vertices only, no triangles stored), so ``vertices``/``faces`` hold
+    only what is left as triangles (ground objects, foliage facets)."""
 
     vertices: FloatArray
     faces: NDArray[np.int64]
@@ -453,14 +461,16 @@ class Scene:
             raise ConfigError("stand.foliage_as", "volume", "'auto' or 'facets' where stems "
                               "are meshes (stems.geometry = 'mesh'): porous crowns are cast "
                               "beside round curves")
-        tr = terrain_mesh(forest.terrain, forest.bounds(margin_m),
-                          terrain_tolerance_m if terrain_tolerance_m is not None
-                          else scn.terrain.tolerance_mm / 1000.0)
+        bounds = forest.bounds(margin_m)
+        tol = (terrain_tolerance_m if terrain_tolerance_m is not None
+               else scn.terrain.tolerance_mm / 1000.0)
         sc = forest.scenery()
         if geometry != "mesh":
-            scene = cls._with_curves(forest, tr, backend, geometry == "curves", foliage)
+            scene = cls._with_curves(forest, (bounds, tol), backend, geometry == "curves",
+                                     foliage)
             if scene is not None:
                 return scene
+        tr = terrain_mesh(forest.terrain, bounds, tol)
         if foliage == "volume":
             raise ConfigError("stand.foliage_as", "volume", "'auto' or 'facets' here (stems "
                               "are meshes on this backend, and porous crowns are cast beside "
@@ -487,10 +497,11 @@ class Scene:
         return cls(verts, faces, ids, make_caster(backend, verts, faces, loose_from), mat)
 
     @classmethod
-    def _with_curves(cls, forest: Forest, tr: Any, backend: str, required: bool,
-                     foliage: str = "auto") -> Scene | None:
-        """The scene with stems and branches as round curves and (``foliage`` auto or
-        volume) the foliage as porous crowns, or None where they cannot be cast here (a
+    def _with_curves(cls, forest: Forest, terrain: tuple[Any, float], backend: str,
+                     required: bool, foliage: str = "auto") -> Scene | None:
+        """The scene with stems and branches as round curves, (``foliage`` auto or volume)
+        the foliage as porous crowns and the terrain (over ``terrain``'s bounds, at its
+        tolerance) as Embree's grid geometry, or None where they cannot be cast here (a
         ConfigError where ``required``)."""
         from emulators.jit import jit_enabled
 
@@ -504,17 +515,18 @@ class Scene:
                 raise ConfigError("stems.geometry", "curves",
                                   f"'auto' or 'mesh' here ({why})")
             return None
-        from emulators.embree import Curves
+        from emulators.embree import Curves, HeightGrid
         from emulators.lidar import MATERIALS
-        from tcf_hil.forest.mesh import stem_curves
+        from tcf_hil.forest.mesh import stem_curves, terrain_grid
 
         tubes, ids = forest.tubes()
         tc = stem_curves(tubes, ids)
         pts, seg, flags, seg_id = tc.points, tc.segments, tc.flags, tc.segment_id
         bark = MATERIALS.index("bark")
-        verts, faces = tr.vertices, np.asarray(tr.faces, np.int64)
-        tri_id = np.zeros(len(faces), np.int32)
-        tri_mat = np.full(len(faces), MATERIALS.index("ground"), np.uint8)
+        grid = HeightGrid.lattice(*terrain_grid(forest.terrain, *terrain))
+        verts, faces = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+        tri_id = np.zeros(0, np.int32)
+        tri_mat = np.zeros(0, np.uint8)
         sc = forest.scenery()
         seg_mat = np.full(len(seg), bark, np.uint8)
         crowns = None
@@ -546,19 +558,21 @@ class Scene:
             seg_id = np.concatenate([seg_id, sc.foliage.ids])
             seg_mat = np.concatenate([seg_mat, np.full(len(crowns), MATERIALS.index("foliage"),
                                                        np.uint8)])
+        # and last, one primitive for the whole terrain
+        seg_id = np.concatenate([seg_id, [0]])
+        seg_mat = np.concatenate([seg_mat, [MATERIALS.index("ground")]]).astype(np.uint8)
         curves = Curves(pts.astype(np.float32), seg.astype(np.uint32), flags,
                         tc.discs.astype(np.float32), tc.disc_normals.astype(np.float32))
         faces, tri_id, tri_mat, loose_from = _loose_last(faces, tri_id, tri_mat)
         try:
             caster = EmbreeCaster(verts, faces, curves=curves, loose_from=loose_from,
-                                  crowns=crowns)
+                                  crowns=crowns, terrain=grid)
         except OSError as err:
             if required:
                 raise ConfigError("stems.geometry", "curves", f"'auto' or 'mesh' here ({err})"
                                   ) from err
             return None
-        return cls(verts, faces, tri_id, caster, tri_mat if sc is not None else None,
-                   seg_id.astype(np.int32), seg_mat)
+        return cls(verts, faces, tri_id, caster, tri_mat, seg_id.astype(np.int32), seg_mat)
 
     @property
     def curve_count(self) -> int:

@@ -30,14 +30,15 @@ def surface(p: int, cn: float, dx: float, dy: float, dz: float, stem_of_prim: An
         return p, (1 if p > 0 else 0), 1.0
     if p < -1:
         return stem_of_prim[p], material_of_prim[p], cn
-    q = p if p >= 0 else stem_of_prim.shape[0] - 1
-    qn = p if p > 0 else 0
-    c = float(abs(np.float64(normals[qn, 0]) * np.float64(dx)
-                  + np.float64(normals[qn, 1]) * np.float64(dy)
-                  + np.float64(normals[qn, 2]) * np.float64(dz)))
+    if p == -1:  # nothing (a scene may have no triangles: no normal to read)
+        return stem_of_prim[stem_of_prim.shape[0] - 1], material_of_prim[
+            material_of_prim.shape[0] - 1], 0.0
+    c = float(abs(np.float64(normals[p, 0]) * np.float64(dx)
+                  + np.float64(normals[p, 1]) * np.float64(dy)
+                  + np.float64(normals[p, 2]) * np.float64(dz)))
     if c > 1.0:
         c = 1.0
-    return stem_of_prim[q], material_of_prim[q], c
+    return stem_of_prim[p], material_of_prim[p], c
 
 
 def wrap(x: int, n: int) -> int:

@@ -785,9 +785,13 @@ def _surface_np(prim: NDArray[np.int32], cn: NDArray[np.float32], d: NDArray[np.
     if not surf:
         sid = prim.astype(np.int32)
         return sid, np.where(sid > 0, 1, 0), np.ones(len(sid))
-    n = nrm[np.maximum(prim, 0)].astype(np.float64)
-    dd = d.astype(np.float64)
-    cos = np.abs(n[:, 0] * dd[:, 0] + n[:, 1] * dd[:, 1] + n[:, 2] * dd[:, 2])
+    if len(nrm):
+        n = nrm[np.maximum(prim, 0)].astype(np.float64)
+        dd = d.astype(np.float64)
+        cos = np.abs(n[:, 0] * dd[:, 0] + n[:, 1] * dd[:, 1] + n[:, 2] * dd[:, 2])
+        cos[prim == -1] = 0.0  # nothing hit (the compiled kernels' value)
+    else:  # no triangles
+        cos = np.zeros(len(prim))
     curve = prim < -1
     if curve.any():
         cos = np.where(curve, cn.astype(np.float64) if len(cn) else 0.0, cos)

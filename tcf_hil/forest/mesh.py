@@ -230,13 +230,21 @@ def stem_curves(stems: StemSet, ids: NDArray[np.int32] | None = None,
                       sid[top])
 
 
-def terrain_mesh(terrain: Terrain, bounds: tuple[float, float, float, float],
-                 tolerance_m: float, origin: FloatArray | None = None) -> trimesh.Trimesh:
-    """The terrain over ``bounds`` as a regular triangulated grid (float64 vertices)."""
+def terrain_grid(terrain: Terrain, bounds: tuple[float, float, float, float],
+                 tolerance_m: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The terrain's vertex lattice over ``bounds`` at ``tolerance_m`` (xs, ys, z[ny, nx]):
+    what :func:`terrain_mesh` triangulates; a ConfigError where it needs too many vertices."""
     try:
-        xs, ys, z = terrain.grid(bounds, tolerance_m)
+        return terrain.grid(bounds, tolerance_m)
     except ValueError as err:
         raise ConfigError("terrain.tolerance_mm", tolerance_m * 1000, str(err)) from err
+
+
+def terrain_mesh(terrain: Terrain, bounds: tuple[float, float, float, float],
+                 tolerance_m: float, origin: FloatArray | None = None) -> trimesh.Trimesh:
+    """The terrain over ``bounds`` as a regular triangulated grid (float64 vertices), each
+    cell split along its diagonal from (x_i, y_j) to (x_i+1, y_j+1)."""
+    xs, ys, z = terrain_grid(terrain, bounds, tolerance_m)
     nx, ny = len(xs), len(ys)
     X, Y = np.meshgrid(xs, ys)
     verts = np.column_stack([X.ravel(), Y.ravel(), z.ravel()])

@@ -128,7 +128,7 @@ def test_loose_triangles_cast_without_robust_mode_hit_what_robust_mode_hits() ->
     f = np.arange(len(v)).reshape(-1, 3)
     robust = DirectScene(v, f)
     loose = DirectScene(v, f, loose_from=0)
-    assert loose.handles[0].shape == (1, 3) and loose.handles[0][0, 1] == 0
+    assert loose.handles[0].shape == (1, 4) and loose.handles[0][0, 1] == 0
     n = 50000
     d = rng.normal(0, 1, (n, 3)) * [0.1, 0.25, 0.2] + [1, 0, 0]
     d = (d / np.linalg.norm(d, axis=1)[:, None]).astype(np.float32)

@@ -120,8 +120,11 @@ def test_auto_casts_curves_on_embree_with_compiled_kernels() -> None:
     forest = generate_forest(scenario_from_dict(NATURAL))
     scene = Scene.from_forest(forest)
     assert scene.backend == "embree" and scene.curve_count > 0
-    # the triangles left are the terrain's: every stem id answers from the curves
-    assert set(np.unique(scene.stem_id).tolist()) == {0}
+    # no triangles left: every stem answers from the curves, the terrain from its grid (one
+    # primitive, the last), each with the material it is
+    assert len(scene.faces) == 0 and scene.curve_id is not None
+    assert scene.curve_id[-1] == 0 and scene.curve_material is not None
+    assert scene.curve_material[-1] == 0 and np.all(scene.curve_id[:-1] > 0)
 
 
 @needs_jit

@@ -130,10 +130,15 @@ def _across(target: np.ndarray, nrm: np.ndarray, ax: np.ndarray, rng: np.random.
 def _terrain_edge_rays(scene: Scene, forest: Forest, rng: np.random.Generator, n: int,
                        depth_m: float = 2e-4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays at 2-6 degrees below the horizontal aimed just under the terrain mesh's shared
-    edges and vertices (where a caster that is not watertight lets rays slip through)."""
-    ter = np.flatnonzero(scene.stem_id == 0)
-    f = scene.faces[ter[rng.integers(0, len(ter), 2 * n)]]
-    a, b = scene.vertices[f[:, 0]], scene.vertices[f[:, 1]]
+    edges and vertices (where a caster that is not watertight lets rays slip through): the
+    terrain as :func:`~tcf_hil.forest.terrain_mesh` triangulates it, which the scene's
+    triangles or (round curves beside it) its Embree grid follow."""
+    from tcf_hil.forest import terrain_mesh
+
+    tm = terrain_mesh(forest.terrain, forest.bounds(),
+                      forest.scenario.terrain.tolerance_mm / 1000.0)
+    f = np.asarray(tm.faces)[rng.integers(0, len(tm.faces), 2 * n)]
+    a, b = tm.vertices[f[:, 0]], tm.vertices[f[:, 1]]
     w = rng.choice([0.0, 0.5, 1.0], 2 * n)[:, None]  # a vertex, an edge midpoint, the other
     target = a + w * (b - a)
     target[:, 2] -= depth_m
