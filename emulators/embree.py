@@ -150,23 +150,28 @@ class Curves:
 
 
 class DirectScene:
-    """A triangle mesh and, optionally, round linear curves (:class:`Curves`) in Embree
-    scenes, for compiled kernels: :attr:`intersect` (``rtcIntersect1``'s address) and
-    :attr:`handles` go to :func:`cast_rays` or :func:`intersect1`, which answer a triangle
-    by its index in ``faces``, curve segment ``j`` as ``-2 - j`` and a miss as -1.
-    Released with the object.
+    """A triangle mesh and, optionally, round linear curves (:class:`Curves`), porous crowns
+    (:class:`emulators.media.Crowns`) and a terrain grid (:class:`HeightGrid`), for
+    compiled kernels: :attr:`intersect` (``rtcIntersect1``'s address) and :attr:`handles`
+    go to :func:`cast_rays` or :func:`intersect1`, which answer a triangle by its index in
+    ``faces``, curve primitive ``j`` (segments, then discs) as ``-2 - j``, crown ``c`` as
+    ``-2 - curve_count - c``, the terrain as :attr:`terrain_prim` (after the crowns) and a
+    miss as -1. Released with the object (the arrays :attr:`handles` points into too: keep
+    the object while its handles are in use).
 
-    The triangles ``faces[:loose_from]`` go into a scene in robust mode (rays do not slip
-    between two triangles through the edge they share: closed meshes need it); the rest,
-    loose triangles that share no edge (foliage facets), and the curves go into a second
-    scene without it, which a ray enters first; it then enters the first no farther than
-    what it hit there. Robust mode costs 40 % of a cast through a natural stand's foliage
-    (``pine-thinning``, one thread: 82.6 ms robust, 58.6 ms not), and the curves do not
-    need it (a curve's surface is one primitive's). Embree keeps triangles and curves in
-    separate hierarchies of a scene; a ray walks the second with the length the first left
-    it. The foliage goes first because it stops rays soonest: the other way round a ray
-    walks every branch behind a crown first (``pine-thinning``, one thread: 93 ms against
-    121 ms for meshes, 93 against 98 ms for curves)."""
+    A ray is first searched through the crowns (where it would stop in their foliage,
+    :func:`emulators.media.march`), then through the Embree scenes no farther than that:
+    the triangles ``faces[:loose_from]`` and the terrain grid go into a scene in robust
+    mode (rays do not slip between two triangles through the edge they share: closed
+    meshes need it); the rest, loose triangles that share no edge (foliage facets, where
+    foliage is facets), and the curves go into a second scene without it, which a ray
+    enters first; it then enters the first no farther than what it hit there. Robust mode
+    costs 40 % of a cast through a natural stand's foliage facets (``pine-thinning``, one
+    thread: 82.6 ms robust, 58.6 ms not), and the curves do not need it (a curve's surface
+    is one primitive's). Embree keeps triangles and curves in separate hierarchies of a
+    scene; a ray walks the second with the length the first left it, which is why what
+    stops rays soonest goes first (crowns before branches: ``pine-thinning``, one thread,
+    61 ms against 86 ms the other way round)."""
 
     def __init__(self, vertices: NDArray[np.floating], faces: NDArray[np.integer],
                  curves: Curves | None = None, loose_from: int | None = None,
@@ -272,16 +277,18 @@ class DirectScene:
 
     def cast(self, origins: NDArray[np.float32], directions: NDArray[np.float32]
              ) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
-        """Hit distance (inf on a miss) and primitive (-1; a curve segment ``-2 - j``) of
-        (N, 3) float32 rays, on the calling thread without the GIL."""
+        """Hit distance (inf on a miss) and primitive (-1; see the class doc for the rest) of
+        (N, 3) float32 rays of unit direction (a crown's free path is measured along it),
+        on the calling thread without the GIL."""
         t, prim, _ = self.cast_n(origins, directions, False)
         return t, prim
 
     def cast_n(self, origins: NDArray[np.float32], directions: NDArray[np.float32],
                cosines: bool = True
                ) -> tuple[NDArray[np.float32], NDArray[np.int32], NDArray[np.float32]]:
-        """:meth:`cast`, and |cos| of the incidence on the curves hit (from Embree's
-        geometric normal; 0 elsewhere; an empty array without ``cosines``)."""
+        """:meth:`cast`, and |cos| of the incidence on what is not a triangle (curves and the
+        terrain grid: from Embree's geometric normal; crowns: drawn; 0 on triangles, whose
+        normal the caller knows; an empty array without ``cosines``)."""
         o = np.ascontiguousarray(origins, np.float32)
         d = np.ascontiguousarray(directions, np.float32)
         t = np.empty(len(o), np.float32)
@@ -338,12 +345,14 @@ def new_rayhit() -> tuple[Any, Any, int]:
 @numba.njit(cache=True, nogil=True, inline="always")
 def intersect1(fn: int, scenes: Any, rf: Any, ru: Any, addr: int, ox: float, oy: float,
                oz: float, dx: float, dy: float, dz: float) -> tuple[float, int, float]:
-    """One ray through ``rtcIntersect1`` (``rf``/``ru``/``addr`` from :func:`new_rayhit`)
-    into each of ``scenes`` (:attr:`DirectScene.handles`) in turn, no farther than what it
-    hit before: its hit distance (inf on a miss), primitive (-1 none; a triangle's index,
-    or ``-2 - j`` for curve primitive ``j``: a segment, or a disc after the segments) and,
-    on a curve, |cos| of the incidence (from the geometric normal Embree reports; 0 on a
-    triangle, whose normal the caller knows)."""
+    """One ray (unit direction) through the porous crowns of ``scenes``
+    (:attr:`DirectScene.handles`; ``rf``/``ru``/``addr`` from :func:`new_rayhit`), then
+    through ``rtcIntersect1`` into each of its Embree scenes in turn, no farther than what it
+    met before: its hit distance (inf on a miss), primitive (-1 none; a triangle's index;
+    ``-2 - j`` for curve primitive ``j``, a segment or a disc after the segments; a crown
+    after them; the terrain grid last) and, on what is not a triangle, |cos| of the
+    incidence (from the geometric normal Embree reports; on a crown drawn; 0 on a triangle,
+    whose normal the caller knows)."""
     rf[0], rf[1], rf[2], rf[TNEAR] = ox, oy, oz, 0.0
     rf[4], rf[5], rf[6], rf[TIME] = dx, dy, dz, 0.0
     rf[TFAR] = np.inf

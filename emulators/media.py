@@ -79,10 +79,10 @@ class Crowns:
         return t
 
     def envelopes(self) -> tuple[NDArray[np.float32], NDArray[np.uint32]]:
-        """Each crown's bounding polyhedron, :data:`FACES_PER_CROWN` triangles a crown (its
-        number ``prim // FACES_PER_CROWN``): a cone's an octagonal pyramid about it, an
-        ellipsoid's an octagonal prism, both circumscribed and a little wide (their float32
-        surface must not cut the crown); vertices (k 18, 3) and faces (k 32, 3)."""
+        """Each crown's bounding polyhedron, :data:`FACES_PER_CROWN` triangles a crown: a
+        cone's an octagonal pyramid about it, an ellipsoid's an octagonal prism, both
+        circumscribed and a little wide; vertices (k 18, 3) and faces (k 32, 3). The grid
+        (:meth:`grid`) bins the crowns by their boxes; drawn, they show where crowns are."""
         k = len(self)
         ax = self.axis / np.linalg.norm(self.axis, axis=1)[:, None]
         helper = np.where(np.abs(ax[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
@@ -170,6 +170,8 @@ def interval(row: Any, ox: float, oy: float, oz: float, dx: float, dy: float, dz
     # the slab s0 <= s(t) <= L, s(t) = sq + t sd the depth below the apex along the axis
     lo, hi = -np.inf, np.inf
     smin = max(s0, 0.0)
+    if smin >= L:  # cut at or below its base: nothing left
+        return 1.0, 0.0
     if sd != 0.0:
         a1, b1 = (smin - sq) / sd, (L - sq) / sd
         lo, hi = min(a1, b1), max(a1, b1)
@@ -247,8 +249,8 @@ def stop_at(tau: float, n: int, a: Any, b: Any, s: Any) -> float:
             elif a[j] > t0 and a[j] < nxt:
                 nxt = a[j]
         if dens > 0.0:
-            if acc + dens * (nxt - t0) >= tau:
-                return t0 + (tau - acc) / dens
+            if acc + dens * (nxt - t0) >= tau:  # within this stretch (rounding aside)
+                return min(t0 + (tau - acc) / dens, nxt)
             acc += dens * (nxt - t0)
         if not np.isfinite(nxt):
             return np.inf

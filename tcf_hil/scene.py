@@ -423,11 +423,11 @@ class Scene:
 
     vertices: FloatArray
     faces: NDArray[np.int64]
-    stem_id: NDArray[np.int32]  # per triangle: the object id, 0 = terrain
+    stem_id: NDArray[np.int32]  # per triangle: the object id, 0 = terrain (as triangles)
     caster: Caster
     material: NDArray[np.uint8] | None = None  # per triangle; None: terrain ground, else bark
-    curve_id: NDArray[np.int32] | None = None  # per curve segment: the object id
-    curve_material: NDArray[np.uint8] | None = None  # per curve segment
+    curve_id: NDArray[np.int32] | None = None  # per other primitive: the object id
+    curve_material: NDArray[np.uint8] | None = None  # per other primitive
     _sid_of_prim: tuple[NDArray[np.int32], NDArray[np.int32]] | None = field(
         default=None, init=False, repr=False, compare=False)
     _surfaces: tuple[NDArray[np.int32], Surfaces] | None = field(
@@ -576,8 +576,9 @@ class Scene:
 
     @property
     def curve_count(self) -> int:
-        """Curve primitives in the scene, round segments and the discs closing stem tops,
-        and the porous crowns numbered after them (0: all triangles)."""
+        """Primitives in the scene other than triangles: round segments, the discs closing
+        stem tops, the porous crowns and the terrain grid, numbered in that order (0: all
+        triangles)."""
         return 0 if self.curve_id is None else len(self.curve_id)
 
     @property
@@ -626,8 +627,8 @@ class Scene:
 
     def direct(self) -> tuple[int, tuple[Any, ...], NDArray[np.int32]] | None:
         """For compiled kernels that cast themselves (the lidar emulator's): ``(address of
-        rtcIntersect1, the RTCScene, object id by primitive as :meth:`_stem_table` lays it
-        out)``, or None where the
+        rtcIntersect1, what they cast through (:attr:`emulators.embree.DirectScene.handles`),
+        object id by primitive as :meth:`_stem_table` lays it out)``, or None where the
         backend has no directly bound Embree scene (:class:`EmbreeCaster`)."""
         ds = self.caster.direct_scene
         if ds is None:
@@ -636,9 +637,9 @@ class Scene:
 
     def surfaces(self) -> Surfaces:
         """For the physical sensor model: the object id and material of every primitive
-        (triangles, then the curve segments last to first, then the miss: terrain ground,
-        stems bark), the triangles' unit normals, and the caster's casts that answer
-        primitives (:class:`emulators.lidar.Surfaces`)."""
+        (triangles, then the other primitives last to first: the terrain grid, crowns, discs,
+        curve segments; then the miss), the triangles' unit normals, and the caster's casts
+        that answer primitives (:class:`emulators.lidar.Surfaces`)."""
         from emulators.lidar import Surfaces
 
         if self._surfaces is None or self._surfaces[0] is not self.stem_id:

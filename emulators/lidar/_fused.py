@@ -110,7 +110,7 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
     times written into ``ts_words`` (:meth:`protocols.ouster.PacketFormat.column_timestamps`);
     its rays (into ``o_all``/``d_all`` (W, H, 3) where they are kept, DUAL; else (0, 0, 0))
     from the frame's factors ``mt`` (3, W, 3) and origins ``oc`` (W, 3); each cast (``fn``
-    is ``rtcIntersect1``, ``scene`` the RTCScene, ``stem_of_prim`` the stem id by triangle
+    is ``rtcIntersect1``, ``scene`` its handles, ``stem_of_prim`` the stem id by primitive
     with -1 last for a miss); then :func:`~emulators.lidar._kernel.answer_chunk` with the
     rest of the arguments, which are whole-frame too (the word views (P, C, H), ``noise``
     (W, H) or (0, 0))."""

@@ -43,10 +43,11 @@ FloatArray = NDArray[np.float64]
 
 DirectCast = tuple[int, tuple[Any, ...], NDArray[np.int32]]
 """An Embree scene the emulator's compiled kernel casts through itself
-(:mod:`emulators.embree`): rtcIntersect1's address, the RTCScene handles in the order a ray
-enters them (:attr:`emulators.embree.DirectScene.handles`), and the stem id by
-primitive: the triangles', the curve segments' last to first, then -1 (the miss), so that
-a miss (-1) and curve segment j (-2 - j) index it from the end."""
+(:mod:`emulators.embree`): rtcIntersect1's address, what a ray is cast through
+(:attr:`emulators.embree.DirectScene.handles`: its crowns, then its scenes in the order a ray
+enters them), and the stem id by primitive: the triangles', the other primitives' last to
+first, then -1 (the miss), so that a miss (-1) and primitive j (-2 - j) index it from the
+end."""
 
 
 class RayScene(Protocol):
@@ -522,7 +523,7 @@ class Os0Emulator:
         o[...] = oc[cols, None, :]
 
     def _direct_scene(self) -> DirectCast | None:
-        """What the fused kernel casts through (``rtcIntersect1``, the RTCScene, stem id by
+        """What the fused kernel casts through (``rtcIntersect1``, the handles, stem id by
         triangle), where the scene offers it (``direct()``) and compiled kernels are on."""
         if not self.jit:
             return None

@@ -165,8 +165,13 @@ class Scenery:
     _facet_maker: Any = field(default=None, repr=False, compare=False)
 
     def __len__(self) -> int:
-        """Triangles of the whole mesh (the foliage as facets)."""
+        """Triangles of the whole mesh (the foliage as facets, built for it: on a big stand
+        that is millions; :attr:`solid_triangles` and ``len(foliage)`` cost nothing)."""
         return self.solid_triangles + len(self.facets()[1])
+
+    def __bool__(self) -> bool:
+        """A scenery is there (whatever it holds): truth must not build the facets."""
+        return True
 
     @property
     def solid_triangles(self) -> int:
@@ -510,9 +515,11 @@ def _foliage(forest: object, counts: dict[str, int], edge: float) -> Foliage:
     want = np.rint(np.asarray(facet_density(sigma, edge)) * volume).astype(np.int64)
     idx = np.flatnonzero((want > 0) & _near_track(forest, st.base[:, :2], cr))
     apex = st.centre(idx, intact[idx])
-    # a broken top keeps the crown below its break
+    # a broken top keeps the crown below its break (none where it broke below the crown)
     cut = np.maximum(0.0, np.einsum("ij,ij->i", apex - st.base[idx], st.axis[idx])
                      - st.length[idx])
+    left = cut < cl[idx]
+    idx, apex, cut = idx[left], apex[left], cut[left]
     crowns = Crowns(apex, -st.axis[idx], cl[idx], cr[idx], cut,
                     np.where(spc[idx] == 2, ELLIPSOID, CONE).astype(np.int8), sigma[idx])
     counts["foliage_crowns"] = len(idx)
