@@ -37,6 +37,21 @@ def scene(c: Crowns, vertices: np.ndarray = FAR_WALL[0], faces: np.ndarray = FAR
     return ds
 
 
+def along_x(m: int, seed: int, half_width: float, z: tuple[float, float]
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """``m`` rays along +x from x = -5 m, y within ``half_width``, z uniform in ``z``."""
+    rng = np.random.default_rng(seed)
+    o = np.column_stack([np.full(m, -5.0), rng.uniform(-half_width, half_width, m),
+                         rng.uniform(*z, m)])
+    return o, np.tile([1.0, 0.0, 0.0], (m, 1))
+
+
+def intervals(c: Crowns, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(m, 2): each ray's exact interval in the first crown."""
+    row = c.table()[0]
+    return np.array([interval(row, *o[i], *d[i]) for i in range(len(o))])
+
+
 def inside(row: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Whether points p (n, 3) lie in the crown ``row`` (a :meth:`Crowns.table` row)."""
     apex, w = row[0:3], row[3:6]
@@ -91,14 +106,9 @@ def test_crowns_stop_rays_as_beer_lambert_says(shape: int) -> None:
     sigma = 0.6
     c = crowns([((0.0, 0.0, 10.0), (0.0, 0.0, -1.0), 8.0, 2.0, 0.0, shape, sigma)])
     ds = scene(c)
-    rng = np.random.default_rng(1)
-    m = 60_000
-    o = np.column_stack([np.full(m, -5.0), rng.uniform(-2.0, 2.0, m),
-                         rng.uniform(2.0, 10.0, m)])
-    d = np.tile([1.0, 0.0, 0.0], (m, 1))
+    o, d = along_x(60_000, 1, 2.0, (2.0, 10.0))
     t, prim, cn = ds.cast_n(o.astype(np.float32), d.astype(np.float32))
-    row = c.table()[0]
-    iv = np.array([interval(row, *o[i], *d[i]) for i in range(m)])
+    iv = intervals(c, o, d)
     chord = np.maximum(iv[:, 1] - iv[:, 0], 0.0)
     stopped = prim == -2
     assert set(np.unique(prim).tolist()) <= {-2, 0}
@@ -118,11 +128,8 @@ def test_overlapping_crowns_add_their_density_and_share_the_hits() -> None:
     b = ((0.0, 0.0, 10.0), (0.0, 0.0, -1.0), 8.0, 2.0, 0.0, ELLIPSOID, 0.6)
     ds = scene(crowns([a, b]))
     one = scene(crowns([a[:6] + (0.8,)]))
-    rng = np.random.default_rng(2)
-    m = 40_000
-    o = np.column_stack([np.full(m, -5.0), rng.uniform(-1.0, 1.0, m),
-                         rng.uniform(4.0, 8.0, m)]).astype(np.float32)
-    d = np.tile(np.float32([1.0, 0.0, 0.0]), (m, 1))
+    o64, d64 = along_x(40_000, 2, 1.0, (4.0, 8.0))
+    o, d = o64.astype(np.float32), d64.astype(np.float32)
     t2, p2, _ = ds.cast_n(o, d)
     t1, p1, _ = one.cast_n(o, d)
     assert np.array_equal(t1, t2)  # the same draw, the same summed density
@@ -140,16 +147,11 @@ def test_a_solid_in_front_hides_the_crown_and_one_inside_it_cuts_the_path() -> N
     wall = (np.array([[0.0, -50.0, -50.0], [0.0, 50.0, -50.0], [0.0, 0.0, 50.0]]),
             np.array([[0, 1, 2]]))
     ds = scene(c, *wall)
-    rng = np.random.default_rng(4)
-    m = 40_000
-    o = np.column_stack([np.full(m, -5.0), rng.uniform(-1.5, 1.5, m),
-                         rng.uniform(4.0, 8.0, m)])
-    d = np.tile([1.0, 0.0, 0.0], (m, 1))
+    o, d = along_x(40_000, 4, 1.5, (4.0, 8.0))
     t, prim, _ = ds.cast_n(o.astype(np.float32), d.astype(np.float32))
     stopped = prim == -2
     assert (t[stopped] <= 5.0 + 1e-4).all() and (t[~stopped] == pytest.approx(5.0, abs=1e-4))
-    row = c.table()[0]
-    iv = np.array([interval(row, *o[i], *d[i]) for i in range(m)])
+    iv = intervals(c, o, d)
     front = np.clip(np.minimum(iv[:, 1], 5.0) - iv[:, 0], 0.0, None)
     want = float(np.sum(1.0 - np.exp(-sigma * front)))
     assert abs(stopped.sum() - want) < 4.0 * math.sqrt(want) + 10
