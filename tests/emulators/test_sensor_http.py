@@ -188,13 +188,21 @@ def test_a_reinit_during_a_recorded_stream_starts_a_new_recording(tmp_path: Path
         udp_port_lidar=udp[0].getsockname()[1], udp_port_imu=udp[1].getsockname()[1],
         on_result=results.append))
     worker.start()
+
+    def receive(packets: int) -> None:
+        """Wait for ``packets`` lidar packets (the stream's own pace, not a fixed time: on a
+        busy machine building the scene alone may take a second)."""
+        udp[0].settimeout(60.0)
+        for _ in range(packets):
+            udp[0].recv(65536)
+
     try:
         assert ready.wait(60)
-        time.sleep(1.0)
+        receive(5 * 32)  # five 512x20 frames (32 packets each)
         req = urllib.request.Request(f"http://127.0.0.1:{port}/api/v1/sensor/config?reinit=true",
                                      data=b'{"lidar_mode": "1024x10"}', method="POST")
         assert urllib.request.urlopen(req, timeout=5).status == 200
-        time.sleep(1.5)
+        receive(5 * 64 + 400)  # five 1024x10 frames, after what the first stream left queued
     finally:
         stop.set()
         worker.join(60)
