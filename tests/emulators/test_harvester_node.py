@@ -55,6 +55,20 @@ def collect(bus: can.BusABC, seconds: float) -> list[can.Message]:
     return out
 
 
+def collect_until(bus: can.BusABC, arbitration_id: int, count: int,
+                  seconds: float = 10.0) -> list[can.Message]:
+    """What comes until ``count`` frames of ``arbitration_id`` have (the node's own pace, not
+    a fixed window: on a busy machine a 0.3 s window may hold a third of them), or
+    ``seconds`` pass."""
+    out, end, seen = [], time.monotonic() + seconds, 0
+    while seen < count and (left := end - time.monotonic()) > 0:
+        m = bus.recv(left)
+        if m is not None:
+            out.append(m)
+            seen += m.arbitration_id == arbitration_id
+    return out
+
+
 def drain(bus: can.BusABC) -> None:
     """Wait for the node to act on what was just sent, then forget what came before."""
     time.sleep(0.05)
@@ -103,7 +117,7 @@ def test_nmt_states_gate_the_pdos_and_resets_boot_again(bus_name: str,
                 bytes(m.data) == b"\x7f" for m in msgs if m.arbitration_id == 0x70A)
             master.send(can.Message(arbitration_id=0, data=[1, 10], is_extended_id=False))
             drain(monitor)
-            msgs = collect(monitor, 0.3)
+            msgs = collect_until(monitor, 0x18A, 20)
             assert sum(m.arbitration_id == 0x18A for m in msgs) >= 20
             master.send(can.Message(arbitration_id=0, data=[2, 0], is_extended_id=False))
             drain(monitor)
@@ -117,12 +131,12 @@ def test_nmt_states_gate_the_pdos_and_resets_boot_again(bus_name: str,
             assert not [m for m in msgs if 0x180 <= m.arbitration_id < 0x500]
             master.send(can.Message(arbitration_id=0, data=[1, 0], is_extended_id=False))
             drain(monitor)
-            msgs = collect(monitor, 0.3)
+            msgs = collect_until(monitor, 0x38A, 20)
             assert sum(m.arbitration_id == 0x38A for m in msgs) >= 20
             # another node's command is not ours
             master.send(can.Message(arbitration_id=0, data=[2, 11], is_extended_id=False))
             drain(monitor)
-            msgs = collect(monitor, 0.2)
+            msgs = collect_until(monitor, 0x38A, 10)
             assert sum(m.arbitration_id == 0x38A for m in msgs) >= 10
     finally:
         master.shutdown()
