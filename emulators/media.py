@@ -149,10 +149,6 @@ class Crowns:
         head = np.array([x0, y0, cell_m, nx, ny, lo[:, 2].min(), hi[:, 2].max()])
         return head, start, crown, zr
 
-    def volume(self) -> NDArray[np.float64]:
-        """Each whole crown's volume (m^3; a cut aside)."""
-        return np.where(self.shape == CONE, math.pi * self.radius**2 * self.length / 3.0,
-                        4.0 / 3.0 * math.pi * self.radius**2 * self.length / 2.0)
 
 
 def interval(row: Any, ox: float, oy: float, oz: float, dx: float, dy: float, dz: float
