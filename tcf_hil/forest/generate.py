@@ -15,7 +15,7 @@ from tcf_hil.errors import ConfigError
 from tcf_hil.forest.dbh import draw_dbh
 from tcf_hil.forest.placement import place_stems
 from tcf_hil.forest.species import SPECIES
-from tcf_hil.forest.stems import BREAST_HEIGHT_M, StemSet, concat_stems
+from tcf_hil.forest.stems import BREAST_HEIGHT_M, StemSet, axial_samples, concat_stems
 from tcf_hil.forest.terrain import Terrain
 from tcf_hil.scenario import CLASSES, Scenario
 
@@ -189,18 +189,20 @@ class Forest:
 
 def _conflicts(stems: StemSet, step: float = 0.1,
                only: NDArray[np.int64] | None = None,
-               owner: NDArray[np.int64] | None = None) -> list[tuple[int, int]]:
+               owner: NDArray[np.int64] | None = None,
+               reach: FloatArray | None = None) -> list[tuple[int, int]]:
     """Pairs of stems whose surfaces come closer than the clearance (sampled centre lines).
 
     Args:
         only: check just the pairs that involve these stems.
         owner: the tree each tube belongs to; tubes of one tree (a stem and its second
             leader) never conflict.
+        reach: :meth:`StemSet.max_reach` where the caller has it.
     """
     n = len(stems)
     if n < 2:
         return []
-    reach = stems.max_reach()
+    reach = stems.max_reach() if reach is None else reach
     pairs = cKDTree(stems.base[:, :2]).query_pairs(2.0 * float(reach.max()) + _CLEARANCE_M,
                                                     output_type="ndarray")
     if len(pairs) == 0:
@@ -213,19 +215,25 @@ def _conflicts(stems: StemSet, step: float = 0.1,
         pairs = pairs[mark[pairs[:, 0]] | mark[pairs[:, 1]]]
     if owner is not None:
         pairs = pairs[owner[pairs[:, 0]] != owner[pairs[:, 1]]]
-    cache: dict[int, tuple[FloatArray, FloatArray, cKDTree]] = {}
-
-    def samples(i: int) -> tuple[FloatArray, FloatArray, cKDTree]:
-        if i not in cache:
-            s = np.arange(-stems.below[i], stems.length[i] + step, step)
-            c = stems.centre(np.full(len(s), i), s)
-            cache[i] = (c, stems.radius(np.full(len(s), i), s), cKDTree(c))
-        return cache[i]
+    if len(pairs) == 0:
+        return []
+    # every stem in a pair sampled along its centre line, all at once
+    used = np.unique(pairs)
+    s, counts = axial_samples(-stems.below[used], stems.length[used] + step, step)
+    rows = np.repeat(used, counts)
+    c_all, r_all = stems.centre(rows, s), stems.radius(rows, s)
+    at = np.zeros(n + 1, np.int64)
+    at[used + 1] = counts
+    at = np.cumsum(at)  # stem i's samples: at[i]:at[i + 1] (used stems only)
+    trees: dict[int, cKDTree] = {}
 
     out = []
     for i, j in pairs.tolist():
-        ci, ri, _ = samples(i)
-        _, rj, tj = samples(j)
+        ci, ri = c_all[at[i]:at[i + 1]], r_all[at[i]:at[i + 1]]
+        rj = r_all[at[j]:at[j + 1]]
+        tj = trees.get(j)
+        if tj is None:
+            tj = trees[j] = cKDTree(c_all[at[j]:at[j + 1]])
         # Radii change slowly along a stem, so the nearest sample pair decides; the extra
         # step covers the sampling gap.
         dist, k = tj.query(ci, distance_upper_bound=float(ri.max() + rj.max()) + 1.0)
@@ -275,8 +283,9 @@ def generate_forest(scn: Scenario, seed: int | None = None) -> Forest:
     # Stems never intersect: turn a conflicting stem's bend (and lean) until it is clear.
     fix = _rng(seed, _STREAM_FIX)
     changed: NDArray[np.int64] | None = None
+    reach = stems.max_reach()
     for _attempt in range(40):
-        bad = sorted({j for _, j in _conflicts(stems, only=changed)})
+        bad = sorted({j for _, j in _conflicts(stems, only=changed, reach=reach)})
         if not bad:
             break
         ix = changed = np.asarray(bad)
@@ -284,6 +293,7 @@ def generate_forest(scn: Scenario, seed: int | None = None) -> Forest:
         axis[ix] = _axes(lean[ix], lean_az[ix])
         stems.bend[ix] = _unit_perp(axis[ix], fix.uniform(0.0, 2.0 * math.pi, len(ix)))
         stems.length[ix] = height[ix] / axis[ix, 2]
+        reach[ix] = stems.max_reach(ix)  # the others' stay as they were
     else:
         if scn.distribution.kind == "even":
             raise ConfigError("stems.count", scn.stems.count,
@@ -306,12 +316,18 @@ def _natural_forest(scn: Scenario, seed: int, terrain: Terrain, xy: FloatArray) 
     dr = natural.draw(scn, base, _rng(seed, _STREAM_NATURAL))
     fix = _rng(seed, _STREAM_NATURAL_FIX)
     changed: NDArray[np.int64] | None = None
+    reach: FloatArray | None = None
     for _attempt in range(40):
         stems, parts, owner, kinds = natural.build(scn, dr)
         tubes = concat_stems(stems, parts)
         who = np.concatenate([np.arange(n), owner]).astype(np.int64)
         only = None if changed is None else np.flatnonzero(np.isin(who, changed))
-        bad = sorted({int(who[j]) for _, j in _conflicts(tubes, only=only, owner=who)})
+        if reach is None or only is None:
+            reach = tubes.max_reach()
+        else:  # a redrawn tree's tubes changed; the others' are built as before
+            reach[only] = tubes.max_reach(only)
+        bad = sorted({int(who[j]) for _, j in _conflicts(tubes, only=only, owner=who,
+                                                            reach=reach)})
         if not bad:
             break
         ix = changed = np.asarray(bad)

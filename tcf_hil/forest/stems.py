@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -41,19 +42,21 @@ IntArray = NDArray[np.int64]
 BREAST_HEIGHT_M = 1.3
 
 
-def _bow(t: FloatArray, p: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """f(t), f'(t), f''(t) of the bow profile; t outside [0, 1] gives zeros."""
+def _bow(t: FloatArray, p: FloatArray, order: int = 0) -> FloatArray:
+    """f(t) (``order`` 0), f'(t) (1) or f''(t) (2) of the bow profile; t outside [0, 1]
+    gives zeros."""
     inside = (t >= 0.0) & (t <= 1.0)
     lo = t <= p
     q = np.where(lo, p, 1.0 - p)
     u = np.where(lo, t / p, (1.0 - t) / (1.0 - p))
-    sgn = np.where(lo, 1.0, -1.0)
     a = 0.5 * math.pi / q
-    f = np.sin(0.5 * math.pi * u)
-    df = sgn * a * np.cos(0.5 * math.pi * u)
-    d2f = -(a**2) * f
-    zero = np.zeros_like(t)
-    return np.where(inside, f, zero), np.where(inside, df, zero), np.where(inside, d2f, zero)
+    if order == 1:
+        out = np.where(lo, 1.0, -1.0) * a * np.cos(0.5 * math.pi * u)
+    else:
+        out = np.sin(0.5 * math.pi * u)
+        if order == 2:
+            out = -(a**2) * out
+    return np.where(inside, out, np.zeros_like(t))
 
 
 @dataclass(frozen=True)
@@ -92,11 +95,23 @@ class StemSet:
     def _dcds(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """dC/ds (not normalised); below the base it is the value at the base."""
         L = self.length[idx]
-        _, df, _ = _bow(np.clip(s, 0.0, None) / L, self.peak[idx])
+        df = _bow(np.clip(s, 0.0, None) / L, self.peak[idx], 1)
         out = self.axis[idx] + (self.sweep[idx] * df / L)[:, None] * self.bend[idx]
         if self.crook is not None:
-            _, dg, _ = self._crook(idx, np.clip(s, 0.0, None))
-            out = out + dg[:, None] * self.crook[idx]
+            k = self._crooked(idx)
+            _, dg, _ = self._crook(idx[k], np.clip(s[k], 0.0, None))
+            out[k] += dg[:, None] * self.crook[idx[k]]
+        return out
+
+    def _crooked(self, idx: IntArray) -> NDArray[np.bool_]:
+        """Which of stems ``idx`` have a crook (the others' adds nothing)."""
+        out: NDArray[np.bool_] = self._has_crook[idx]
+        return out
+
+    @cached_property
+    def _has_crook(self) -> NDArray[np.bool_]:
+        assert self.crook is not None
+        out: NDArray[np.bool_] = np.any(self.crook != 0.0, axis=1)
         return out
 
     def _crook(self, idx: IntArray, s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -115,14 +130,18 @@ class StemSet:
         base (s < 0) the line goes on straight along its direction at the base, so it has no
         kink where the stem meets the ground."""
         t = s / self.length[idx]
-        f, _, _ = _bow(t, self.peak[idx])
-        above = (self.base[idx] + s[:, None] * self.axis[idx]
-                 + (self.sweep[idx] * f)[:, None] * self.bend[idx])
+        f = _bow(t, self.peak[idx])
+        out = (self.base[idx] + s[:, None] * self.axis[idx]
+               + (self.sweep[idx] * f)[:, None] * self.bend[idx])
         if self.crook is not None:
-            g, _, _ = self._crook(idx, s)
-            above = above + g[:, None] * self.crook[idx]
-        below = self.base[idx] + s[:, None] * self._dcds(idx, np.zeros_like(s))
-        return np.where((s < 0)[:, None], below, above)
+            k = self._crooked(idx)
+            g, _, _ = self._crook(idx[k], s[k])
+            out[k] += g[:, None] * self.crook[idx[k]]
+        below = s < 0
+        if below.any():
+            ib = idx[below]
+            out[below] = self.base[ib] + s[below, None] * self._dcds(ib, np.zeros(len(ib)))
+        return out
 
     def tangent(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """Unit tangents (m, 3) of the centre line."""
@@ -159,11 +178,12 @@ class StemSet:
     def curvature_bound(self, idx: IntArray, s: FloatArray) -> FloatArray:
         """|d2C/ds2| (1/m): how fast the centre line bends."""
         L = self.length[idx]
-        _, _, d2f = _bow(s / L, self.peak[idx])
+        d2f = _bow(s / L, self.peak[idx], 2)
         out = np.abs(self.sweep[idx] * d2f) / L**2
         if self.crook is not None:
-            _, _, d2g = self._crook(idx, s)
-            out = out + np.abs(d2g) * np.linalg.norm(self.crook[idx], axis=1)
+            k = self._crooked(idx)
+            _, _, d2g = self._crook(idx[k], s[k])
+            out[k] += np.abs(d2g) * np.linalg.norm(self.crook[idx[k]], axis=1)
         return out
 
     def radius(self, idx: IntArray, s: FloatArray) -> FloatArray:
@@ -183,7 +203,7 @@ class StemSet:
         assert self.species is not None and self.taper_length is not None
         sp = np.maximum(self.species[idx], 0)
         T = self.taper_length[idx]
-        scale = self.r_bh[idx] / taper_poly(sp, 1.0 - BREAST_HEIGHT_M / T)
+        scale = self._taper_scale[idx]
         inside = (s <= T) & (s >= 0.0)
         d = taper_poly(sp, 1.0 - s / T, derivative) * (-1.0 / T) ** derivative
         out = scale * np.where(inside | (derivative == 0), d, 0.0)
@@ -193,6 +213,16 @@ class StemSet:
             # meets the ground, which a slope shows on its downhill side)
             slope = scale[below] * taper_poly(sp[below], np.ones(int(below.sum())), 1) / -T[below]
             out[below] = slope if derivative == 1 else out[below] + slope * s[below]
+        return out
+
+    @cached_property
+    def _taper_scale(self) -> FloatArray:
+        """Each stem's r_bh / P(1 - 1.3/T): its taper curve's radius per unit of P."""
+        from tcf_hil.forest.species import taper_poly
+
+        assert self.species is not None and self.taper_length is not None
+        out: FloatArray = self.r_bh / taper_poly(
+            np.maximum(self.species, 0), 1.0 - BREAST_HEIGHT_M / self.taper_length)
         return out
 
     def radius_d2(self, idx: IntArray, s: FloatArray) -> FloatArray:
@@ -234,17 +264,34 @@ class StemSet:
         idx = np.full(n, i)
         return self.centre(idx, s), self.radius(idx, s)
 
-    def max_reach(self) -> FloatArray:
-        """Largest horizontal distance of any stem surface point from its base (m)."""
-        n = len(self)
+    def max_reach(self, idx: IntArray | None = None) -> FloatArray:
+        """Largest horizontal distance of any stem surface point from its base (m), of
+        stems ``idx`` (all by default; each stem's the same either way)."""
+        ix = np.arange(len(self)) if idx is None else np.asarray(idx, np.int64)
+        n = len(ix)
         m = 64
-        s = (np.linspace(-1.0, 1.0, m)[None, :] * np.maximum(self.length, self.below)[:, None])
-        s = np.clip(s, -self.below[:, None], self.length[:, None]).ravel()
-        idx = np.repeat(np.arange(n), m)
-        c = self.centre(idx, s)
-        horiz = np.hypot(c[:, 0] - self.base[idx, 0], c[:, 1] - self.base[idx, 1]).reshape(n, m)
-        r = self.radius(idx, s).reshape(n, m)
-        return np.max(horiz + r, axis=1)
+        s = (np.linspace(-1.0, 1.0, m)[None, :]
+             * np.maximum(self.length[ix], self.below[ix])[:, None])
+        s = np.clip(s, -self.below[ix, None], self.length[ix, None]).ravel()
+        rows = np.repeat(ix, m)
+        c = self.centre(rows, s)
+        horiz = np.hypot(c[:, 0] - self.base[rows, 0],
+                         c[:, 1] - self.base[rows, 1]).reshape(n, m)
+        r = self.radius(rows, s).reshape(n, m)
+        out: FloatArray = np.max(horiz + r, axis=1)
+        return out
+
+
+def axial_samples(lo: FloatArray, hi: FloatArray, step: float) -> tuple[FloatArray, IntArray]:
+    """Each row's ``np.arange(lo, hi, step)``, all at once: the points (concatenated) and
+    how many each row has (the same values as the calls one by one)."""
+    lo = np.asarray(lo, np.float64)
+    hi = np.asarray(hi, np.float64)
+    counts = np.maximum(np.ceil((hi - lo) / step), 0).astype(np.int64)
+    row = np.repeat(np.arange(len(lo)), counts)
+    k = np.arange(len(row)) - np.repeat(np.cumsum(counts) - counts, counts)
+    delta = (lo + step) - lo  # what np.arange steps by
+    return lo[row] + k * delta[row], counts
 
 
 def concat_stems(a: StemSet, b: StemSet) -> StemSet:

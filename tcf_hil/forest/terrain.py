@@ -28,6 +28,12 @@ FloatArray = NDArray[np.float64]
 _CHUNK = 1 << 18
 
 
+EXACT_GRID_VERTICES = 2_000_000
+"""Up to this many vertices :meth:`Terrain.grid` evaluates :meth:`Terrain.height` at each
+(the paper's forests have 0.1-0.2 M: their terrain keeps its bytes); above it, the lattice
+by matrix products (:meth:`Terrain.lattice_height`), tens of times faster."""
+
+
 @dataclass(frozen=True)
 class Terrain:
     """A terrain heightfield.
@@ -164,8 +170,28 @@ class Terrain:
             nx, ny = max(2, int(nx / scale)), max(2, int(ny / scale))
         xs = np.linspace(x0, x1, nx)
         ys = np.linspace(y0, y1, ny)
-        z = self.height(xs[None, :], ys[:, None])
-        return xs, ys, z
+        if nx * ny <= EXACT_GRID_VERTICES:  # the paper's forests' terrain, bit for bit
+            return xs, ys, self.height(xs[None, :], ys[:, None])
+        return xs, ys, self.lattice_height(xs, ys)
+
+    def lattice_height(self, xs: FloatArray, ys: FloatArray) -> FloatArray:
+        """:meth:`height` over the lattice ``xs`` by ``ys`` (z[ny, nx]), wave by wave as
+        cos(kx x + ky y + phase) = cos(kx x) cos(ky y + phase) - sin(kx x) sin(ky y +
+        phase): two matrix products of (ny, waves) by (waves, nx) instead of a cosine at
+        every vertex and wave (a 50 ha stand's 13.5 M vertices times 40 waves took 20 s);
+        the same heights to a few 1e-15 m (growing with the lattice's extent: the waves'
+        phases are larger far out). :meth:`grid` takes it above
+        :data:`EXACT_GRID_VERTICES`."""
+        xs = np.asarray(xs, np.float64)
+        ys = np.asarray(ys, np.float64)
+        z = np.empty((len(ys), len(xs)))
+        z[:] = self._plane(xs[None, :], ys[:, None])
+        if not len(self.waves):
+            return z
+        kx, ky, a, ph = self.waves.T
+        ax, ay = np.multiply.outer(kx, xs), np.multiply.outer(ky, ys) + ph[:, None]
+        z += (np.cos(ay) * a[:, None]).T @ np.cos(ax) - (np.sin(ay) * a[:, None]).T @ np.sin(ax)
+        return z
 
     def to_doc(self, origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, Any]:
         """The terrain as ground-truth JSON: enough to evaluate the height anywhere."""

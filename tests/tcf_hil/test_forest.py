@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hs
 from scipy.spatial import cKDTree
 
 from tcf_hil.errors import ConfigError
@@ -282,3 +284,61 @@ def test_no_meshes_removes_another_forests_meshes(tmp_path: Path) -> None:
     assert (tmp_path / "stems.ply").exists()
     write_forest(generate_forest(load_scenario("forest-ii")), tmp_path, meshes=False)
     assert not (tmp_path / "stems.ply").exists() and not (tmp_path / "terrain.ply").exists()
+
+
+@given(hs.lists(hs.tuples(hs.floats(-5.0, 5.0), hs.floats(-5.0, 40.0)), min_size=1,
+                max_size=30), hs.sampled_from([0.01, 0.05, 0.1, 0.15]))
+@settings(max_examples=200, deadline=None)
+def test_axial_samples_are_each_rows_arange(rows: list[tuple[float, float]],
+                                            step: float) -> None:
+    from tcf_hil.forest.stems import axial_samples
+
+    lo = np.array([r[0] for r in rows])
+    hi = np.array([r[1] for r in rows])
+    s, counts = axial_samples(lo, hi, step)
+    want = [np.arange(a, b, step) for a, b in zip(lo, hi, strict=True)]
+    assert counts.tolist() == [len(w) for w in want]
+    assert np.array_equal(s, np.concatenate(want))
+
+
+def _rings_one_by_one(stems, i, tolerance_m, max_ring_step_m=2.0, probe_step_m=0.05):  # type: ignore[no-untyped-def]
+    """The ring positions as :func:`ring_positions` found them stem by stem before they
+    were probed for all stems at once (at 646b767), kept here as the reference."""
+    L = float(stems.length[i])
+    lo = -float(stems.below[i])
+    probe = np.arange(lo, L, probe_step_m)
+    idx = np.full(len(probe), i)
+    bend = stems.curvature_bound(idx, probe) + stems.radius_d2(idx, probe)
+    step = np.minimum(max_ring_step_m, np.sqrt(8.0 * tolerance_m / np.maximum(bend, 1e-12)))
+    density = np.concatenate([[0.0], np.cumsum(probe_step_m / step)])
+    grid = np.concatenate([probe, [L]])
+    count = max(1, math.ceil(density[-1]))
+    s = np.interp(np.linspace(0.0, density[-1], count + 1), density, grid)
+    s[0], s[-1] = lo, L
+    return np.unique(np.concatenate([s, [0.0]]))
+
+
+def test_ring_positions_of_all_stems_at_once_are_each_stems_own() -> None:
+    """The rings found for stems probed together (batched by length) are those the old
+    stem-by-stem loop found, bit for bit, on a natural stand (crooks, species taper) and a
+    paper one, at the curves' 1 cm probes and the meshes' 5 cm."""
+    from tcf_hil.forest.mesh import all_ring_positions
+
+    for name in ("forest-x", "pine-thinning"):
+        st = generate_forest(load_scenario(name)).stems
+        pick = np.arange(0, len(st), max(1, len(st) // 40))
+        for tol, probe in ((1e-4, 0.01), (5e-4, 0.05)):
+            together = all_ring_positions(st, tol, probe_step_m=probe)
+            for i in pick.tolist():
+                assert np.array_equal(together[i], _rings_one_by_one(st, i, tol,
+                                                                     probe_step_m=probe))
+
+
+def test_the_terrain_lattice_is_its_heights() -> None:
+    """:meth:`Terrain.lattice_height` (waves separated into x and y) against
+    :meth:`Terrain.height` at every vertex, with the micro-relief's short waves."""
+    t = generate_forest(load_scenario("pine-thinning")).terrain
+    assert len(t.waves) > 16
+    xs, ys = np.linspace(-70.0, 55.0, 301), np.linspace(-40.0, 80.0, 257)
+    assert np.allclose(t.lattice_height(xs, ys), t.height(xs[None, :], ys[:, None]),
+                       rtol=0, atol=5e-14)
