@@ -1,7 +1,8 @@
 """Natural stands: what it costs to generate them, and what culling by the track saves.
 
 Run: ``python benchmarks/bench_stands.py [--big-ha 50] [--frames 20]
-[--geometries curves,mesh] [--json OUT]``
+[--geometries curves,mesh] [--culling-ha 4] [--ranges 20,40,60,80] [--skip-big]
+[--skip-culling] [--json OUT]``
 
 1. Generation: each stand in a fresh process (its peak memory is the process's): the stems
    and their ground truth, then the scenery (branches, foliage, understory, ...), then the
@@ -9,16 +10,19 @@ Run: ``python benchmarks/bench_stands.py [--big-ha 50] [--frames 20]
    ``--geometries``), for ``pine-thinning`` (1 ha) and a ``pine-thinning`` of ``--big-ha``
    hectares with ``stand.detail_range_m`` = 60 m (the detail the sensor can reach from the
    track).
-2. Culling: ``pine-thinning``'s first ``--frames`` frames at 1024x10 with the realistic sensor,
-   built whole and with ``detail_range_m`` = 20, 30 and 40 m: the triangles each keeps,
-   and how many returns differ from the whole stand's (byte for byte: range, signal,
-   reflectivity and the object hit of every pixel).
+2. Culling: a ``pine-thinning`` of ``--culling-ha`` hectares (4: the 100 m track through
+   the middle of a 200 m square), its first ``--frames`` frames at 1024x10 with the
+   realistic sensor, built whole and with ``detail_range_m`` = ``--ranges``: what each
+   keeps, and how many pixels differ from the whole stand's: the object hit, the return
+   (range, signal, reflectivity: any field but NEAR_IR), the ambient NEAR_IR, and whether
+   the packets are byte for byte the same.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import resource
 import subprocess
 import sys
@@ -65,30 +69,44 @@ def generation(ha: float, rng_m: float, geometry: str) -> dict[str, Any]:
     return row
 
 
-def culling(frames: int, ranges: list[float]) -> list[dict[str, Any]]:
+def culling(frames: int, ranges: list[float], ha: float) -> list[dict[str, Any]]:
     from tcf_hil.lidar import LidarRun
     from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
 
     base = scenario_to_dict(load_scenario("pine-thinning"))
+    side = 100.0 * math.sqrt(ha)
+    base["plot"]["size_m"] = [side, side]
+    base["stems"]["count"] = round(2200 * ha)
     ref: list[Any] | None = None
     rows = []
     for r in [0.0, *ranges]:
         d = json.loads(json.dumps(base))
         d["stand"]["detail_range_m"] = r
+        t0 = time.perf_counter()
         run = LidarRun(scenario_from_dict(d), mode="1024x10", max_frames=frames)
         sc = run.forest.scenery()
+        build = time.perf_counter() - t0
         t0 = time.perf_counter()
-        got = [(fr.packets.copy(), fr.stem_id.copy()) for fr, _ in run.datagrams()]
+        got = [(fr.packets.copy(), fr.stem_id.copy(), fr.fields) for fr, _ in run.datagrams()]
         dt = (time.perf_counter() - t0) / frames
         if ref is None:
             ref = got
-        diff = sum(int(np.count_nonzero(a[1] != b[1])) for a, b in zip(got, ref, strict=True))
-        bytes_same = all(np.array_equal(a[0], b[0]) for a, b in zip(got, ref, strict=True))
-        rows.append({"detail_range_m": r, "triangles": len(run.scene.faces),
+        pairs = list(zip(got, ref, strict=True))
+        diff = sum(int(np.count_nonzero(a[1] != b[1])) for a, b in pairs)
+        ret = sum(int(np.count_nonzero(np.any([a[2][k] != b[2][k] for k in a[2]
+                                                if k != "NEAR_IR"], axis=0)))
+                  for a, b in pairs)
+        nir = sum(int(np.count_nonzero(a[2]["NEAR_IR"] != b[2]["NEAR_IR"])) for a, b in pairs)
+        bytes_same = all(np.array_equal(a[0], b[0]) for a, b in pairs)
+        rows.append({"ha": ha, "detail_range_m": r,
+                     "branch_segments": run.scene.curve_count,
                      "scenery_triangles": sc.solid_triangles if sc is not None else 0,
                      "crowns": len(sc.foliage) if sc is not None else 0,
-                     "pixels_whose_object_differs": diff, "packets_identical": bytes_same,
-                     "ms_per_frame": 1000.0 * dt})
+                     "pixels": frames * run.meta.pixels * run.meta.columns,
+                     "pixels_whose_object_differs": diff, "returns_that_differ": ret,
+                     "near_ir_that_differs": nir, "packets_identical": bytes_same,
+                     "build_s": build, "ms_per_frame": 1000.0 * dt,
+                     "peak_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6})
         print(rows[-1], flush=True)
     return rows
 
@@ -101,6 +119,11 @@ def main() -> None:
     ap.add_argument("--skip-big", action="store_true")
     ap.add_argument("--skip-culling", action="store_true")
     ap.add_argument("--geometries", default="curves,mesh")
+    ap.add_argument("--culling-ha", type=float, default=4.0,
+                    help="the stand culling is measured on (the track, 100 m, through its "
+                         "middle)")
+    ap.add_argument("--ranges", default="20,40,60,80",
+                    help="stand.detail_range_m values to compare with the whole stand")
     a = ap.parse_args()
     res: dict[str, Any] = {"generation": [], "culling": []}
     for ha, rng_m in ([(1.0, 0.0)] + ([] if a.skip_big else [(a.big_ha, 60.0)])):
@@ -114,7 +137,8 @@ def main() -> None:
                   f"{row['scene_curve_primitives'] / 1e6:.2f} M curve primitives, peak "
                   f"{row['peak_gb']:.2f} GB", flush=True)
     if not a.skip_culling:
-        res["culling"] = culling(a.frames, [20.0, 30.0, 40.0])
+        res["culling"] = culling(a.frames, [float(v) for v in a.ranges.split(",")],
+                                 a.culling_ha)
     print(f"(this process peak {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6:.2f} GB)")
     if a.json:
         with open(a.json, "w") as fh:

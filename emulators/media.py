@@ -126,7 +126,11 @@ class Crowns:
         v32, _ = self.envelopes()
         v = v32.astype(np.float64).reshape(len(self), -1, 3)
         lo, hi = v.min(axis=1), v.max(axis=1)
-        x0, y0 = lo[:, 0].min() - cell_m, lo[:, 1].min() - cell_m
+        # the cells on a lattice fixed to the world (multiples of the side, exact in
+        # binary for a side such as 1.5 m), so that a stand culled to the track walks its
+        # rays through the very cells the whole stand's does
+        x0 = (math.floor(lo[:, 0].min() / cell_m) - 1) * cell_m
+        y0 = (math.floor(lo[:, 1].min() / cell_m) - 1) * cell_m
         nx = math.ceil((hi[:, 0].max() - x0) / cell_m) + 1
         ny = math.ceil((hi[:, 1].max() - y0) / cell_m) + 1
         i0 = np.floor((lo[:, 0] - x0) / cell_m).astype(np.int64)
@@ -271,8 +275,8 @@ def march(crowns: Any, head: Any, start: Any, items: Any, zr: Any, ox: float, oy
     """Where the ray o + t d (d unit) stops in the crowns short of ``t_max`` (``crowns``
     their table, the rest their :meth:`Crowns.grid`): its optical depth reaches ``tau``;
     inf where it passes them. The crowns it entered go into ``ids`` with their intervals
-    (``a``, ``b``) and extinction (``s``) (each at most :data:`MAX_CROWNS` long); their
-    number is returned."""
+    (``a``, ``b``) and extinction (``s``) (each at most :data:`MAX_CROWNS` long), in the
+    order of their numbers; their number is returned."""
     x0, y0, cell = head[0], head[1], head[2]
     nx, ny = int(head[3]), int(head[4])
     n_cells = nx * ny
@@ -314,8 +318,17 @@ def march(crowns: Any, head: Any, start: Any, items: Any, zr: Any, ox: float, oy
                 u, v = interval(crowns[cid], ox, oy, oz, dx, dy, dz)
                 v = min(v, t_max)
                 if v > max(u, 0.0):  # only the crowns it enters (others may come again)
-                    ids[n] = cid
-                    a[n], b[n], s[n] = max(u, 0.0), v, crowns[cid, SIGMA]
+                    # kept in the order of their numbers, not of the cells they were found
+                    # in: what is summed, and which crown is picked where several hold the
+                    # stop, then follows the crowns alone (a stand culled to the track,
+                    # its crowns numbered afresh in the same order, stops a ray where the
+                    # whole stand does, in the same crown)
+                    j = n
+                    while j > 0 and ids[j - 1] > cid:
+                        ids[j], a[j], b[j], s[j] = ids[j - 1], a[j - 1], b[j - 1], s[j - 1]
+                        j -= 1
+                    ids[j] = cid
+                    a[j], b[j], s[j] = max(u, 0.0), v, crowns[cid, SIGMA]
                     n += 1
                     added = True
             if added:

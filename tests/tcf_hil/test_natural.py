@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from tcf_hil.errors import ConfigError
 from tcf_hil.forest import generate_forest, ground_truth, stem_mesh
 from tcf_hil.forest.dbh import draw_dbh, weibull_shape
+from tcf_hil.forest.mesh import terrain_grid
 from tcf_hil.forest.natural import DEFECT_KINDS, classify_defects
 from tcf_hil.forest.output import write_forest
 from tcf_hil.forest.species import SPECIES, mean_height, taper_poly
@@ -71,6 +72,17 @@ PAPER_DIGESTS = {
     "forest-x": ["e7ce4c215d3e5a24", "84d46d59cae8be58"],
 }
 
+# sha256 (first 16 hex digits) of each paper forest's terrain lattice (xs, ys, z as float64
+# bytes, what terrain.ply and the scene's terrain are built from), taken at d35c045 before the
+# lattice could be computed by matrix products.
+PAPER_TERRAIN_DIGESTS = {
+    "forest-i": "115bbeb9cd7af165", "forest-ii": "8b9c9ec74dbd58ce",
+    "forest-iii": "8b9c9ec74dbd58ce", "forest-iv": "a049f22345417eaf",
+    "forest-v": "861f7a432df08148", "forest-vi": "861f7a432df08148",
+    "forest-vii": "6195be4305fe926d", "forest-viii": "0119a5b605dbe5b2",
+    "forest-ix": "61f0eca679180f1a", "forest-x": "5730b7fe66a655b6",
+}
+
 
 def _published_ratio(species: str, x: float) -> float:
     return sum(c * x**p for c, p in zip(LAASASENAHO[species], POWERS, strict=True))
@@ -85,6 +97,9 @@ def test_the_paper_forests_are_unchanged(name: str) -> None:
     h = hashlib.sha256(np.round(m.vertices, 6).tobytes() + m.faces.astype(np.int64).tobytes()
                        + np.asarray(m.face_attributes["stem_id"], np.int32).tobytes())
     assert [hashlib.sha256(gt).hexdigest()[:16], h.hexdigest()[:16]] == PAPER_DIGESTS[name]
+    xs, ys, z = terrain_grid(f.terrain, f.bounds(), f.scenario.terrain.tolerance_mm / 1000)
+    t = hashlib.sha256(xs.tobytes() + ys.tobytes() + z.tobytes()).hexdigest()[:16]
+    assert t == PAPER_TERRAIN_DIGESTS[name]
 
 
 @pytest.mark.parametrize("species", SPECIES)
@@ -98,6 +113,30 @@ def test_taper_follows_laasasenaho(species: str) -> None:
     rel = _published_ratio(species, 0.5) / _published_ratio(species, 1 - 1.3 / 20)
     assert rel == pytest.approx({"pine": 0.667, "spruce": 0.660, "birch": 0.650}[species],
                                 abs=1e-3)
+
+
+@given(hs.lists(hs.tuples(hs.integers(0, 2), hs.floats(-0.5, 1.5)), min_size=1,
+                 max_size=40))
+@settings(max_examples=200, deadline=None)
+def test_the_taper_polynomial_and_its_derivatives_by_products_match_the_powers(
+        rows: list[tuple[int, float]]) -> None:
+    """P, P' and P'' (the powers as products of the two before them) against the sums of
+    c p x^(p-1) written out with ``**``, mixed species and one species alike."""
+    from tcf_hil.forest.species import TAPER_COEFFS, TAPER_POWERS
+
+    sp = np.array([r[0] for r in rows])
+    x = np.array([r[1] for r in rows])
+    xc = np.clip(x, 0.0, 1.0)[:, None]
+    c, p = TAPER_COEFFS[sp], TAPER_POWERS[None, :]
+    want = [np.sum(c * xc ** p, axis=1), np.sum(c * p * xc ** (p - 1.0), axis=1),
+            np.sum(c * p * (p - 1.0) * xc ** np.maximum(p - 2.0, 0.0) * (p > 1.0), axis=1)]
+    for m in range(3):
+        assert np.allclose(taper_poly(sp, x, m), want[m], rtol=1e-12, atol=1e-10), m
+        # one species (scalar coefficients) and mixed (gathered) give the same bits
+        one = taper_poly(np.full(len(x), sp[0]), x, m)
+        mixed = taper_poly(np.append(np.full(len(x), sp[0]), (sp[0] + 1) % 3),
+                           np.append(x, 0.5), m)[:-1]
+        assert np.array_equal(one, mixed), m
 
 
 def test_a_natural_stem_has_its_dbh_at_breast_height_and_its_species_curve_along_it() -> None:
@@ -557,6 +596,44 @@ def test_culling_by_the_track_changes_nothing_of_what_it_keeps() -> None:
         a = whole.vertices[whole.faces[whole.face_id == oid]]
         b = near.vertices[near.faces[near.face_id == oid]]
         assert np.array_equal(a, b), oid
+
+
+def test_culling_beyond_the_sensors_reach_changes_no_return() -> None:
+    """A stand culled to ``stand.detail_range_m`` of the track gives the returns the whole
+    stand gives (range, signal, reflectivity and the object of every pixel), where nothing
+    culled is within the sensor's reach: a realistic sensor whose reach is cut to 3 m (a
+    10 % target; the brightest material, square on, is detected with a chance of about
+    1e-7 at 35 m at 512x10), a 80 m square stand, the track 20 m through its middle, and
+    culling at 35 m. The footprint is sampled in full: the adaptive footprint chooses
+    which pixels to sample by the objects their neighbours hit, at any range, so a crown
+    far out of reach and the sky behind it can sample a pixel differently (the README
+    gives what that changes). Culled to 5 m, returns do change (what the test would
+    see)."""
+    from tcf_hil.lidar import LidarRun
+
+    scn = {**SCENERY, "name": "natural-culling", "plot": {"size_m": [80.0, 80.0]},
+           "stems": {**SCENERY["stems"], "count": 1100},
+           "track": {"start_m": [0.0, -10.0, 2.0], "end_m": [0.0, 10.0, 2.0],
+                     "speed_m_s": 2.0},
+           "sensor": {"preset": "os0-64-rev7", "reach_10pct_m": 3.0,
+                      "reach_80pct_m": 8.0, "footprint": "full"}}
+    got = {}
+    for rng_m in (0.0, 35.0, 5.0):
+        d = {**scn, "stand": {**scn["stand"], "detail_range_m": rng_m}}
+        run = LidarRun(scenario_from_dict(d), mode="512x10", max_frames=4)
+        sc = run.forest.scenery()
+        assert sc is not None
+        got[rng_m] = (len(sc.foliage), run.scene.curve_count,
+                      [({k: v for k, v in fr.fields.items() if k != "NEAR_IR"},
+                        fr.stem_id.copy()) for fr, _ in run.datagrams()])
+    whole, culled, near = got[0.0], got[35.0], got[5.0]
+    assert culled[0] < whole[0] and culled[1] < whole[1]  # crowns and branches culled
+    for (fa, sa), (fb, sb) in zip(whole[2], culled[2], strict=True):
+        assert np.array_equal(sa, sb)
+        for k in fa:
+            assert np.array_equal(fa[k], fb[k]), k
+    assert any(not np.array_equal(sa, sb) for (_, sa), (_, sb)
+               in zip(whole[2], near[2], strict=True))
 
 
 def test_foliage_as_crowns_and_as_facets_stop_the_same_rays(scenery_forest) -> None:  # type: ignore[no-untyped-def]
