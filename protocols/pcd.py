@@ -6,12 +6,12 @@ The format that open3d, PCL and CloudCompare read. A cloud is a mapping of field
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["PcdError", "decode_pcd", "encode_pcd"]
+__all__ = ["PcdError", "decode_pcd", "encode_pcd", "pcd_header"]
 
 _TYPES: dict[tuple[str, int], str] = {
     ("F", 4): "<f4", ("F", 8): "<f8", ("U", 1): "<u1", ("U", 2): "<u2", ("U", 4): "<u4",
@@ -22,6 +22,46 @@ _CODES = {np.dtype(v): k for k, v in _TYPES.items()}
 
 class PcdError(ValueError):
     """A PCD document is malformed; the message says what was expected and what arrived."""
+
+
+def _header(names: list[str], codes: list[tuple[str, int]], count: int, binary: bool,
+            comments: Sequence[str] = ()) -> str:
+    return "\n".join([
+        "# .PCD v0.7 - Point Cloud Data file format",
+        *(f"# {c}" for c in comments),
+        "VERSION 0.7",
+        "FIELDS " + " ".join(names),
+        "SIZE " + " ".join(str(s) for _, s in codes),
+        "TYPE " + " ".join(t for t, _ in codes),
+        "COUNT " + " ".join("1" for _ in codes),
+        f"WIDTH {count}",
+        "HEIGHT 1",
+        "VIEWPOINT 0 0 0 1 0 0 0",
+        f"POINTS {count}",
+        "DATA binary" if binary else "DATA ascii",
+    ]) + "\n"
+
+
+def pcd_header(dtype: np.dtype[np.void], count: int, comments: Sequence[str] = ()) -> bytes:
+    """The header of a binary PCD whose body is ``count`` records of the structured
+    ``dtype`` (packed, little-endian: what ``records.tobytes()`` writes), for a writer that
+    streams the body and learns the count at the end; ``comments`` as ``#`` lines."""
+    codes = []
+    names = list(dtype.names or ())
+    for name in names:
+        dt = dtype.fields[name][0] if dtype.fields else None
+        if dt is None or dt.newbyteorder("<") not in _CODES or dt.byteorder == ">":
+            raise PcdError(f"field {name!r} has unsupported dtype {dt}")
+        if not name.isidentifier():
+            raise PcdError(f"field name {name!r} is not a plain identifier")
+        codes.append(_CODES[np.dtype(dt)])
+    if not names:
+        raise PcdError("a PCD cloud needs at least one field")
+    if dtype.itemsize != sum(size for _, size in codes):
+        raise PcdError(f"records of {dtype.itemsize} bytes are not packed")
+    if any("\n" in c for c in comments):
+        raise PcdError("a comment holds a line break")
+    return _header(names, codes, count, True, comments).encode("ascii")
 
 
 def encode_pcd(fields: Mapping[str, NDArray[np.generic]], *, binary: bool = True) -> bytes:
@@ -46,19 +86,7 @@ def encode_pcd(fields: Mapping[str, NDArray[np.generic]], *, binary: bool = True
         if np.dtype(dt) not in _CODES:
             raise PcdError(f"field {name!r} has unsupported dtype {arr.dtype}")
         codes.append(_CODES[np.dtype(dt)])
-    header = "\n".join([
-        "# .PCD v0.7 - Point Cloud Data file format",
-        "VERSION 0.7",
-        "FIELDS " + " ".join(arrays),
-        "SIZE " + " ".join(str(s) for _, s in codes),
-        "TYPE " + " ".join(t for t, _ in codes),
-        "COUNT " + " ".join("1" for _ in codes),
-        f"WIDTH {count}",
-        "HEIGHT 1",
-        "VIEWPOINT 0 0 0 1 0 0 0",
-        f"POINTS {count}",
-        "DATA binary" if binary else "DATA ascii",
-    ]) + "\n"
+    header = _header(list(arrays), codes, count, binary)
     if binary:
         rec = np.empty(count, dtype=[(k, _TYPES[c]) for k, c in zip(arrays, codes, strict=True)])
         for k, v in arrays.items():

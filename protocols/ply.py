@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["PlyError", "encode_ply"]
+__all__ = ["PlyError", "encode_ply", "ply_vertex_header"]
 
 
 class PlyError(ValueError):
@@ -58,3 +58,27 @@ def encode_ply(vertices: NDArray[np.floating], faces: NDArray[np.integer],
     for k, arr in props.items():
         rec[k] = arr
     return ("\n".join(lines) + "\n").encode("ascii") + v.tobytes() + rec.tobytes()
+
+
+_PLY_TYPES = {"<f8": "double", "<f4": "float", "|u1": "uchar", "|i1": "char", "<u2": "ushort",
+              "<i2": "short", "<u4": "uint", "<i4": "int"}
+
+
+def ply_vertex_header(dtype: np.dtype[np.void], count: int,
+                      comments: Sequence[str] = ()) -> bytes:
+    """The header of a binary little-endian PLY point cloud: one ``vertex`` element of
+    ``count`` records of the structured ``dtype`` (packed; what ``records.tobytes()``
+    writes), for a writer that streams the body and learns the count at the end."""
+    lines = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments),
+             f"element vertex {count}"]
+    for name in dtype.names or ():
+        dt = dtype.fields[name][0] if dtype.fields else None
+        kind = None if dt is None else _PLY_TYPES.get(dt.str)
+        if kind is None:
+            raise PlyError(f"vertex property {name!r} has unsupported dtype {dt}")
+        if not name.isidentifier():
+            raise PlyError(f"vertex property name {name!r} is not a plain identifier")
+        lines.append(f"property {kind} {name}")
+    if any("\n" in c for c in comments):
+        raise PlyError("a comment holds a line break")
+    return ("\n".join([*lines, "end_header"]) + "\n").encode("ascii")

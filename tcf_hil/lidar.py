@@ -37,6 +37,7 @@ from emulators.lidar import (
     carried_range_m,
 )
 from emulators.lidar import warm_up as warm_up_kernels
+from protocols.labels import encode_labels_header, encode_labels_record
 from protocols.ouster import (
     IMU_PACKET_BYTES,
     MetadataError,
@@ -143,6 +144,7 @@ class LidarRun:
         self.udp_faults = plans.udp if plans else None
         self.lidar_faults = plans.lidar if plans else None
         self.last_events: list[FaultEvent] = []
+        self.last_sent = False
 
     def datagrams(self) -> Iterator[tuple[FrameResult, list[Datagram]]]:
         """Each frame with the datagrams that leave the sensor for it (the sensor's per-frame
@@ -156,9 +158,27 @@ class LidarRun:
             self.meta = sensor.meta
             self.last_events = sf.events
             fr = sf.result
+            self.last_sent = sf.sent
             if sf.sent:
                 self._count(fr)
             yield fr, sf.datagrams
+
+    def labels_header(self) -> bytes:
+        """``lidar_labels.bin``'s header: the image size and what each object id is."""
+        sc = self.forest.scenery()
+        comp = np.concatenate([[0], np.ones(self.n_stems)]).astype(np.uint8) \
+            if sc is None else sc.component_of_id
+        fmt = self.meta.packet_format
+        return encode_labels_header(fmt.pixels_per_column, fmt.columns_per_frame,
+                                    fmt.profile.returns > 1, self.n_stems, comp)
+
+    def labels_record(self, fr: FrameResult) -> bytes:
+        """The object each pixel's return hit in the frame just yielded (empty if it did not
+        leave with lidar packets: the capture has no frame to match)."""
+        if not self.last_sent:
+            return b""
+        ts = fr.timestamps_ns
+        return encode_labels_record(int(ts[0]), int(ts[-1]), fr.stem_id, fr.stem_id2)
 
     def _count(self, fr: FrameResult) -> None:
         self.packets += fr.packets.shape[0]
@@ -282,10 +302,13 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
     flog = FaultLog(out / "faults.jsonl", run.track.t0_ns) \
         if run.udp_faults or run.lidar_faults else None
     try:
-        with atomic_path(out / "lidar.pcap") as tmp, open(tmp, "wb") as fh:
+        with atomic_path(out / "lidar.pcap") as tmp, open(tmp, "wb") as fh, \
+                atomic_path(out / LABELS) as ltmp, open(ltmp, "wb") as lh:
             fh.write(writer.header())
-            for k, (_fr, dgs) in enumerate(run.datagrams()):
+            lh.write(run.labels_header())
+            for k, (fr, dgs) in enumerate(run.datagrams()):
                 fh.write(_pcap_records(writer, dgs, sensor_ip, dest))
+                lh.write(run.labels_record(fr))
                 if flog is not None:
                     for ev in run.last_events:
                         flog.log(ev, "lidar")
@@ -299,6 +322,7 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
 
 
 _SLOTS = 4  # frames produced ahead of the pacing loop
+LABELS = "lidar_labels.bin"  # what each return hit (protocols.labels), beside lidar.pcap
 
 
 def _slot_bytes(run: LidarRun) -> int:
@@ -318,6 +342,7 @@ class _Recording:
     path: str
     sensor_ip: str
     dest: str
+    labels: str  # lidar_labels.bin, beside it
 
 
 def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
@@ -346,8 +371,9 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
         caster.threads = max(1, caster.threads - 1)
     run.emu.threads = max(1, run.emu.threads - 1)  # and for the emulator's column chunks
     fh = open(rec.path, "wb") if rec is not None else None  # closed in the finally below
+    lh = open(rec.labels, "wb") if rec is not None else None
     writer = PcapWriter()
-    pending: collections.deque[bytes] = collections.deque()
+    pending: collections.deque[tuple[bytes, bytes]] = collections.deque()
     written = 0
     # bookkeeping after each produced frame, back as far as the sender can be behind
     marks: collections.deque[tuple[int, tuple[np.ndarray, int, int]]] = collections.deque(
@@ -355,20 +381,24 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
 
     def flush() -> None:
         nonlocal written
-        if fh is None:
+        if fh is None or lh is None:
             return
         n = written
         while written < sent.value and pending:
-            fh.write(pending.popleft())
+            records, labels = pending.popleft()
+            fh.write(records)
+            lh.write(labels)
             written += 1
         if written != n:
             fh.flush()  # whole frames reach the file: a crash leaves a readable capture
+            lh.flush()
 
     slot = produced = 0
     try:
-        if fh is not None:
+        if fh is not None and lh is not None:
             fh.write(writer.header())
-        for _fr, dgs in run.datagrams():
+            lh.write(run.labels_header())
+        for fr, dgs in run.datagrams():
             while not free.acquire(timeout=0.2):
                 flush()
                 if stop.is_set() or os.getppid() != parent:
@@ -386,7 +416,8 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
                             dtype=np.int64).reshape(-1, 3)
             conn.send(("frame", (slot, meta, run.last_events)))
             if rec is not None:  # exactly what goes out, at its simulation time
-                pending.append(_pcap_records(writer, dgs, rec.sensor_ip, rec.dest))
+                pending.append((_pcap_records(writer, dgs, rec.sensor_ip, rec.dest),
+                                run.labels_record(fr)))
             produced += 1
             marks.append((produced, run.mark()))
             slot = (slot + 1) % _SLOTS
@@ -406,6 +437,8 @@ def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
     finally:
         if fh is not None:
             fh.close()
+        if lh is not None:
+            lh.close()
 
 
 def _release(dgs: list[Datagram]) -> None:
@@ -478,7 +511,9 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
             if out is not None and pcap:
                 path = out / "lidar.pcap" if pcap_in_place else \
                     outputs.enter_context(atomic_path(out / "lidar.pcap"))
-                rec = _Recording(str(path), sensor_ip, dest)
+                lpath = out / LABELS if pcap_in_place else \
+                    outputs.enter_context(atomic_path(out / LABELS))
+                rec = _Recording(str(path), sensor_ip, dest, str(lpath))
             child = ctx.Process(target=_produce, args=(run, tx, free, shm, slot_bytes,
                                                        child_stop, sent, rec, rx),
                                 name="lidar-frames", daemon=True)

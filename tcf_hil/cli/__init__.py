@@ -1,9 +1,9 @@
 """The ``tcf-hil`` command line. Commands stay thin: they parse options and call the library.
 
 One module per command group (:mod:`.run`, :mod:`.lidar`, :mod:`.harvester`,
-:mod:`.forest`, :mod:`.score`, :mod:`.experiment`); what they share (options built from the
-protocol tables, the progress display, the graceful stop) is in :mod:`._shared`; the one
-mapping from errors to exit statuses is :func:`main` here.
+:mod:`.forest`, :mod:`.score`, :mod:`.export`, :mod:`.experiment`); what they share
+(options built from the protocol tables, the progress display, the graceful stop) is in
+:mod:`._shared`; the one mapping from errors to exit statuses is :func:`main` here.
 
 Exit status: 0 success, 1 bad input or configuration (one ``Error:`` line naming the file or
 key), 2 usage error, 3 the run or check failed (the SIC failed; a soak lost frames or grew),
@@ -20,7 +20,7 @@ import traceback
 import click
 
 from tcf_hil import __version__
-from tcf_hil.cli import experiment, forest, harvester, lidar, run, score
+from tcf_hil.cli import experiment, export, forest, harvester, lidar, run, score
 from tcf_hil.cli._shared import ExitStatus, Group, err_console, terminate
 from tcf_hil.errors import TcfHilError
 
@@ -42,6 +42,7 @@ def cli(ctx: click.Context, traceback: bool) -> None:
       tcf-hil scenario list                 the paper's Forests I-X
       tcf-hil forest generate forest-v --out forest-v/
       tcf-hil score ground_truth.json observed.json --plots plots/
+      tcf-hil export runs/RUN --out cloud.laz   the cloud and stems for GIS tools
 
     \b
     Exit status: 0 success, 1 bad input or configuration, 2 usage error, 3 the run or
@@ -52,8 +53,9 @@ def cli(ctx: click.Context, traceback: bool) -> None:
 
 # the teaching order of `tcf-hil --help`
 for _cmd in (run.demo, run.run_cmd, run.replay_cmd, run.sic_cmd, forest.scenario,
-             forest.forest, score.detect, score.score, lidar.lidar, harvester.harvester,
-             run.soak_cmd, harvester.can_server, experiment.experiment, experiment.bench_cmd):
+             forest.forest, score.detect, score.score, export.export_cmd, lidar.lidar,
+             harvester.harvester, run.soak_cmd, harvester.can_server, experiment.experiment,
+             experiment.bench_cmd):
     cli.add_command(_cmd)
 
 

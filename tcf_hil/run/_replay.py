@@ -23,7 +23,7 @@ from tcf_hil.run._sic import sensor_url
 
 RECORDING_FILES = ("lidar.pcap", "can.log", "can.asc", "can.blf", "can.trc",
                    "metadata.json", "ground_truth.json", "inventory.csv", "visibility.json",
-                   "sensor_poses.csv")
+                   "sensor_poses.csv", "lidar_labels.bin")
 
 
 def _loopback(address: str) -> bool:

@@ -95,6 +95,34 @@ def test_reference_sic_scores_above_the_floor(reference_run: Path) -> None:
     assert "<script" not in html  # self-contained and static
 
 
+def test_export_of_a_live_run(reference_run: Path, tmp_path: Path) -> None:
+    """The live run's producer wrote the labels beside the capture: every return of the
+    exported cloud is labelled as the ground truth counted it, and the stems carry the
+    score's outcome (``tcf-hil export``, as a user calls it)."""
+    import laspy
+    import numpy as np
+
+    p = tcf("export", str(reference_run), "--out", str(tmp_path / "run.laz"), "--every", "1")
+    assert p.returncode == 0, p.stderr
+    las = laspy.read(tmp_path / "run.laz")
+    gt = json.loads((reference_run / "ground_truth.json").read_text())
+    comp, sid = np.asarray(las.component), np.asarray(las.stem_id)
+    counts = np.bincount(sid[comp == 1], minlength=25)
+    assert [int(counts[o["id"]]) for o in gt["objects"]] == [o["returns"] for o in gt["objects"]]
+    assert las.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+    p = tcf("export", str(reference_run), "--out", str(tmp_path / "stems.geojson"))
+    assert p.returncode == 0, p.stderr
+    feats = json.loads((tmp_path / "stems.geojson").read_text())["features"]
+    score = json.loads((reference_run / "score.json").read_text())["all_trees"]
+    truth = [f["properties"] for f in feats if f["properties"]["source"] == "truth"]
+    sic = [f["properties"] for f in feats if f["properties"]["source"] == "sic"]
+    assert len(truth) == 24 and len(sic) == score["n_observed"]
+    assert sum(t["outcome"] in ("correct", "misclassified") for t in truth) == \
+        score["total_matches"]
+    assert sum(o["outcome"] == "false_positive" for o in sic) == score["false_positives"]
+    assert all(t["distance_to_track_m"] < 11.0 for t in truth)  # all within 10 m of it
+
+
 def test_replay_reproduces_the_score(reference_run: Path, tmp_path: Path) -> None:
     out = tmp_path / "replayed"
     p = tcf("run", "--replay", str(reference_run), "--speed", "2", "--out", str(out))

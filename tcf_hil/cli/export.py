@@ -1,0 +1,60 @@
+"""``tcf-hil export``: a run's cloud and stems in the files forestry and GIS tools read."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from tcf_hil.cli._shared import Progress, console, err_console
+
+
+@click.command("export")
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="File to write; its suffix picks what and how: .las .laz .ply .pcd (the "
+                   "cloud), .geojson .csv (the stems).")
+@click.option("--every", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Cloud: keep every N-th frame (a long run's cloud is large; 10 keeps one "
+                   "frame a second at 10 Hz).")
+@click.option("--stems", type=click.Choice(["both", "truth", "sic"]), default="both",
+              show_default=True,
+              help="Stems: the ground truth, the SIC's scored forest, or both (a 'source' "
+                   "column tells them apart).")
+@click.option("--epsg", type=click.IntRange(min=1), default=None,
+              help="GeoJSON: the coordinate system of the scenario's origin (e.g. 3067 for "
+                   "ETRS-TM35FIN), written as the 'crs' member QGIS and GDAL read.")
+def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | None) -> None:
+    """Export a run directory for CloudCompare, lidR, 3DFin, QGIS and the like.
+
+    \b
+    The cloud (.las/.laz LAS 1.4, .ply, .pcd): every return as the sensor sent it, in world
+    coordinates (the scenario's origin included; LAS at 1 mm scale), with GPS time,
+    intensity (reflectivity), return number, classification (2 ground, 64 stem, 5 branches
+    and foliage, 3 understory, 1 dead wood, stumps and boulders, 7 noise) and the extra
+    dimensions stem_id (the ground-truth tree), component and ring.
+    The stems (.geojson/.csv): every ground-truth stem and every stem the SIC published last,
+    with its outcome (correct, misclassified, missed_seen, missed_unseen; matched,
+    false_positive), DBH and height true and observed, and its distance from the track.
+
+    \b
+    Examples:
+      tcf-hil export runs/forest-v --out forest-v.laz
+      tcf-hil export runs/forest-v --out stems.geojson --epsg 3067
+      tcf-hil export runs/forest-v --out stems.csv --stems truth
+    """
+    from tcf_hil.export import export
+
+    suffix = out.suffix.lower()
+    with Progress(f"export {out.name}", total=None, keep=False) as bar:
+        r = export(run_dir, out, every=every, stems=stems, epsg=epsg, progress=bar.counter)
+    if r.kind == "cloud":
+        console.print(f"{r.count:,} points -> {r.path}")
+        if not r.labelled:
+            err_console.print(f"Note: {run_dir} has no lidar_labels.bin (recorded before "
+                              "tcf-hil wrote it): classification 1, stem_id 0.")
+        if not r.gps_adjusted and suffix in (".las", ".laz"):
+            err_console.print(f"Note: {run_dir} has no run manifest tying its clock to UTC: "
+                              "GPS time is simulation seconds (GPS week time).")
+    else:
+        console.print(f"{r.count:,} stems -> {r.path}")

@@ -1,0 +1,698 @@
+"""A run's results in the files forestry and GIS tools read (``tcf-hil export``).
+
+**The cloud** (``.las``, ``.laz``, ``.ply``, ``.pcd``): every return of ``lidar.pcap`` as the
+sensor sent it (faults included), decoded with :mod:`protocols.ouster`, put into the world
+by the sensor pose of its own column (``sensor_poses.csv``) and labelled with what it hit
+(``lidar_labels.bin``, :mod:`protocols.labels`). One frame at a time: memory does not grow
+with the run (PLY and PCD state the point count in their header, so their body goes to a
+temporary file first).
+
+Per point: world x, y, z (the scenario's ``plot.origin_m`` included: UTM-sized
+coordinates), GPS time, intensity, return number and number of returns, classification, and
+as extra dimensions the ground-truth ``stem_id`` the return belongs to (its stem, branches
+or foliage; 0 none), the ``component`` it hit (``COMPONENTS`` codes; 255 none: an ambient
+false return) and the beam's ``ring``.
+
+- LAS 1.4 point format 6 (ASPRS LAS 1.4 R15): X, Y, Z as int32 at a 1 mm scale with an
+  offset rounded to the kilometre near the first sensor position, so a UTM origin keeps
+  millimetres; GPS time is *adjusted standard GPS time* (GPS seconds - 1e9, global encoding
+  bit 0 set) where the run's manifest ties the simulation clock to Unix time (GPS = Unix -
+  315,964,800 s + 18 leap seconds, the offset since 2017-01-01 per IERS Bulletin C), else
+  the simulation clock's seconds (bit 0 clear); intensity is the REFLECTIVITY field scaled
+  to 16 bits (the spec asks intensity normalised to 0-65535: 0-255 times 256);
+  return numbers follow range (the nearer of a DUAL pixel's two returns is 1; Ouster sends
+  the strongest first); classification by the ASPRS standard classes: 2 ground, 5 high
+  vegetation (branches, foliage), 3 low vegetation (understory), 1 unclassified (dead wood,
+  stumps, boulders), 7 noise (a return that hit nothing), and the stems as 64, the first
+  user-definable class (64-255) since LAS 1.4 has none for stems. The extra dimensions are
+  described in the Extra Bytes VLR, which CloudCompare, lidR and PDAL read. LAZ through
+  laspy's lazrs backend.
+- PLY (binary little-endian, double x, y, z: CloudCompare offers to shift on load) carries
+  the same fields by name; so does PCD (binary), but with float32 x, y, z from the same
+  kilometre offset as LAS, stated in a header comment (``# tcf-hil offset X Y Z``): open3d
+  reads float64 coordinates of a PCD as zeros (measured with open3d 0.20), and float32
+  keeps 0.06 mm within a kilometre of the offset.
+
+**The stems** (``.geojson``, ``.csv``): the ground truth and the SIC's scored forest, one
+row or point feature each, with the outcome of scoring (:func:`stem_outcomes`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from protocols.labels import LabelsError, LabelsHeader, LabelsRecord, read_labels
+from protocols.ouster import (
+    FrameAssembler,
+    MetadataError,
+    ProtocolError,
+    SensorMetadata,
+    beam_rays,
+    decode_lidar_packets,
+)
+from protocols.pcap import PcapError, UdpReader
+from tcf_hil._io import atomic_path, read_json
+from tcf_hil.errors import InputError
+
+__all__ = ["CLOUD_DTYPE", "CLOUD_SUFFIXES", "STEM_SUFFIXES", "export", "run_cloud",
+           "stem_outcomes"]
+
+CLOUD_SUFFIXES = (".las", ".laz", ".ply", ".pcd")
+STEM_SUFFIXES = (".geojson", ".csv")
+
+# COMPONENTS codes (tcf_hil.forest.scenery) -> ASPRS class (see the module docstring)
+_COMPONENT_CLASS = np.array([2, 64, 5, 5, 3, 1, 1, 1], np.uint8)
+NO_OBJECT = 255  # component of a return that hit nothing (classification 7, noise)
+GPS_MINUS_UNIX_S = 315_964_800 - 18  # Unix seconds at the GPS epoch, less the leap seconds
+_EXTRA = (("stem_id", "u4", "ground-truth tree of the return (stem, branch, foliage); 0 none"),
+          ("component", "u1", "what it hit: 0 ground 1 stem 2 branch 3 foliage 4 understory "
+                              "5 dead wood 6 stump 7 boulder 255 nothing"),
+          ("ring", "u1", "beam (row) of the OS0-64, 0 at the top"))
+
+CLOUD_DTYPE = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("gps_time", "<f8"),
+                        ("intensity", "<u2"), ("return_number", "u1"),
+                        ("number_of_returns", "u1"), ("classification", "u1"),
+                        *((n, t) for n, t, _ in _EXTRA)])
+"""One exported point (packed): what every cloud format carries."""
+
+
+def _rotations(q: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(n, 3, 3) rotation matrices of unit quaternions (w, x, y, z)."""
+    w, x, y, z = (q[:, i] for i in range(4))
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], 1)
+
+
+class _Poses:
+    """``sensor_poses.csv`` read ahead as the frames need it (rows in time order)."""
+
+    CHUNK = 8192
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        try:
+            self._fh = open(path, encoding="ascii", newline="")
+        except OSError as err:
+            raise InputError(str(path), "", f"cannot read: {err}") from err
+        self._rows = csv.reader(self._fh)
+        head = next(self._rows, None)
+        if head != ["time_ns", "x", "y", "z", "qw", "qx", "qy", "qz"]:
+            raise InputError(str(path), "header", f"{head}; expected time_ns,x,y,z,qw,qx,qy,qz")
+        self._line = 1
+        self.t = np.zeros(0, np.int64)
+        self.p = np.zeros((0, 7))
+        self._done = False
+
+    def close(self) -> None:
+        self._fh.close()
+
+    def _more(self) -> bool:
+        block = []
+        for row in self._rows:
+            block.append(row)
+            if len(block) == self.CHUNK:
+                break
+        if not block:
+            self._done = True
+            return False
+        try:
+            t = np.array([r[0] for r in block], np.int64)
+            p = np.array([r[1:8] for r in block], np.float64)
+        except (ValueError, IndexError) as err:
+            raise InputError(str(self.path), f"line {self._line + 1}..{self._line + len(block)}",
+                             f"not 8 numbers per line ({err})") from err
+        if p.shape[1:] != (7,):
+            raise InputError(str(self.path), f"line {self._line + 1}", "not 8 columns")
+        self._line += len(block)
+        self.t = np.concatenate([self.t, t])
+        self.p = np.vstack([self.p, p])
+        return True
+
+    def at(self, ts: NDArray[np.uint64]) -> NDArray[np.float64]:
+        """(n, 7) poses at the column time stamps ``ts`` (each must have its row)."""
+        t = ts.astype(np.int64)
+        while (not len(self.t) or self.t[-1] < t.max()) and not self._done:
+            self._more()
+        keep = np.searchsorted(self.t, t.min())  # rows before this frame are done with
+        self.t, self.p = self.t[keep:], self.p[keep:]
+        i = np.minimum(np.searchsorted(self.t, t), max(len(self.t) - 1, 0))
+        if not len(self.t) or np.any(self.t[i] != t):
+            bad = int(t[0] if not len(self.t) else t[self.t[i] != t][0])
+            raise InputError(str(self.path), "time_ns",
+                             f"no pose for the column time stamp {bad} of lidar.pcap")
+        return self.p[i]
+
+
+class _Labels:
+    """``lidar_labels.bin`` walked alongside the capture (both in send order)."""
+
+    def __init__(self, path: Path, meta: SensorMetadata) -> None:
+        self.path = path
+        self._fh: BinaryIO = open(path, "rb")
+        try:
+            head, recs = read_labels(self._fh, str(path))
+        except LabelsError as err:
+            raise InputError(str(path), "", str(err).split(": ", 1)[-1]) from err
+        fmt = meta.packet_format
+        if (head.rows, head.columns) != (fmt.pixels_per_column, fmt.columns_per_frame):
+            raise InputError(str(path), "header", f"{head.rows} x {head.columns} pixels; "
+                             f"the metadata's mode is {fmt.pixels_per_column} x "
+                             f"{fmt.columns_per_frame}")
+        self.head: LabelsHeader = head
+        self._recs = recs
+        self._cur: LabelsRecord | None = None
+        comp = head.component_of_id
+        n = head.n_stems
+        ids = np.arange(len(comp))
+        # the tree each object belongs to: a stem, its branches (n + i), its foliage (2n + i)
+        tree = np.where((ids >= 1) & (ids <= n), ids,
+                        np.where((ids > n) & (ids <= 2 * n), ids - n,
+                                 np.where((ids > 2 * n) & (ids <= 3 * n), ids - 2 * n, 0)))
+        keep = (comp == 1) | (comp == 2) | (comp == 3)
+        self.tree = np.where(keep, tree, 0).astype(np.uint32)
+        self.comp = comp
+
+    def close(self) -> None:
+        self._fh.close()
+
+    def frame(self, ts: NDArray[np.uint64]) -> LabelsRecord | None:
+        """The record whose column times hold ``ts`` (a frame's valid columns), or None."""
+        mid = int(np.median(ts.astype(np.int64)))
+        try:
+            while self._cur is None or self._cur.last_ns < mid:
+                self._cur = next(self._recs)
+        except StopIteration:
+            return None
+        except LabelsError as err:
+            raise InputError(str(self.path), "", str(err).split(": ", 1)[-1]) from err
+        return self._cur if self._cur.first_ns <= mid else None
+
+    def of(self, ids: NDArray[np.int32]) -> tuple[NDArray[np.uint32], NDArray[np.uint8],
+                                                  NDArray[np.uint8]]:
+        """(stem_id, component, classification) of object ids (-1: nothing)."""
+        ok = (ids >= 0) & (ids < len(self.comp))
+        j = np.where(ok, ids, 0)
+        comp = np.where(ok, self.comp[j], NO_OBJECT).astype(np.uint8)
+        cls = np.where(ok, _COMPONENT_CLASS[np.minimum(self.comp[j], 7)], 7).astype(np.uint8)
+        return np.where(ok, self.tree[j], 0).astype(np.uint32), comp, cls
+
+
+@dataclass(frozen=True)
+class CloudInfo:
+    """What :func:`run_cloud` found out before the first point."""
+
+    meta: SensorMetadata
+    labelled: bool
+    gps_adjusted: bool  # GPS time is adjusted standard GPS time (else simulation seconds)
+    first_position: NDArray[np.float64]  # the first column's sensor position, world
+
+
+def _load_meta(run_dir: Path) -> SensorMetadata:
+    path = run_dir / "metadata.json"
+    try:
+        return SensorMetadata.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(str(path), "", f"cannot read: {err}") from err
+    except MetadataError as err:
+        raise InputError(str(path), "", str(err)) from err
+
+
+def _clock(run_dir: Path) -> tuple[int, int] | None:
+    """(sim_t0_ns, unix_ns_at_sim_t0) of a run's manifest (a pcap-only recording: None)."""
+    path = run_dir / "manifest.json"
+    if not path.exists():
+        return None
+    clock = read_json(path).get("clock")
+    try:
+        return int(clock["sim_t0_ns"]), int(clock["unix_ns_at_sim_t0"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(str(path), "clock", f"missing or malformed ({err})") from err
+
+
+def _check_run(run_dir: Path) -> None:
+    if not run_dir.is_dir():
+        raise InputError(str(run_dir), "", "not a directory (a run directory is expected)")
+    for name in ("lidar.pcap", "metadata.json", "sensor_poses.csv"):
+        if not (run_dir / name).exists():
+            why = "missing: not a run directory with its lidar recorded"
+            if name == "lidar.pcap" and (run_dir / "manifest.json").exists():
+                why = "missing: this run did not record its lidar traffic (a soak run)"
+            raise InputError(str(run_dir / name), "", why)
+
+
+def run_cloud(run_dir: str | Path, *, every: int = 1,
+              progress: Callable[[int, int], None] | None = None
+              ) -> tuple[CloudInfo, Iterator[NDArray[np.void]]]:
+    """The run's returns as :data:`CLOUD_DTYPE` records, one array per frame (every
+    ``every``-th frame), and what is known before the first. ``progress(bytes read, bytes)``
+    follows the capture."""
+    run = Path(run_dir)
+    _check_run(run)
+    meta = _load_meta(run)
+    fmt = meta.packet_format
+    clock = _clock(run)
+    labels = _Labels(run / "lidar_labels.bin", meta) \
+        if (run / "lidar_labels.bin").exists() else None
+    poses = _Poses(run / "sensor_poses.csv")
+    try:
+        first = poses.at(poses.t[:1].astype(np.uint64)) if poses._more() else None
+    except InputError:
+        first = None
+    if first is None:
+        poses.close()
+        if labels is not None:
+            labels.close()
+        raise InputError(str(run / "sensor_poses.csv"), "", "holds no pose")
+    info = CloudInfo(meta, labels is not None, clock is not None, first[0, :3].copy())
+    return info, _frames(run, meta, fmt, clock, labels, poses, every, progress)
+
+
+def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | None,
+            labels: _Labels | None, poses: _Poses, every: int,
+            progress: Callable[[int, int], None] | None) -> Iterator[NDArray[np.void]]:
+    pcap = run / "lidar.pcap"
+    size = pcap.stat().st_size
+    origins, dirs = beam_rays(meta)
+    n_off = meta.lidar_origin_to_beam_origin_mm / 1000.0
+    H = fmt.pixels_per_column
+    names = set(fmt.field_names)
+    dual = "RANGE2" in names
+    # Ouster's calibrated reflectivity is 0-255 in every profile (an 8-bit field, or the low
+    # byte of LEGACY's 16 bits: Ouster's sensor docs, "Calibrated Reflectivity")
+    scale = 256
+    asm = FrameAssembler(fmt, column_window=getattr(meta, "column_window", None))
+    port = meta.udp_port_lidar
+    k = 0
+    try:
+        with open(pcap, "rb") as fh:
+            reader = UdpReader(fh)
+            try:
+                for d in reader:
+                    if d.dst_port != port:
+                        continue
+                    for fr in asm.feed(d.payload):
+                        if k % every == 0:
+                            pts = _frame_points(fr, fmt, meta, origins, dirs, n_off, H, dual,
+                                                scale, clock, labels, poses)
+                            if len(pts):
+                                yield pts
+                        k += 1
+                        if progress:
+                            progress(fh.tell(), size)
+                for fr in asm.flush():
+                    if k % every == 0:
+                        pts = _frame_points(fr, fmt, meta, origins, dirs, n_off, H, dual,
+                                            scale, clock, labels, poses)
+                        if len(pts):
+                            yield pts
+                    k += 1
+            except PcapError as err:
+                raise InputError(str(pcap), "", str(err)) from err
+        if progress:
+            progress(size, size)
+    finally:
+        poses.close()
+        if labels is not None:
+            labels.close()
+
+
+def _frame_points(fr: Any, fmt: Any, meta: SensorMetadata, origins: NDArray[np.float64],
+                  dirs: NDArray[np.float64], n_off: float, H: int, dual: bool, scale: int,
+                  clock: tuple[int, int] | None, labels: _Labels | None,
+                  poses: _Poses) -> NDArray[np.void]:
+    want = ["RANGE", "REFLECTIVITY"] + (["RANGE2", "REFLECTIVITY2"] if dual else [])
+    try:
+        b = decode_lidar_packets(fmt, fr.packets, check_crc=False,
+                                 fields=[w for w in want if w in fmt.field_names])
+    except ProtocolError as err:
+        raise InputError("lidar.pcap", f"frame {fr.frame_id}", str(err)) from err
+    mid = b.measurement_id.reshape(-1).astype(np.int64)
+    ok = (b.status.reshape(-1) & 1).astype(bool)
+    ts = b.timestamps_ns.reshape(-1)[ok]
+    cols = np.flatnonzero(ok)
+    if not len(cols):
+        return np.zeros(0, CLOUD_DTYPE)
+    m = mid[cols]
+    pose = poses.at(ts)
+    rot = _rotations(pose[:, 3:])
+    rec = labels.frame(ts) if labels is not None else None
+    out = []
+    returns = [("RANGE", "REFLECTIVITY", None if rec is None else rec.ids)]
+    if dual:
+        returns.append(("RANGE2", "REFLECTIVITY2", None if rec is None else rec.ids2))
+    ranges = [b.fields[r][:, cols].astype(np.float64) / 1000.0 for r, _, _ in returns]
+    n_ret = (ranges[0] > 0).astype(np.uint8) + (ranges[1] > 0) if dual else None
+    nearer2 = (ranges[1] > 0) & ((ranges[0] == 0) | (ranges[1] < ranges[0])) if dual else None
+    for k, ((_r, refl, ids), rng) in enumerate(zip(returns, ranges, strict=True)):
+        hit = rng > 0
+        if not hit.any():
+            continue
+        rows, j = np.nonzero(hit)
+        mm = m[j]
+        r = rng[rows, j]
+        p = origins[rows, mm] + (r - n_off)[:, None] * dirs[rows, mm]
+        world = np.einsum("nij,nj->ni", rot[j], p) + pose[j, :3]
+        pts = np.zeros(len(r), CLOUD_DTYPE)
+        pts["x"], pts["y"], pts["z"] = world[:, 0], world[:, 1], world[:, 2]
+        t = ts[j].astype(np.int64)
+        if clock is not None:
+            unix_ns = clock[1] + (t - clock[0])
+            pts["gps_time"] = (unix_ns // 1000) / 1e6 - GPS_MINUS_UNIX_S - 1e9
+        else:
+            pts["gps_time"] = t / 1e9
+        inten = b.fields[refl][rows, j].astype(np.int64) * scale \
+            if refl in b.fields else np.zeros(len(r), np.int64)
+        pts["intensity"] = np.minimum(inten, 65535)
+        second = k == 1
+        if nearer2 is None or n_ret is None:
+            pts["return_number"] = 1
+            pts["number_of_returns"] = 1
+        else:
+            first_is_nearer = ~nearer2[rows, j]
+            pts["return_number"] = np.where(first_is_nearer != second, 1, 2)
+            pts["number_of_returns"] = n_ret[rows, j]
+        pts["ring"] = rows
+        if ids is not None and labels is not None:
+            sid, comp, cls = labels.of(ids[rows, mm])
+            pts["stem_id"], pts["component"], pts["classification"] = sid, comp, cls
+        else:
+            pts["component"] = NO_OBJECT
+            pts["classification"] = 1 if labels is None else 0
+        out.append(pts)
+    return np.concatenate(out) if out else np.zeros(0, CLOUD_DTYPE)
+
+
+# ---------------------------------------------------------------- writers
+
+
+PCD_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                      *((n, CLOUD_DTYPE.fields[n][0]) for n in CLOUD_DTYPE.names[3:]  # type: ignore[index]
+                        )])
+"""PCD's points: float32 x, y, z from the offset (open3d reads no float64 coordinates)."""
+
+
+def _offset(info: CloudInfo) -> NDArray[np.float64]:
+    """The kilometre near the first sensor position (z: 0): LAS's offset, PCD's origin."""
+    off = np.round(info.first_position / 1000.0) * 1000.0
+    off[2] = 0.0
+    return np.asarray(off, np.float64)
+
+
+def _local32(pts: NDArray[np.void], off: NDArray[np.float64]) -> NDArray[np.void]:
+    out = np.zeros(len(pts), PCD_DTYPE)
+    for i, k in enumerate("xyz"):
+        out[k] = pts[k] - off[i]
+    for name in PCD_DTYPE.names[3:]:  # type: ignore[index]
+        out[name] = pts[name]
+    return out
+
+
+def _las_header(info: CloudInfo, laspy: Any) -> Any:
+    from tcf_hil import __version__
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.add_extra_dims([laspy.ExtraBytesParams(name=n, type=np.dtype(t), description=d[:31])
+                           for n, t, d in _EXTRA])
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.offsets = _offset(info)
+    header.global_encoding.gps_time_type = (laspy.header.GpsTimeType.STANDARD
+                                            if info.gps_adjusted
+                                            else laspy.header.GpsTimeType.WEEK_TIME)
+    header.system_identifier = "tcf-hil emulated Ouster OS0-64"
+    header.generating_software = f"tcf-hil {__version__}"
+    return header
+
+
+def _write_las(path: Path, info: CloudInfo, frames: Iterator[NDArray[np.void]],
+               compress: bool) -> int:
+    import laspy
+
+    header = _las_header(info, laspy)
+    n = 0
+    with atomic_path(path) as tmp, laspy.open(tmp, mode="w", header=header,
+                                              do_compress=compress) as w:
+        for pts in frames:
+            rec = laspy.ScaleAwarePointRecord.zeros(len(pts), header=header)
+            rec.x, rec.y, rec.z = pts["x"], pts["y"], pts["z"]
+            rec.gps_time = pts["gps_time"]
+            rec.intensity = pts["intensity"]
+            rec.return_number = pts["return_number"]
+            rec.number_of_returns = pts["number_of_returns"]
+            rec.classification = pts["classification"]
+            for name, _, _ in _EXTRA:
+                rec[name] = pts[name]
+            w.write_points(rec)
+            n += len(pts)
+    return n
+
+
+def _write_headed(path: Path, frames: Iterator[NDArray[np.void]],
+                  header: Callable[[int], bytes]) -> int:
+    """A body streamed to a temporary file, then the header (which needs the count)."""
+    n = 0
+    with tempfile.TemporaryFile(dir=path.parent) as body:
+        for pts in frames:
+            body.write(np.ascontiguousarray(pts).tobytes())
+            n += len(pts)
+        body.seek(0)
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            fh.write(header(n))
+            shutil.copyfileobj(body, fh, 1 << 22)
+    return n
+
+
+# ---------------------------------------------------------------- stems
+
+
+def _track_xy(run: Path, step: int = 64) -> NDArray[np.float64]:
+    """The sensor's horizontal track (every ``step``-th column pose)."""
+    path = run / "sensor_poses.csv"
+    if not path.exists():
+        return np.zeros((0, 2))
+    xy = []
+    with open(path, encoding="ascii", newline="") as fh:
+        rows = csv.reader(fh)
+        next(rows, None)
+        for i, r in enumerate(rows):
+            if i % step == 0 and len(r) >= 3:
+                xy.append((float(r[1]), float(r[2])))
+    return np.array(xy).reshape(-1, 2)
+
+
+def _distance_to_track(xy: NDArray[np.float64], track: NDArray[np.float64]
+                       ) -> NDArray[np.float64]:
+    """Horizontal distance of each point from the polyline ``track`` (exact: only segments
+    with an end within the nearest vertex's distance plus the longest segment can be
+    nearer, and those are all checked)."""
+    if not len(track) or not len(xy):
+        return np.full(len(xy), np.nan)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(track)
+    d_v, _ = tree.query(xy)
+    if len(track) == 1:
+        return np.asarray(d_v, np.float64)
+    a, ab = track[:-1], np.diff(track, axis=0)
+    reach = d_v + float(np.sqrt(np.sum(ab * ab, 1)).max()) + 1e-9
+    near = tree.query_ball_point(xy, reach)
+    pt = np.repeat(np.arange(len(xy)), [len(c) for c in near])
+    v = np.concatenate([np.asarray(c, np.int64) for c in near])
+    pt, seg = np.concatenate([pt, pt]), np.concatenate([v, v - 1])  # the vertex's two segments
+    ok = (seg >= 0) & (seg < len(ab))
+    pt, seg = pt[ok], seg[ok]
+    ap = xy[pt] - a[seg]
+    u = np.clip(np.sum(ap * ab[seg], 1) / np.maximum(np.sum(ab[seg] ** 2, 1), 1e-300), 0, 1)
+    d = np.sqrt(np.sum((ap - u[:, None] * ab[seg]) ** 2, 1))
+    best = np.asarray(d_v, np.float64).copy()
+    np.minimum.at(best, pt, d)
+    return best
+
+
+def stem_outcomes(run_dir: str | Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Every ground-truth stem and every stem of the SIC's scored forest with the outcome
+    of scoring (the run's own configuration from ``score.json``): a ground-truth stem is
+    ``correct`` (matched, class right), ``misclassified``, ``missed_seen`` (returns, no
+    match) or ``missed_unseen`` (no return); an observed stem ``matched`` or
+    ``false_positive``. Both with their horizontal distance from the track."""
+    from tcf_hil.evaluation import EvalConfig
+    from tcf_hil.recorder import empty_forest, score_forest
+    from tcf_hil.stems_json import stem_table
+
+    run = Path(run_dir)
+    if not run.is_dir():
+        raise InputError(str(run), "", "not a directory (a run directory is expected)")
+    gt_path = run / "ground_truth.json"
+    if not gt_path.exists():
+        raise InputError(str(gt_path), "", "missing: not a run directory")
+    gt_doc = read_json(gt_path)
+    score = read_json(run / "score.json") if (run / "score.json").exists() else {}
+    cfg = EvalConfig()
+    conf = (score.get("all_trees") or {}).get("config")
+    if isinstance(conf, dict):
+        try:
+            cfg = EvalConfig(match=conf["match"], max_distance_m=float(conf["max_distance_m"]),
+                             weights=tuple(conf["weights"]), credits=tuple(conf["credits"]))
+        except (KeyError, TypeError, ValueError) as err:
+            raise InputError(str(run / "score.json"), "all_trees.config", str(err)) from err
+    n_pub = score.get("scored_publication")
+    obs = empty_forest()
+    obs_doc: dict[str, Any] = {"objects": []}
+    if n_pub is not None:
+        pub = next((p for p in sorted((run / "sic").glob("*.json"))
+                    if p.stem.isdigit() and int(p.stem) == int(n_pub)), None)
+        if pub is None:
+            raise InputError(str(run / "score.json"), "scored_publication",
+                             f"{n_pub}: no such file under sic/")
+        obs_doc = read_json(pub)
+        obs = stem_table(obs_doc, str(pub), "observed")
+    sc = score_forest(gt_doc, obs, cfg, str(gt_path))
+    ev, gt = sc.all, sc.gt_all
+    match_of_gt = dict(zip(ev.pairs[:, 0].tolist(), ev.pairs[:, 1].tolist(), strict=True))
+    match_of_obs = {o: g for g, o in match_of_gt.items()}
+    track = _track_xy(run)
+    g_objs = gt_doc.get("objects", [])
+    o_objs = obs_doc.get("objects", [])
+    gd = _distance_to_track(gt.xyz[:, :2], track)
+    od = _distance_to_track(obs.xyz[:, :2], track)
+    gts = []
+    for i, o in enumerate(g_objs):
+        j = match_of_gt.get(i)
+        returns = o.get("returns")
+        if j is not None:
+            outcome = "correct" if gt.classes[i] == obs.classes[j] else "misclassified"
+        else:
+            outcome = "missed_unseen" if returns == 0 else "missed_seen"
+        gts.append({
+            "source": "truth", "id": o.get("id"), "class": o.get("class"),
+            "x": gt.xyz[i, 0], "y": gt.xyz[i, 1], "z": gt.xyz[i, 2],
+            "dbh_m": o.get("dbh"), "height_m": o.get("h"), "species": o.get("species"),
+            "returns": returns, "distance_to_track_m": _num(gd[i]), "outcome": outcome,
+            "matched_id": None if j is None else obs.ids[j],
+            "observed_class": None if j is None else str(obs.classes[j]),
+            "observed_dbh_m": None if j is None else _num(obs.dbh[j]),
+            "observed_height_m": None if j is None else _num(obs.h[j]),
+            "match_distance_m": None if j is None else _num(
+                float(np.hypot(*(gt.xyz[i, :2] - obs.xyz[j, :2])))),
+            "defects": ";".join(d.get("type", "") for d in o.get("defects", []) or []),
+        })
+    obs_rows = []
+    for j, _o in enumerate(o_objs):
+        g = match_of_obs.get(j)
+        obs_rows.append({
+            "source": "sic", "id": obs.ids[j], "class": str(obs.classes[j]),
+            "x": obs.xyz[j, 0], "y": obs.xyz[j, 1], "z": obs.xyz[j, 2],
+            "dbh_m": _num(obs.dbh[j]), "height_m": _num(obs.h[j]), "species": None,
+            "returns": None, "distance_to_track_m": _num(od[j]),
+            "outcome": "false_positive" if g is None else "matched",
+            "matched_id": None if g is None else gt.ids[g],
+            "observed_class": None, "observed_dbh_m": None, "observed_height_m": None,
+            "match_distance_m": None if g is None else _num(
+                float(np.hypot(*(gt.xyz[g, :2] - obs.xyz[j, :2])))),
+            "defects": "",
+        })
+    return gts, obs_rows
+
+
+def _num(v: Any) -> float | None:
+    f = float(v)
+    return None if math.isnan(f) else round(f, 4)
+
+
+STEM_COLUMNS = ("source", "id", "class", "x", "y", "z", "dbh_m", "height_m", "species",
+                "returns", "distance_to_track_m", "outcome", "matched_id", "observed_class",
+                "observed_dbh_m", "observed_height_m", "match_distance_m", "defects")
+
+
+def _stems_csv(rows: list[dict[str, Any]]) -> bytes:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(STEM_COLUMNS)
+    for r in rows:
+        w.writerow(["" if r[c] is None else (f"{r[c]:.4f}" if isinstance(r[c], float)
+                                             else r[c]) for c in STEM_COLUMNS])
+    return buf.getvalue().encode()
+
+
+def _stems_geojson(rows: list[dict[str, Any]], epsg: int | None) -> bytes:
+    from tcf_hil._io import dumps_json
+
+    feats = [{"type": "Feature",
+              "geometry": {"type": "Point",
+                           "coordinates": [round(float(r["x"]), 4), round(float(r["y"]), 4),
+                                           round(float(r["z"]), 4)]},
+              "properties": {c: (round(float(r[c]), 4) if isinstance(r[c], float) else r[c])
+                             for c in STEM_COLUMNS if c not in ("x", "y", "z")}}
+             for r in rows]
+    doc: dict[str, Any] = {"type": "FeatureCollection", "name": "stems"}
+    if epsg is not None:  # RFC 7946 dropped "crs"; QGIS and GDAL still honour it
+        doc["crs"] = {"type": "name", "properties": {"name": f"urn:ogc:def:crs:EPSG::{epsg}"}}
+    doc["features"] = feats
+    return dumps_json(doc).encode()
+
+
+# ---------------------------------------------------------------- entry
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    path: Path
+    kind: str  # "cloud" or "stems"
+    count: int
+    labelled: bool = True
+    gps_adjusted: bool = True
+
+
+def export(run_dir: str | Path, out: str | Path, *, every: int = 1,
+           stems: str = "both", epsg: int | None = None,
+           progress: Callable[[int, int], None] | None = None) -> ExportResult:
+    """Write ``out`` by its suffix: the cloud (``.las``, ``.laz``, ``.ply``, ``.pcd``; every
+    ``every``-th frame) or the stems (``.geojson``, ``.csv``; ``stems``: ``truth``, ``sic``
+    or ``both``). The file appears only whole (a temporary name renamed)."""
+    from tcf_hil._io import write_bytes_atomic
+
+    path = Path(out)
+    suffix = path.suffix.lower()
+    if suffix not in CLOUD_SUFFIXES + STEM_SUFFIXES:
+        raise InputError(str(path), "", f"unknown format {suffix or '(no suffix)'}; one of "
+                         + ", ".join(CLOUD_SUFFIXES + STEM_SUFFIXES))
+    if suffix in STEM_SUFFIXES:
+        gts, obs = stem_outcomes(run_dir)
+        rows = {"truth": gts, "sic": obs, "both": gts + obs}[stems]
+        data = _stems_csv(rows) if suffix == ".csv" else _stems_geojson(rows, epsg)
+        write_bytes_atomic(path, data)
+        return ExportResult(path, "stems", len(rows))
+    info, frames = run_cloud(run_dir, every=every, progress=progress)
+    if suffix in (".las", ".laz"):
+        n = _write_las(path, info, frames, suffix == ".laz")
+    elif suffix == ".ply":
+        from protocols.ply import ply_vertex_header
+        from tcf_hil import __version__
+
+        comments = [f"tcf-hil {__version__} export of {Path(run_dir).name}",
+                    "gps_time: " + ("adjusted standard GPS time (GPS s - 1e9)"
+                                    if info.gps_adjusted else "simulation seconds")]
+        n = _write_headed(path, frames,
+                          lambda c: ply_vertex_header(CLOUD_DTYPE, c, comments))
+    else:
+        from protocols.pcd import pcd_header
+
+        off = _offset(info)
+        comments = [f"tcf-hil offset {off[0]:.3f} {off[1]:.3f} {off[2]:.3f} "
+                    "(world = x, y, z + offset)"]
+        n = _write_headed(path, (_local32(p, off) for p in frames),
+                          lambda c: pcd_header(PCD_DTYPE, c, comments))
+    return ExportResult(path, "cloud", n, info.labelled, info.gps_adjusted)
