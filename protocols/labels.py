@@ -37,6 +37,7 @@ MAGIC = b"TCFLABL1"
 _HEAD = struct.Struct("<8sIIIII")
 _REC = struct.Struct("<QQI")
 DUAL = 1
+MAX_IDS = 1 << 28  # object ids a header may list (a 50 ha stand has about 400,000)
 
 
 class LabelsError(ValueError):
@@ -98,6 +99,8 @@ def read_labels(f: BinaryIO, name: str = "lidar_labels.bin"
                           f"expected {MAGIC!r})")
     if not (0 < rows <= 256 and 0 < cols <= 1 << 16):
         raise LabelsError(f"{name}: header: image of {rows} x {cols} pixels")
+    if n_ids > MAX_IDS:
+        raise LabelsError(f"{name}: header: {n_ids} object ids (at most {MAX_IDS})")
     comp = np.frombuffer(_read(f, n_ids, name, "component table"), np.uint8).copy()
     head = LabelsHeader(rows, cols, bool(flags & DUAL), n_stems, comp)
     images = 2 if head.dual else 1
@@ -110,6 +113,8 @@ def read_labels(f: BinaryIO, name: str = "lidar_labels.bin"
             if len(raw) < _REC.size:
                 return
             first, last, n = _REC.unpack(raw)
+            if n > size + (size >> 8) + 1024:  # zlib's worst case is a few bytes per 16 KiB
+                raise LabelsError(f"{name}: record {k}: {n} bytes for {size} bytes of ids")
             body = f.read(n)
             if len(body) < n:
                 return

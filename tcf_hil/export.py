@@ -10,15 +10,18 @@ temporary file first).
 Per point: world x, y, z (the scenario's ``plot.origin_m`` included: UTM-sized
 coordinates), GPS time, intensity, return number and number of returns, classification, and
 as extra dimensions the ground-truth ``stem_id`` the return belongs to (its stem, branches
-or foliage; 0 none), the ``component`` it hit (``COMPONENTS`` codes; 255 none: an ambient
-false return) and the beam's ``ring``.
+or foliage; 0 none), the ``component`` it hit (``COMPONENTS`` codes; 255 nothing: an ambient
+false return, classification 7; or not known: a frame without a label record,
+classification 0) and the beam's ``ring``.
 
 - LAS 1.4 point format 6 (ASPRS LAS 1.4 R15): X, Y, Z as int32 at a 1 mm scale with an
   offset rounded to the kilometre near the first sensor position, so a UTM origin keeps
   millimetres; GPS time is *adjusted standard GPS time* (GPS seconds - 1e9, global encoding
-  bit 0 set) where the run's manifest ties the simulation clock to Unix time (GPS = Unix -
-  315,964,800 s + 18 leap seconds, the offset since 2017-01-01 per IERS Bulletin C), else
-  the simulation clock's seconds (bit 0 clear); intensity is the REFLECTIVITY field scaled
+  bit 0 set) where the run's manifest ties the simulation clock to Unix time: Unix time at
+  the simulation's t0 plus simulation time, as the harvester's CANopen TIME object tells it
+  (at ``--speed`` 1 the wall clock; GPS = Unix - 315,964,800 s + 18 leap seconds, the
+  offset since 2017-01-01 per IERS Bulletin C), else the simulation clock's seconds (bit 0
+  clear); intensity is the REFLECTIVITY field scaled
   to 16 bits (the spec asks intensity normalised to 0-65535: 0-255 times 256);
   return numbers follow range (the nearer of a DUAL pixel's two returns is 1; Ouster sends
   the strongest first); classification by the ASPRS standard classes: 2 ground, 5 high
@@ -132,11 +135,19 @@ class _Poses:
         try:
             t = np.array([r[0] for r in block], np.int64)
             p = np.array([r[1:8] for r in block], np.float64)
+            if p.shape[1:] != (7,):
+                raise ValueError("not 8 columns")
         except (ValueError, IndexError) as err:
-            raise InputError(str(self.path), f"line {self._line + 1}..{self._line + len(block)}",
-                             f"not 8 numbers per line ({err})") from err
-        if p.shape[1:] != (7,):
-            raise InputError(str(self.path), f"line {self._line + 1}", "not 8 columns")
+            for k, r in enumerate(block):  # the first bad line, for the message
+                try:
+                    int(r[0])
+                    if len(r) != 8 or not all(np.isfinite([float(v) for v in r[1:]])):
+                        raise ValueError(f"{len(r)} columns")
+                except (ValueError, IndexError) as bad:
+                    raise InputError(str(self.path), f"line {self._line + k + 1}",
+                                     f"{','.join(r)!r} is not time_ns and 7 numbers "
+                                     f"({bad})") from err
+            raise InputError(str(self.path), f"line {self._line + 1}", str(err)) from err
         self._line += len(block)
         self.t = np.concatenate([self.t, t])
         self.p = np.vstack([self.p, p])
@@ -162,16 +173,28 @@ class _Labels:
 
     def __init__(self, path: Path, meta: SensorMetadata) -> None:
         self.path = path
-        self._fh: BinaryIO = open(path, "rb")
+        self.missing = 0  # frames of the capture without a record
         try:
-            head, recs = read_labels(self._fh, str(path))
-        except LabelsError as err:
-            raise InputError(str(path), "", str(err).split(": ", 1)[-1]) from err
-        fmt = meta.packet_format
-        if (head.rows, head.columns) != (fmt.pixels_per_column, fmt.columns_per_frame):
-            raise InputError(str(path), "header", f"{head.rows} x {head.columns} pixels; "
-                             f"the metadata's mode is {fmt.pixels_per_column} x "
-                             f"{fmt.columns_per_frame}")
+            self._fh: BinaryIO = open(path, "rb")
+        except OSError as err:
+            raise InputError(str(path), "", f"cannot read: {err.strerror or err}") from err
+        try:
+            try:
+                head, recs = read_labels(self._fh, str(path))
+            except LabelsError as err:
+                raise InputError(str(path), "", str(err).split(": ", 1)[-1]) from err
+            fmt = meta.packet_format
+            if (head.rows, head.columns) != (fmt.pixels_per_column, fmt.columns_per_frame):
+                raise InputError(str(path), "header", f"{head.rows} x {head.columns} pixels; "
+                                 f"the metadata's mode is {fmt.pixels_per_column} x "
+                                 f"{fmt.columns_per_frame}")
+            if head.dual != (fmt.profile.returns > 1):
+                raise InputError(str(path), "header", f"{'two' if head.dual else 'one'} "
+                                 f"return(s) per pixel; the metadata's profile "
+                                 f"{fmt.profile.name} has {fmt.profile.returns}")
+        except BaseException:
+            self._fh.close()
+            raise
         self.head: LabelsHeader = head
         self._recs = recs
         self._cur: LabelsRecord | None = None
@@ -196,10 +219,14 @@ class _Labels:
             while self._cur is None or self._cur.last_ns < mid:
                 self._cur = next(self._recs)
         except StopIteration:
+            self.missing += 1
             return None
         except LabelsError as err:
             raise InputError(str(self.path), "", str(err).split(": ", 1)[-1]) from err
-        return self._cur if self._cur.first_ns <= mid else None
+        if self._cur.first_ns <= mid:
+            return self._cur
+        self.missing += 1
+        return None
 
     def of(self, ids: NDArray[np.int32]) -> tuple[NDArray[np.uint32], NDArray[np.uint8],
                                                   NDArray[np.uint8]]:
@@ -219,6 +246,7 @@ class CloudInfo:
     labelled: bool
     gps_adjusted: bool  # GPS time is adjusted standard GPS time (else simulation seconds)
     first_position: NDArray[np.float64]  # the first column's sensor position, world
+    labels: Any = None  # the labels being read (their ``missing`` count grows as frames go)
 
 
 def _load_meta(run_dir: Path) -> SensorMetadata:
@@ -267,17 +295,20 @@ def run_cloud(run_dir: str | Path, *, every: int = 1,
     clock = _clock(run)
     labels = _Labels(run / "lidar_labels.bin", meta) \
         if (run / "lidar_labels.bin").exists() else None
-    poses = _Poses(run / "sensor_poses.csv")
     try:
-        first = poses.at(poses.t[:1].astype(np.uint64)) if poses._more() else None
-    except InputError:
-        first = None
-    if first is None:
-        poses.close()
+        poses = _Poses(run / "sensor_poses.csv")
+        try:
+            if not poses._more():
+                raise InputError(str(run / "sensor_poses.csv"), "", "holds no pose")
+        except BaseException:
+            poses.close()
+            raise
+    except BaseException:
         if labels is not None:
             labels.close()
-        raise InputError(str(run / "sensor_poses.csv"), "", "holds no pose")
-    info = CloudInfo(meta, labels is not None, clock is not None, first[0, :3].copy())
+        raise
+    first = poses.p[:1]
+    info = CloudInfo(meta, labels is not None, clock is not None, first[0, :3].copy(), labels)
     return info, _frames(run, meta, fmt, clock, labels, poses, every, progress)
 
 
@@ -298,7 +329,11 @@ def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | 
     port = meta.udp_port_lidar
     k = 0
     try:
-        with open(pcap, "rb") as fh:
+        try:
+            fh = open(pcap, "rb")
+        except OSError as err:
+            raise InputError(str(pcap), "", f"cannot read: {err.strerror or err}") from err
+        with fh:
             reader = UdpReader(fh)
             try:
                 for d in reader:
@@ -307,7 +342,7 @@ def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | 
                     for fr in asm.feed(d.payload):
                         if k % every == 0:
                             pts = _frame_points(fr, fmt, meta, origins, dirs, n_off, H, dual,
-                                                scale, clock, labels, poses)
+                                                scale, clock, labels, poses, pcap)
                             if len(pts):
                                 yield pts
                         k += 1
@@ -316,7 +351,7 @@ def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | 
                 for fr in asm.flush():
                     if k % every == 0:
                         pts = _frame_points(fr, fmt, meta, origins, dirs, n_off, H, dual,
-                                            scale, clock, labels, poses)
+                                            scale, clock, labels, poses, pcap)
                         if len(pts):
                             yield pts
                     k += 1
@@ -333,13 +368,13 @@ def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | 
 def _frame_points(fr: Any, fmt: Any, meta: SensorMetadata, origins: NDArray[np.float64],
                   dirs: NDArray[np.float64], n_off: float, H: int, dual: bool, scale: int,
                   clock: tuple[int, int] | None, labels: _Labels | None,
-                  poses: _Poses) -> NDArray[np.void]:
+                  poses: _Poses, pcap: Path) -> NDArray[np.void]:
     want = ["RANGE", "REFLECTIVITY"] + (["RANGE2", "REFLECTIVITY2"] if dual else [])
     try:
         b = decode_lidar_packets(fmt, fr.packets, check_crc=False,
                                  fields=[w for w in want if w in fmt.field_names])
     except ProtocolError as err:
-        raise InputError("lidar.pcap", f"frame {fr.frame_id}", str(err)) from err
+        raise InputError(str(pcap), f"frame {fr.frame_id}", str(err)) from err
     mid = b.measurement_id.reshape(-1).astype(np.int64)
     ok = (b.status.reshape(-1) & 1).astype(bool)
     ts = b.timestamps_ns.reshape(-1)[ok]
@@ -432,6 +467,7 @@ def _las_header(info: CloudInfo, laspy: Any) -> Any:
     header.global_encoding.gps_time_type = (laspy.header.GpsTimeType.STANDARD
                                             if info.gps_adjusted
                                             else laspy.header.GpsTimeType.WEEK_TIME)
+    header.global_encoding.wkt = True  # LAS 1.4 R15: required with point formats 6-10
     header.system_identifier = "tcf-hil emulated Ouster OS0-64"
     header.generating_software = f"tcf-hil {__version__}"
     return header
@@ -464,6 +500,7 @@ def _write_headed(path: Path, frames: Iterator[NDArray[np.void]],
                   header: Callable[[int], bytes]) -> int:
     """A body streamed to a temporary file, then the header (which needs the count)."""
     n = 0
+    path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryFile(dir=path.parent) as body:
         for pts in frames:
             body.write(np.ascontiguousarray(pts).tobytes())
@@ -479,17 +516,24 @@ def _write_headed(path: Path, frames: Iterator[NDArray[np.void]],
 
 
 def _track_xy(run: Path, step: int = 64) -> NDArray[np.float64]:
-    """The sensor's horizontal track (every ``step``-th column pose)."""
+    """The sensor's horizontal track (every ``step``-th column pose, and the last)."""
     path = run / "sensor_poses.csv"
     if not path.exists():
         return np.zeros((0, 2))
     xy = []
+    last = None
     with open(path, encoding="ascii", newline="") as fh:
         rows = csv.reader(fh)
         next(rows, None)
         for i, r in enumerate(rows):
-            if i % step == 0 and len(r) >= 3:
-                xy.append((float(r[1]), float(r[2])))
+            if len(r) < 3:
+                continue
+            last = (float(r[1]), float(r[2]))
+            if i % step == 0:
+                xy.append(last)
+                last = None
+    if last is not None:  # the track's end
+        xy.append(last)
     return np.array(xy).reshape(-1, 2)
 
 
@@ -654,6 +698,7 @@ class ExportResult:
     count: int
     labelled: bool = True
     gps_adjusted: bool = True
+    unlabelled_frames: int = 0  # frames of a labelled run's capture without a label record
 
 
 def export(run_dir: str | Path, out: str | Path, *, every: int = 1,
@@ -695,4 +740,5 @@ def export(run_dir: str | Path, out: str | Path, *, every: int = 1,
                     "(world = x, y, z + offset)"]
         n = _write_headed(path, (_local32(p, off) for p in frames),
                           lambda c: pcd_header(PCD_DTYPE, c, comments))
-    return ExportResult(path, "cloud", n, info.labelled, info.gps_adjusted)
+    return ExportResult(path, "cloud", n, info.labelled, info.gps_adjusted,
+                        info.labels.missing if info.labels is not None else 0)

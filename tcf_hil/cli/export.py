@@ -46,6 +46,9 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
     from tcf_hil.export import export
 
     suffix = out.suffix.lower()
+    if epsg is not None and suffix != ".geojson":
+        raise click.BadParameter("applies to .geojson only (a LAS coordinate system needs its "
+                                 "WKT, which tcf-hil does not write yet)", param_hint="--epsg")
     with Progress(f"export {out.name}", total=None, keep=False) as bar:
         r = export(run_dir, out, every=every, stems=stems, epsg=epsg, progress=bar.counter)
     if r.kind == "cloud":
@@ -53,6 +56,10 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
         if not r.labelled:
             err_console.print(f"Note: {run_dir} has no lidar_labels.bin (recorded before "
                               "tcf-hil wrote it): classification 1, stem_id 0.")
+        if r.unlabelled_frames:
+            err_console.print(f"Note: {r.unlabelled_frames} frame(s) of the capture had no "
+                              "label record (a run cut short while writing): classification "
+                              "0, component 255.")
         if not r.gps_adjusted and suffix in (".las", ".laz"):
             err_console.print(f"Note: {run_dir} has no run manifest tying its clock to UTC: "
                               "GPS time is simulation seconds (GPS week time).")

@@ -156,24 +156,21 @@ def test_dual_returns_are_numbered_by_range(tmp_path: Path) -> None:
     rn, nr = np.asarray(las.return_number), np.asarray(las.number_of_returns)
     assert set(np.unique(nr).tolist()) <= {1, 2} and np.any(nr == 2)
     assert np.all(rn <= nr)
-    # per pixel (same GPS time and ring), return 1 is the nearer
+    # per pixel (same GPS time and ring), return 1 is the nearer, from its own column's pose
+    # (no manifest: GPS time is the simulation clock's seconds, i.e. the column's time stamp)
+    rows = list(csv.reader((tmp_path / "run" / "sensor_poses.csv").open()))[1:]
+    poses = {int(r[0]): np.array([float(v) for v in r[1:4]]) for r in rows}
     t, ring = np.asarray(las.gps_time), np.asarray(las.ring)
     pos = np.column_stack([las.x, las.y, las.z])
-    two = np.flatnonzero(nr == 2)
-    key = {}
-    for i in two.tolist():
-        key.setdefault((t[i], ring[i]), []).append(i)
-    sensor = np.array(next(csv.reader(io.StringIO(
-        (tmp_path / "run" / "sensor_poses.csv").read_text().splitlines()[1])))[1:4], float)
+    pairs: dict[tuple[float, int], list[int]] = {}
+    for i in np.flatnonzero(nr == 2).tolist():
+        pairs.setdefault((t[i], ring[i]), []).append(i)
     checked = 0
-    for idx in key.values():
-        if len(idx) != 2:
-            continue
-        i1 = idx[0] if rn[idx[0]] == 1 else idx[1]
-        i2 = idx[1] if i1 == idx[0] else idx[0]
-        assert rn[i2] == 2
-        d1, d2 = (np.linalg.norm(pos[i] - sensor) for i in (i1, i2))
-        assert d1 <= d2 + 0.6  # (the sensor moved within the frame)
+    for (ti, _), idx in pairs.items():
+        assert len(idx) == 2 and sorted(rn[idx].tolist()) == [1, 2]
+        sensor = poses[round(ti * 1e9)]
+        i1, i2 = sorted(idx, key=lambda i: rn[i])
+        assert np.linalg.norm(pos[i1] - sensor) <= np.linalg.norm(pos[i2] - sensor) + 0.002
         checked += 1
     assert checked > 100
 
@@ -220,7 +217,14 @@ def test_stems_as_geojson_and_csv(natural_run: Path, tmp_path: Path) -> None:
     assert outcomes <= {"missed_seen", "missed_unseen"} and len(outcomes) == 2
     seen = {f["properties"]["id"] for f in feats if f["properties"]["outcome"] == "missed_seen"}
     assert seen == {o["id"] for o in gt["objects"] if o["returns"] > 0}
-    assert all(f["properties"]["distance_to_track_m"] >= 0 for f in feats)
+    # the distance from the driven track (world coordinates, as the stems'): against every
+    # recorded pose (the track is straight, so its polyline and its poses agree)
+    rows = list(csv.reader((natural_run / "sensor_poses.csv").open()))[1:]
+    track = np.array([[float(r[1]), float(r[2])] for r in rows])
+    for f in feats:
+        xy = np.array(f["geometry"]["coordinates"][:2])
+        near = np.hypot(*(track - xy).T).min()
+        assert abs(f["properties"]["distance_to_track_m"] - near) < 0.01
     assert main(["export", str(natural_run), "--out", str(tmp_path / "s.csv")]) == 0
     rows = list(csv.DictReader((tmp_path / "s.csv").open()))
     assert len(rows) == len(gt["objects"]) and rows[0]["source"] == "truth"
@@ -246,6 +250,26 @@ def test_bad_input_is_one_line_and_writes_nothing(natural_run: Path, tmp_path: P
     assert "nothing" in lines[0] and ".xyz" in lines[1]
     assert "lidar_labels.bin" in lines[2] and "magic" in lines[2]
     assert not out.exists() and not list(tmp_path.glob(".*part*"))
+    # a capture whose poses end after its first frame fails while writing: nothing is left
+    (run / "lidar_labels.bin").unlink()
+    (run / "lidar_labels.bin").symlink_to(natural_run / "lidar_labels.bin")
+    (run / "sensor_poses.csv").unlink()
+    lines = (natural_run / "sensor_poses.csv").read_text().splitlines(keepends=True)
+    (run / "sensor_poses.csv").write_text("".join(lines[:1 + 512]))
+    for suffix in ("las", "ply", "pcd"):
+        assert main(["export", str(run), "--out", str(tmp_path / f"cut.{suffix}")]) == 1
+        assert not (tmp_path / f"cut.{suffix}").exists()
+    err = capsys.readouterr().err
+    assert "sensor_poses.csv" in err and "no pose for the column time stamp" in err
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    # a malformed pose line is named
+    (run / "sensor_poses.csv").write_text("".join(lines[:5]) + "1,2,x,4,5,6,7,8\n")
+    assert main(["export", str(run), "--out", str(out)]) == 1
+    assert "sensor_poses.csv at line 6" in capsys.readouterr().err
+    # --epsg is for GeoJSON; the cloud has no coordinate system yet (a usage error)
+    assert main(["export", str(natural_run), "--out", str(out), "--epsg", "3067"]) == 2
+    (run / "sensor_poses.csv").unlink()
+    (run / "sensor_poses.csv").symlink_to(natural_run / "sensor_poses.csv")
     # without labels (a run recorded before them): points, unclassified
     (run / "lidar_labels.bin").unlink()
     r = export(run, out)
