@@ -327,36 +327,30 @@ def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | 
     scale = 256
     asm = FrameAssembler(fmt, column_window=getattr(meta, "column_window", None))
     port = meta.udp_port_lidar
-    k = 0
     try:
         try:
             fh = open(pcap, "rb")
         except OSError as err:
             raise InputError(str(pcap), "", f"cannot read: {err.strerror or err}") from err
-        with fh:
-            reader = UdpReader(fh)
+        def assembled() -> Iterator[Any]:
+            """The capture's lidar frames, in the order they began (the last ones at its end)."""
             try:
-                for d in reader:
-                    if d.dst_port != port:
-                        continue
-                    for fr in asm.feed(d.payload):
-                        if k % every == 0:
-                            pts = _frame_points(fr, fmt, meta, origins, dirs, n_off, H, dual,
-                                                scale, clock, labels, poses, pcap)
-                            if len(pts):
-                                yield pts
-                        k += 1
+                for d in UdpReader(fh):
+                    if d.dst_port == port:
+                        yield from asm.feed(d.payload)
                         if progress:
                             progress(fh.tell(), size)
-                for fr in asm.flush():
-                    if k % every == 0:
-                        pts = _frame_points(fr, fmt, meta, origins, dirs, n_off, H, dual,
-                                            scale, clock, labels, poses, pcap)
-                        if len(pts):
-                            yield pts
-                    k += 1
+                yield from asm.flush()
             except PcapError as err:
                 raise InputError(str(pcap), "", str(err)) from err
+
+        with fh:
+            for k, fr in enumerate(assembled()):
+                if k % every == 0:
+                    pts = _frame_points(fr, fmt, meta, origins, dirs, n_off, H, dual, scale,
+                                        clock, labels, poses, pcap)
+                    if len(pts):
+                        yield pts
         if progress:
             progress(size, size)
     finally:
