@@ -260,12 +260,8 @@ def stem_curves(stems: StemSet, ids: NDArray[np.int32] | None = None,
     seg_mask[last] = False
     segments = at_out[seg_mask]
     seg_stem = idx[seg_mask]
-    # every joint keeps its sphere: with neighbour flags Embree cuts the two cones at the joint
-    # instead, and a ray grazing the stem across the cut can slip through (forest-iv: 1 of
-    # 40,000 rays 0.2 mm inside, test_hard_cases); only a tube's last segment is flagged, as
-    # having a neighbour (its guide point), so that its top stays open for the disc
-    flags = np.zeros(len(segments), np.uint8)
-    flags[np.searchsorted(segments, at_out[last - 1])] = np.uint8(2)
+    flags = np.full(len(segments), 3, np.uint8)
+    flags[np.searchsorted(segments, at_out[first])] &= np.uint8(2)  # nothing before the first
     top = r[last] > CAP_OVERLAP_M
     return TubeCurves(points, segments.astype(np.int64), flags, sid[seg_stem],
                       np.column_stack([c[last], r[last] + CAP_OVERLAP_M])[top], axis[top],
