@@ -30,7 +30,7 @@ from typing import BinaryIO
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["LabelsError", "LabelsHeader", "LabelsRecord", "encode_labels_header",
+__all__ = ["LabelsError", "LabelsHeader", "LabelsRecord", "LabelsRecords", "encode_labels_header",
            "encode_labels_record", "read_labels"]
 
 MAGIC = b"TCFLABL1"
@@ -88,7 +88,7 @@ def _read(f: BinaryIO, n: int, name: str, what: str) -> bytes:
 
 
 def read_labels(f: BinaryIO, name: str = "lidar_labels.bin"
-                ) -> tuple[LabelsHeader, Iterator[LabelsRecord]]:
+                ) -> tuple[LabelsHeader, LabelsRecords]:
     """The header, and the records one at a time (constant memory). A record cut short at
     the end (a crash while writing) ends the iteration, as a capture's last partial record
     does; anything else malformed raises :class:`LabelsError` naming ``name``."""
@@ -104,29 +104,60 @@ def read_labels(f: BinaryIO, name: str = "lidar_labels.bin"
     comp = np.frombuffer(_read(f, n_ids, name, "component table"), np.uint8).copy()
     head = LabelsHeader(rows, cols, bool(flags & DUAL), n_stems, comp)
     images = 2 if head.dual else 1
-    size = rows * cols * 4 * images
+    return head, LabelsRecords(f, name, rows, cols, images)
 
-    def records() -> Iterator[LabelsRecord]:
-        k = 0
-        while True:
-            raw = f.read(_REC.size)
+
+class LabelsRecords:
+    """The records of a labels file, one at a time; :meth:`skip_before` passes over the
+    records that end before a time without inflating them (a reader that samples frames)."""
+
+    def __init__(self, f: BinaryIO, name: str, rows: int, cols: int, images: int) -> None:
+        self.f, self.name, self.rows, self.cols, self.images = f, name, rows, cols, images
+        self.size = rows * cols * 4 * images
+        self.k = 0
+        self._head: tuple[int, int, int] | None = None
+
+    def __iter__(self) -> Iterator[LabelsRecord]:
+        return self
+
+    def _peek(self) -> tuple[int, int, int] | None:
+        if self._head is None:
+            raw = self.f.read(_REC.size)
             if len(raw) < _REC.size:
-                return
+                return None
             first, last, n = _REC.unpack(raw)
-            if n > size + (size >> 8) + 1024:  # zlib's worst case is a few bytes per 16 KiB
-                raise LabelsError(f"{name}: record {k}: {n} bytes for {size} bytes of ids")
-            body = f.read(n)
-            if len(body) < n:
-                return
-            try:
-                data = zlib.decompress(body)
-            except zlib.error as err:
-                raise LabelsError(f"{name}: record {k}: {err}") from err
-            if len(data) != size:
-                raise LabelsError(f"{name}: record {k}: {len(data)} bytes of ids, "
-                                  f"expected {size}")
-            arr = np.frombuffer(data, "<i4").reshape(images, rows, cols)
-            yield LabelsRecord(first, last, arr[0], arr[1] if images == 2 else None)
-            k += 1
+            if n > self.size + (self.size >> 8) + 1024:  # zlib's worst: bytes per 16 KiB
+                raise LabelsError(f"{self.name}: record {self.k}: {n} bytes for {self.size} "
+                                  "bytes of ids")
+            self._head = (first, last, n)
+        return self._head
 
-    return head, records()
+    def skip_before(self, ns: int) -> None:
+        """Pass over the records whose last column time is before ``ns``."""
+        while (h := self._peek()) is not None and h[1] < ns:
+            here = self.f.tell()
+            self.f.seek(h[2], 1)
+            if self.f.tell() != here + h[2]:
+                return
+            self._head = None
+            self.k += 1
+
+    def __next__(self) -> LabelsRecord:
+        h = self._peek()
+        if h is None:
+            raise StopIteration
+        first, last, n = h
+        self._head = None
+        body = self.f.read(n)
+        if len(body) < n:  # cut short at the end (a crash while writing)
+            raise StopIteration
+        try:
+            data = zlib.decompress(body)
+        except zlib.error as err:
+            raise LabelsError(f"{self.name}: record {self.k}: {err}") from err
+        if len(data) != self.size:
+            raise LabelsError(f"{self.name}: record {self.k}: {len(data)} bytes of ids, "
+                              f"expected {self.size}")
+        arr = np.frombuffer(data, "<i4").reshape(self.images, self.rows, self.cols)
+        self.k += 1
+        return LabelsRecord(first, last, arr[0], arr[1] if self.images == 2 else None)

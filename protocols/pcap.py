@@ -20,7 +20,8 @@ from typing import BinaryIO
 
 import numpy as np
 
-__all__ = ["PcapError", "PcapWriter", "UdpDatagram", "UdpReader", "read_udp"]
+__all__ = ["PcapError", "PcapWriter", "UdpDatagram", "UdpReader", "libpcap_resync",
+           "read_udp"]
 
 LINKTYPE_ETHERNET = 1
 MAX_RECORD = 1 << 18  # bytes: a record claiming more is damage (IPv4's largest is 64 KiB)
@@ -398,3 +399,39 @@ class UdpReader:
             raise PcapError(f"UDP length {ulen}; the datagram holds {len(body)} bytes")
         return UdpDatagram(ts, ".".join(map(str, src)), ".".join(map(str, dst)), sport, dport,
                           body[8:ulen])
+
+
+_LIBPCAP_MAGIC = {b"\xd4\xc3\xb2\xa1": ("<", 1_000_000), b"\xa1\xb2\xc3\xd4": (">", 1_000_000),
+                  b"\x4d\x3c\xb2\xa1": ("<", 1_000_000_000),
+                  b"\xa1\xb2\x3c\x4d": (">", 1_000_000_000)}
+
+
+def libpcap_resync(global_header: bytes, buf: bytes, start: int = 0, chain: int = 4
+                   ) -> int | None:
+    """The first offset at or after ``start`` in ``buf`` (bytes read from anywhere inside a
+    libpcap capture whose first 24 bytes are ``global_header``) where ``chain`` record
+    headers in a row are plausible: a sub-second field below one second, a captured length
+    of at least an Ethernet header and within the snapshot length and the original length,
+    time stamps that do not go back nor jump an hour. None when there is no such offset (or
+    the capture is not libpcap), so a reader can start in the middle of a capture:
+    ``global_header + buf[offset:]``."""
+    form = _LIBPCAP_MAGIC.get(global_header[:4])
+    if form is None or len(global_header) < 24:
+        return None
+    end, frac_limit = form
+    snap = struct.unpack(end + "I", global_header[16:20])[0] or MAX_RECORD
+    rec = struct.Struct(end + "IIII")
+    limit = min(snap, MAX_RECORD)
+    for at in range(start, max(start, len(buf) - 16 * chain)):
+        p, prev, ok = at, None, 0
+        while ok < chain and p + 16 <= len(buf):
+            sec, frac, incl, orig = rec.unpack_from(buf, p)
+            if frac >= frac_limit or not 14 <= incl <= limit or orig < incl \
+                    or orig > MAX_RECORD:
+                break
+            if prev is not None and not prev <= sec <= prev + 3600:
+                break
+            prev, p, ok = sec, p + 16 + incl, ok + 1
+        if ok == chain:
+            return at
+    return None

@@ -4,6 +4,7 @@ dpkt's pcap and pcapng files read by us, fragments reassembled, errors clear."""
 from __future__ import annotations
 
 import io
+import struct
 from pathlib import Path
 
 import dpkt
@@ -14,7 +15,7 @@ from hypothesis import strategies as st
 from ouster.sdk import pcap as opcap
 
 import protocols.ouster as o
-from protocols.pcap import PcapError, PcapWriter, UdpDatagram, read_udp
+from protocols.pcap import PcapError, PcapWriter, UdpDatagram, libpcap_resync, read_udp
 
 ips = st.tuples(*[st.integers(0, 255)] * 4).map(lambda t: ".".join(map(str, t)))
 
@@ -172,3 +173,37 @@ def test_fuzzed_captures_give_datagrams_or_pcap_error(junk: bytes, at: int) -> N
         list(read_udp(data))
     except PcapError:
         pass
+
+
+def _boundaries(data: bytes) -> list[int]:
+    """The true record offsets of a libpcap capture (walked from its header)."""
+    end = "<" if data[:4] in (b"\xd4\xc3\xb2\xa1", b"\x4d\x3c\xb2\xa1") else ">"
+    out, p = [], 24
+    while p + 16 <= len(data):
+        out.append(p)
+        p += 16 + struct.unpack_from(end + "I", data, p + 8)[0]
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(datagrams(), st.sampled_from([576, 1500]), st.booleans(), st.floats(0, 1))
+def test_resync_finds_the_next_record_from_anywhere(ds: list[UdpDatagram], mtu: int,
+                                                    ns: bool, where: float) -> None:
+    """From any byte inside a capture, the reader starts again at the first record that
+    begins there or after (and the datagrams from there on read as written)."""
+    data = PcapWriter(mtu=mtu, nanosecond=ns).encode(ds)
+    start = 24 + int(where * (len(data) - 24))
+    bounds = _boundaries(data)
+    got = libpcap_resync(data[:24], data[24:], start - 24)
+    chainable = [b for b in bounds if b >= start and len(bounds) - bounds.index(b) >= 4]
+    if got is None:
+        assert not chainable
+        return
+    assert got + 24 == chainable[0]
+    tail = list(read_udp(data[:24] + data[got + 24:]))
+    assert tail == [d for d in read_udp(data)][-len(tail):] if tail else True
+
+
+def test_resync_refuses_what_is_not_libpcap() -> None:
+    assert libpcap_resync(b"\x0a\x0d\x0d\x0a" + bytes(20), bytes(4096)) is None
+    assert libpcap_resync(PcapWriter().header(), bytes(4096)) is None  # zeros chain no time

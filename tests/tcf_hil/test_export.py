@@ -327,3 +327,24 @@ def test_distance_to_track_is_the_nearest_segments(track: np.ndarray, xy: np.nda
     u = np.clip(np.sum(ap * ab, -1) / np.maximum(np.sum(ab * ab, -1), 1e-300), 0, 1)
     brute = np.linalg.norm(ap - u[..., None] * ab, axis=-1).min(axis=1)
     assert np.allclose(got, brute, atol=1e-9)
+
+
+def test_sampled_frames_are_the_captures_own(tmp_path: Path) -> None:
+    """``run_cloud(sample=...)`` reads frames from windows of the capture (a resync on the
+    record boundaries, the poses found by bisection, the labels skipped uninflated): every
+    frame it gives is one the full read gives, point for point, label for label."""
+    from tcf_hil.export import run_cloud
+
+    d = _natural()
+    d["stems"] = {**d["stems"], "count": 40}
+    out = tmp_path / "run"
+    record_pcap(scenario_from_dict(d), out, mode="512x10", max_frames=12)
+    full = [f for f in run_cloud(out)[1]]
+    assert len(full) >= 11
+    for k in (1, 3, 5, 12):
+        got = [f for f in run_cloud(out, sample=(k, 12))[1]]
+        # (windows three frames long: as many as the capture has frames overlap, and the
+        # frames two windows share come once)
+        assert len(got) >= (k - 1 if k < 12 else 6), (k, len(got))
+        for f in got:
+            assert any(len(f) == len(g) and np.array_equal(f, g) for g in full), k
