@@ -20,7 +20,8 @@ from typing import BinaryIO
 
 import numpy as np
 
-__all__ = ["PcapError", "PcapWriter", "UdpDatagram", "UdpReader", "libpcap_resync",
+__all__ = ["LIBPCAP_MAGICS", "PcapError", "PcapWriter", "UdpDatagram", "UdpReader",
+           "libpcap_resync",
            "read_udp"]
 
 LINKTYPE_ETHERNET = 1
@@ -404,6 +405,7 @@ class UdpReader:
 _LIBPCAP_MAGIC = {b"\xd4\xc3\xb2\xa1": ("<", 1_000_000), b"\xa1\xb2\xc3\xd4": (">", 1_000_000),
                   b"\x4d\x3c\xb2\xa1": ("<", 1_000_000_000),
                   b"\xa1\xb2\x3c\x4d": (">", 1_000_000_000)}
+LIBPCAP_MAGICS = tuple(_LIBPCAP_MAGIC)  # the four first bytes of a libpcap capture
 
 
 def libpcap_resync(global_header: bytes, buf: bytes, start: int = 0, chain: int = 4

@@ -65,7 +65,7 @@ from protocols.ouster import (
     beam_rays,
     decode_lidar_packets,
 )
-from protocols.pcap import PcapError, UdpReader, libpcap_resync
+from protocols.pcap import LIBPCAP_MAGICS, PcapError, UdpReader, libpcap_resync
 from tcf_hil._io import atomic_path, read_json
 from tcf_hil.errors import InputError
 
@@ -397,7 +397,7 @@ def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | 
         with fh:
             head = fh.read(24)
             fh.seek(0)
-            if sample is not None and head[:4] in _LIBPCAP_MAGICS:
+            if sample is not None and head[:4] in LIBPCAP_MAGICS:
                 frames = _sampled(fh, head, size, port, fmt, meta, *sample)
                 skip = True
             else:
@@ -416,10 +416,6 @@ def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | 
         poses.close()
         if labels is not None:
             labels.close()
-
-
-_LIBPCAP_MAGICS = (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1",
-                   b"\xa1\xb2\x3c\x4d")
 
 
 def _sampled(fh: BinaryIO, head: bytes, size: int, port: int, fmt: Any,
