@@ -653,7 +653,9 @@ def _distance_to_track(xy: NDArray[np.float64], track: NDArray[np.float64]
     return best
 
 
-def stem_outcomes(run_dir: str | Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
+                  track: NDArray[np.float64] | None = None
+                  ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Every ground-truth stem and every stem of the SIC's scored forest with the outcome
     of scoring (the run's own configuration from ``score.json``): a ground-truth stem is
     ``correct`` (matched, class right), ``misclassified``, ``missed_seen`` (returns, no
@@ -663,7 +665,8 @@ def stem_outcomes(run_dir: str | Path) -> tuple[list[dict[str, Any]], list[dict[
     within the matching distance but was matched to another tree), ``few returns`` (fewer
     than the 10th percentile of the returns of the stems the SIC found: the run's own
     yardstick, not a fixed count) or ``seen, not found``. The truth is the run's
-    ``ground_truth.json`` or, for a field recording, its ``inventory.csv``."""
+    ``ground_truth.json`` or, for a field recording, its ``inventory.csv`` (``gt_doc``,
+    ``track``: the truth and :func:`_track_xy` when the caller has read them already)."""
     from tcf_hil.evaluation import EvalConfig
     from tcf_hil.recorder import empty_forest, score_forest
     from tcf_hil.stems_json import stem_table
@@ -672,7 +675,9 @@ def stem_outcomes(run_dir: str | Path) -> tuple[list[dict[str, Any]], list[dict[
     if not run.is_dir():
         raise InputError(str(run), "", "not a directory (a run directory is expected)")
     gt_path = run / "ground_truth.json"
-    if gt_path.exists():
+    if gt_doc is not None:
+        gt_path = gt_path if gt_path.exists() else run / "inventory.csv"
+    elif gt_path.exists():
         gt_doc = read_json(gt_path)
     elif (run / "inventory.csv").exists():
         from tcf_hil.inventory import read_inventory
@@ -706,7 +711,8 @@ def stem_outcomes(run_dir: str | Path) -> tuple[list[dict[str, Any]], list[dict[
     ev, gt = sc.all, sc.gt_all
     match_of_gt = dict(zip(ev.pairs[:, 0].tolist(), ev.pairs[:, 1].tolist(), strict=True))
     match_of_obs = {o: g for g, o in match_of_gt.items()}
-    track = _track_xy(run)
+    if track is None:
+        track = _track_xy(run)
     g_objs = gt_doc.get("objects", [])
     o_objs = obs_doc.get("objects", [])
     gd = _distance_to_track(gt.xyz[:, :2], track)

@@ -88,13 +88,13 @@ def build_report(run_dir: str | Path, manifest: dict[str, Any] | None = None,
         manifest = read_json(run / "manifest.json") if (run / "manifest.json").exists() else {}
     from tcf_hil.export import STEM_COLUMNS, _track_xy, stem_outcomes
 
-    gts, obs = stem_outcomes(run)
-    track = _track_xy(run, step=16)
     gt_doc = read_json(run / "ground_truth.json") if (run / "ground_truth.json").exists() \
-        else {}
+        else None
+    track = _track_xy(run)  # (every 64th column: millimetres apart, fine for drawing too)
+    gts, obs = stem_outcomes(run, gt_doc, track)
     frame = _Frame.around(gts, obs, track)
     cloud = _cloud(run, frame, manifest, say)
-    terrain = _terrain(gt_doc.get("terrain"), frame)
+    terrain = _terrain((gt_doc or {}).get("terrain"), frame)
     faults = _fault_events(run)
     view3d: dict[str, Any] | None = cloud.pop("view3d", None) if cloud else None
     data = {"stems": gts, "sic": obs, "columns": list(STEM_COLUMNS),
