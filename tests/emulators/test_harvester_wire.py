@@ -93,7 +93,12 @@ def test_remote_node_decodes_every_pose_and_logs_agree(server: SocketcandServer,
     model = HarvesterModel.from_scenario(scn, forest.terrain, forest.seed)
     # frames of one SYNC arrive in order 1, 2, 3 (one TCP stream, in order)
     n = len(got[3])
-    assert n >= 350, (n, proc.stdout)  # 4 s simulated at 100 Hz, within a few
+    # 4 s simulated at 100 Hz is 400 SYNCs at --speed 5 (2 ms apart in wall time); a node
+    # more than a period behind drops the missed cycles rather than bursting them
+    # (_node.py: next_sync = max(next_sync + period, now - period)), and on a loaded 2-core
+    # CI machine it did (319 of 400, jitter p99 8.6 ms). "Every pose" is what the node sent:
+    # its own log's TPDO3 count is checked against n below; here only that the run happened.
+    assert n >= 200, (n, proc.stdout)
     assert len(got[1]) == len(got[2]) == n
     worst = np.zeros(4)
     for a, b, c in zip(got[1], got[2], got[3], strict=True):
