@@ -25,6 +25,7 @@ from emulators.harvester import (
     CanLog,
     HarvesterNode,
     NodeConfig,
+    NodeStats,
     SimClock,
     kernel_has_vcan,
     node_id_in_use,
@@ -170,12 +171,14 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
                   on_tick: Callable[[float, float], None] | None = None,
                   faults: CanFaultPlan | None = None,
                   on_fault: Callable[[FaultEvent], None] | None = None,
-                  on_conflict: Callable[[str], None] | None = None) -> HarvesterRunResult:
+                  on_conflict: Callable[[str], None] | None = None,
+                  on_node: Callable[[NodeStats], None] | None = None) -> HarvesterRunResult:
     """Drive the scenario's track in (scaled) real time with the node on ``spec`` until the
     track ends (plus one second standing), ``duration_s`` of simulation time, or ``stop``.
     ``faults``/``on_fault``: injected CAN faults and where their events go (default: the
     scenario's ``[faults.can]``, events dropped). A second node with the node's id on the
-    bus stops it at once: the result's ``conflict`` says so, and ``on_conflict`` hears it."""
+    bus stops it at once: the result's ``conflict`` says so, and ``on_conflict`` hears it.
+    ``on_node`` gets the node's live :class:`~emulators.harvester.NodeStats` as it starts."""
     model = HarvesterModel.from_scenario(scn, terrain, seed, t0_ns)
     clash = threading.Event()
 
@@ -205,6 +208,8 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
         faults = fault_plans(scn.faults, seed, model.trajectory.t0_ns).can
     node = HarvesterNode(spec, model.bus_pose, clock, cfg, faults=faults, on_fault=on_fault,
                          on_conflict=conflicting)
+    if on_node is not None:
+        on_node(node.stats)
     try:
         if log_path is not None:  # first, so that it sees the boot-up
             can_log = CanLog(log_path, spec).start()

@@ -33,6 +33,7 @@ from emulators.lidar import (
     PacedSender,
     ReturnModel,
     Route,
+    SendStats,
     SensorApi,
     carried_range_m,
 )
@@ -455,7 +456,9 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                  clock: Any = None, pcap_in_place: bool = False,
                  forked: threading.Event | None = None,
                  on_fault: Callable[[FaultEvent], None] | None = None, pcap: bool = True,
-                 route: Route | None = None, **run_kw: Any) -> RecordResult:
+                 route: Route | None = None,
+                 on_sender: Callable[[SendStats], None] | None = None,
+                 **run_kw: Any) -> RecordResult:
     """Send the run live over UDP from ``sensor_ip`` to ``dest``, paced from the simulation
     clock (``speed`` 1.0 = real time, 0 = as fast as possible).
 
@@ -475,6 +478,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     ``pcap``: with ``record``, also write ``lidar.pcap`` (off: the sidecar files only).
     ``route``: where the datagrams go now (the sensor's HTTP API moves it when a client
     sets ``udp_dest`` or the ports); the pcap keeps the destination the run was made with.
+    ``on_sender`` gets the sender's live :class:`~emulators.lidar.SendStats` as it starts.
     The result's ``frames`` counts the frames that left with lidar packets (a
     re-initialisation's silence and dropped frames are not sent).
     """
@@ -548,6 +552,8 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
             frozen = True
             with PacedSender(sensor_ip, dest, speed=speed, realtime=realtime,
                              clock=clock, route=route) as sender:
+                if on_sender is not None:
+                    on_sender(sender.stats)
                 while not stop.is_set():
                     item = ready.popleft() if ready else receive(1.0)
                     if item is None:

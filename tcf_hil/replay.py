@@ -430,9 +430,12 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
            spec: BusSpec | None = None, node_id: int | None = 10, answered: bool = True,
            stop: threading.Event | None = None,
            on_progress: Callable[[int, int], None] | None = None,
-           rec: Recording | None = None, route: Route | None = None) -> dict[str, int]:
+           rec: Recording | None = None, route: Route | None = None,
+           sent: dict[str, int] | None = None) -> dict[str, int]:
     """Send the recording until it ends (or forever with ``loop``) or ``stop``. ``route``:
-    where datagrams go now (a client of the sensor's HTTP API may move them)."""
+    where datagrams go now (a client of the sensor's HTTP API may move them). ``sent``: the
+    counters to keep up to date as it goes (``udp``, ``lidar``, ``can``, ``refused``, and
+    ``at_ns``: the recording's time of the latest event); returned."""
     rec = rec or Recording.load(run_dir)
     stop = stop or threading.Event()
     dest = dest or rec.meta.udp_dest
@@ -440,7 +443,9 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
     sock.bind((sensor_ip, 0))
     bus = spec.open() if spec is not None and rec.can_frames else None
-    sent = {"udp": 0, "can": 0, "refused": 0}
+    sent = sent if sent is not None else {}
+    sent.update(udp=0, lidar=0, can=0, refused=0, at_ns=0)
+    lidar_port = rec.port_map.get(rec.meta.udp_port_lidar, rec.meta.udp_port_lidar)
     total = rec.counts["lidar"] + rec.counts["imu"] + rec.can_frames
     start: tuple[int, float] | None = None
     try:
@@ -455,12 +460,14 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
                 time.sleep(wait - 0.0003)
             while time.perf_counter() < due:
                 pass
+            sent["at_ns"] = t
             if kind == "udp":
                 port, payload = item
                 try:
                     sock.sendto(payload, route.address(port) if route is not None
                                 else (dest, port))
                     sent["udp"] += 1
+                    sent["lidar"] += port == lidar_port
                 except OSError:
                     sent["refused"] += 1
             elif bus is not None:

@@ -165,10 +165,12 @@ def run_soak(scn: Scenario, out: Path, *, minutes: float = 10.0, mode: str = "20
              preset: str = "tuned", sample_s: float = 2.0, seed: int | None = None,
              max_growth_percent: float = 5.0, announce: Callable[[str], None] = lambda s: None,
              progress: Callable[[int, int], None] | None = None,
-             stop: threading.Event | None = None) -> SoakResult:
+             stop: threading.Event | None = None,
+             watch: Callable[[Any], None] | None = None) -> SoakResult:
     """Run the soak (see the module docstring) into ``out``; writes ``soak.json`` and
     ``soak.md`` beside the run's files. ``ok``: the run completed with no frame lost at the
-    receiver and every process's memory growth under ``max_growth_percent``."""
+    receiver and every process's memory growth under ``max_growth_percent``. ``watch``: the
+    run's live figures (:class:`tcf_hil.run.RunSession`)."""
     from tcf_hil.run import run_bridge, sic_reference_command
 
     seconds = minutes * 60.0
@@ -196,7 +198,7 @@ def run_soak(scn: Scenario, out: Path, *, minutes: float = 10.0, mode: str = "20
     try:
         r = run_bridge(soak, sic_reference_command(preset), out, mode=mode, seed=seed,
                        duration_s=seconds, record_lidar=False, on_start=on_start,
-                       progress=step, announce=announce, stop=stop)
+                       progress=step, announce=announce, stop=stop, watch=watch)
     finally:
         sampler.stop.set()
         sampler.join(timeout=5.0)

@@ -171,13 +171,15 @@ def sensor_option(f: Callable[..., Any]) -> Callable[..., Any]:
 class Progress:
     """The one progress display: [spinner] description, bar, done/total, ``extra`` text
     columns (``{task.fields[NAME]}``), elapsed and remaining time, on stderr. Quiet when
-    stderr is not a terminal. ``keep``: leave the last state on screen."""
+    stderr is not a terminal. ``keep``: leave the last state on screen; ``counts``: show
+    done/total."""
 
     def __init__(self, description: str, total: float | None = None, *,
                  extra: Sequence[str] = (), spinner: bool = False, keep: bool = False,
-                 **fields: Any) -> None:
+                 counts: bool = True, **fields: Any) -> None:
         cols: list[str | ProgressColumn] = [SpinnerColumn()] if spinner else []
-        cols += [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn()]
+        cols += [TextColumn("{task.description}"), BarColumn()]
+        cols += [MofNCompleteColumn()] if counts else []
         cols += [TextColumn(e) for e in extra]
         cols += [TimeElapsedColumn(), TimeRemainingColumn()]
         self._rich = _RichProgress(*cols, console=err_console, transient=not keep,
@@ -202,6 +204,42 @@ class Progress:
     def print(self, text: str) -> None:
         """A line above the display."""
         self._rich.console.print(text)
+
+
+class LiveRun:
+    """The live display of a run (``run``, ``replay``, ``soak``): what it is doing, a bar of
+    simulation time, then simulation time, frames sent and lost, CAN poses, publications and
+    the latest score (:meth:`tcf_hil.run.LiveFigures.line`), elapsed and remaining time; on
+    stderr, four times a second. Quiet when stderr is not a terminal: :attr:`watch` is then
+    None, so the run gathers nothing and computes no live score."""
+
+    def __init__(self, what: str) -> None:
+        self.active = err_console.is_terminal
+        self._bar = Progress(what, extra=("{task.fields[line]}",), spinner=True, counts=False,
+                             line="")
+
+    def __enter__(self) -> LiveRun:
+        self._bar.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._bar.__exit__(*exc)
+
+    @property
+    def watch(self) -> Callable[[Any], None] | None:
+        return self._show if self.active else None
+
+    def _show(self, fig: Any) -> None:
+        self._bar.update(description=fig.phase, completed=fig.sim_s or 0.0,
+                         total=fig.sim_total_s, line=fig.line())
+
+    def counter(self, done: int, total: int, unit: str = "MB") -> None:
+        """A ``progress(done, total)`` callback for a step before the run (checking a
+        recording)."""
+        self._bar.update(completed=done, total=total, line=f"{done}/{total} {unit}")
+
+    def phase(self, what: str) -> None:
+        self._bar.update(description=what)
 
 
 # -------------------------------------------------------------------------------- stops

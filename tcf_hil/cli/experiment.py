@@ -117,22 +117,44 @@ def parse_modes(text: str) -> list[str]:
 
 def _progress_sweep(cells: Sequence[Any], out: Path, executor: str, workers: int | None
                     ) -> Any:
+    """The sweep with a live display (quiet when stderr is not a terminal): cells done, the
+    cells running with their frames and simulation time, and the latest cell's score."""
     from tcf_hil.experiments.sweep import run_sweep
 
     announce_backend()
     failures = 0
-    with Progress("cells", len(cells), extra=("failed {task.fields[failed]}",), keep=True,
-                  failed=0) as prog:
+    running: dict[str, str] = {}  # cell id -> "frames 312/1000, sim 31.2 s"
+    ended: set[str] = set()  # (a worker's last report may come after its result)
+    latest = ""
+    with Progress("cells", len(cells), extra=("failed {task.fields[failed]}",
+                                              "{task.fields[live]}"), keep=True,
+                  failed=0, live="") as prog:
+
+        def live() -> str:
+            shown = [f"{cid} {what}" for cid, what in list(running.items())[:2]]
+            more = [f"+{len(running) - 2} more running"] if len(running) > 2 else []
+            return " · ".join([*shown, *more, *([latest] if latest else [])])
 
         def on_event(kind: str, cell: Any, row: dict[str, Any] | None) -> None:
-            nonlocal failures
+            nonlocal failures, latest
+            if kind == "progress":
+                if row is None or cell.id in ended:
+                    return
+                hz = int(str(cell.mode).split("x")[1]) if "x" in str(cell.mode) else 0
+                sim = f", sim {row['frames'] / hz:.1f} s" if hz else ""
+                running[cell.id] = f"frames {row['frames']}/{row['total']}{sim}"
+                prog.update(live=live())
+                return
+            running.pop(cell.id, None)
+            ended.add(cell.id)
             if kind == "failed":
                 failures += 1
                 prog.print(f"[red]failed[/] {cell.id}: {row and row.get('error')}")
             elif kind == "done" and row is not None:
                 prog.print(f"done {cell.id}: wc {row['all_wc']:.1f} % all, "
-                                   f"{row['seen_wc']:.1f} % seen ({row['cell_s']:.0f} s)")
-            prog.update(advance=1, failed=failures,
+                           f"{row['seen_wc']:.1f} % seen ({row['cell_s']:.0f} s)")
+                latest = f"latest: {cell.id} wc {row['all_wc']:.1f} % all"
+            prog.update(advance=1, failed=failures, live=live(),
                         description="cells (skipped: done before)" if kind == "skipped"
                         else "cells")
 

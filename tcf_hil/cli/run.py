@@ -11,7 +11,7 @@ from rich.table import Table
 
 from tcf_hil.cli._shared import (
     ExitStatus,
-    Progress,
+    LiveRun,
     announce_backend,
     console,
     err_console,
@@ -47,16 +47,16 @@ def _recording_options(f: Any) -> Any:
                              "finds it].")(f)
 
 
-def _session(start: Any, out: Path) -> int:
-    """Drive a run session (``start(stop, announce, progress)`` returns its result) with a
-    progress bar and the graceful stop (the partial recording is kept and scored); prints
-    the score table. Returns the exit status."""
+def _session(start: Any, out: Path, what: str = "building the scene") -> int:
+    """Drive a run session (``start(stop, announce, live)`` returns its result; ``live``:
+    the :class:`LiveRun` display) with the graceful stop (the partial recording is kept and
+    scored); prints the score table. Returns the exit status."""
     from tcf_hil._logs import library_logs
     from tcf_hil.run import RunStatus
 
     with graceful_stop(_STOP_RUN) as stop, library_logs(out / "bench.log"), \
-            Progress("frames on the wire") as bar:
-        r = start(stop, err_console.print, bar.counter)
+            LiveRun(what) as live:
+        r = start(stop, err_console.print, live)
     if r.status == RunStatus.CAN_CONFLICT:  # nothing was scored: its poses were not the run's
         click.echo(f"Error: {r.message}; nothing scored (run directory {r.out}/)", err=True)
         return ExitStatus.BAD_INPUT
@@ -112,9 +112,9 @@ def demo(out: Path | None, seed: int | None, preset: str) -> None:
 
     scn, out = load_scenario("forest-v"), run_dir(out)
     announce_backend()
-    finish(_session(lambda stop, say, step: run_bridge(
+    finish(_session(lambda stop, say, live: run_bridge(
         scn, sic_reference_command(preset), out, mode="1024x10", seed=seed, stop=stop,
-        announce=say, progress=step), out))
+        announce=say, watch=live.watch), out))
 
 
 @click.command("run")
@@ -178,6 +178,10 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     unless taken, and the CAN bus is the run's own unless --can joins one.
 
     \b
+    On a terminal one line follows the run live: simulation time, frames sent and lost, CAN
+    poses, the SIC's publications and the score of its latest forest.
+
+    \b
     Faults (the scenario's [faults] section, or --fault KEY=VALUE) are injected on the wire
     and logged with their times in faults.jsonl; score.json and report.html show the score
     next to them, e.g.:
@@ -195,21 +199,22 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     out = run_dir(out)
     if replay_dir is not None:
         src = replay_dir
-        finish(_session(lambda stop, say, step: replay_run(
+        finish(_session(lambda stop, say, live: replay_run(
             src, command, out, speed=speed, shell=shell, can_spec=can_spec, grace_s=grace,
             ready_s=ready_s, stop=stop, announce=say, meta=meta, can_log=can_log,
-            can_offset_s=can_offset, truth=truth,
-            progress=lambda done, total: step(done >> 20, total >> 20)), out))
+            can_offset_s=can_offset, truth=truth, watch=live.watch,
+            progress=lambda done, total: live.counter(done >> 20, total >> 20)), out,
+            "checking the recording"))
         return
     if scenario_name is None:
         raise click.UsageError("give a SCENARIO (a preset name or TOML file) or --replay "
                                "RECORDING")
     scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     announce_backend()
-    finish(_session(lambda stop, say, step: run_bridge(
+    finish(_session(lambda stop, say, live: run_bridge(
         scn, command, out, mode=mode, profile=profile, seed=seed, speed=speed,
         duration_s=duration, can=can_spec, shell=shell, grace_s=grace, ready_s=ready_s,
-        stop=stop, announce=say, progress=step), out))
+        stop=stop, announce=say, watch=live.watch), out))
 
 
 @click.command("replay")
@@ -263,12 +268,10 @@ def replay_cmd(recording: Path, meta: Path | None, can_log: Path | None, can_off
     from tcf_hil.run import replay_run
 
     with graceful_stop("stopping the replay") as stop, \
-            Progress("checking the recording (MB)") as bar:
+            LiveRun("checking the recording") as live:
 
         def checked(done: int, total: int) -> None:
-            bar.counter(done >> 20, total >> 20)
-            if done >= total:  # checked: the replay's own lines follow
-                bar.update(visible=False)
+            live.counter(done >> 20, total >> 20)
 
         try:
             r = replay_run(recording, None, None, speed=speed, loop=loop, dest=dest,
@@ -276,7 +279,8 @@ def replay_cmd(recording: Path, meta: Path | None, can_log: Path | None, can_off
                            sensor_ip=None if sensor_address == "auto" else sensor_address,
                            http_port=http_port, stop=stop, announce=console.print, meta=meta,
                            can_log=can_log, can_offset_s=can_offset,
-                           ports=(lidar_port, imu_port), progress=checked)
+                           ports=(lidar_port, imu_port), progress=checked,
+                           watch=live.watch)
         except OSError as err:
             if err.errno is None:
                 raise
@@ -331,10 +335,10 @@ def soak_cmd(scenario_name: str, minutes: float, mode: str, preset: str, seed: i
     announce_backend()
     try:
         with graceful_stop("stopping the soak: judging what ran") as stop, \
-                library_logs(out / "bench.log"), Progress("soak: frames on the wire") as bar:
+                library_logs(out / "bench.log"), LiveRun("building the scene") as live:
             r = run_soak(scn, out, minutes=minutes, mode=mode, preset=preset, seed=seed,
                          max_growth_percent=max_growth, announce=err_console.print,
-                         progress=bar.counter, stop=stop)
+                         stop=stop, watch=live.watch)
     except ValueError as err:
         raise click.BadParameter(str(err), param_hint="--minutes") from err
     console.print((out / "soak.md").read_text())

@@ -24,7 +24,38 @@ from tcf_hil._io import ensure_dir, read_json, write_bytes_atomic, write_json_at
 from tcf_hil.experiments.cells import COLUMN_NAMES, Cell, CellResult, run_cell
 
 Event = Callable[[str, Cell, dict[str, Any] | None], None]
-"""on_event(kind, cell, row): kind is 'skipped', 'done' or 'failed'."""
+"""on_event(kind, cell, row): kind is 'skipped', 'done' or 'failed' (``row``: the cell's), or
+'progress' while a reference cell runs (``row``: ``{"frames": done, "total": frames}``, at
+most twice a second; from a Dask worker through the scheduler's event log)."""
+
+PROGRESS_TOPIC = "tcf-hil-cell-progress"
+_PROGRESS_EVERY_S = 0.5
+
+
+def _throttled(send: Callable[[dict[str, Any]], None]) -> Callable[[int, int], None]:
+    """A cell's ``progress(done, total)`` that passes on at most one report per
+    ``_PROGRESS_EVERY_S`` (and the last)."""
+    last = [-_PROGRESS_EVERY_S]
+
+    def progress(done: int, total: int) -> None:
+        now = time.monotonic()
+        if now - last[0] >= _PROGRESS_EVERY_S or done >= total:
+            last[0] = now
+            send({"frames": done, "total": total})
+    return progress
+
+
+def run_cell_reporting(cell: Cell, out_dir: str | None = None) -> CellResult:
+    """:func:`run_cell` on a Dask worker, its frames reported to the client as events on
+    :data:`PROGRESS_TOPIC` (no worker: no reports)."""
+    try:
+        from dask.distributed import get_worker
+
+        worker = get_worker()
+    except (ImportError, ValueError):
+        return run_cell(cell, out_dir)
+    return run_cell(cell, out_dir, _throttled(
+        lambda msg: worker.log_event(PROGRESS_TOPIC, {"cell": cell.id, **msg})))
 
 
 def spec_hash(cell: Cell) -> str:
@@ -142,7 +173,8 @@ def run_sweep(cells: Sequence[Cell], out: str | Path, *, executor: str = "local"
 
     if todo and kind == "inline":
         for c in todo:
-            land(c, run_cell(c, out_dir(c)))
+            land(c, run_cell(c, out_dir(c), _throttled(
+                lambda msg, c=c: say("progress", c, msg))))  # type: ignore[misc]
     elif todo:
         from dask.distributed import Client, LocalCluster, as_completed
 
@@ -154,8 +186,17 @@ def run_sweep(cells: Sequence[Cell], out: str | Path, *, executor: str = "local"
             client = Client(cluster)
         else:
             client = Client(address, timeout="10s")
+        by_id = {c.id: c for c in todo}
+
+        def reported(event: Any) -> None:  # (time, message), on the client's event loop
+            msg = dict(event[1])
+            c = by_id.get(msg.pop("cell", None))
+            if c is not None:
+                say("progress", c, msg)
+
         try:
-            futures = {client.submit(run_cell, c, out_dir(c), pure=False,
+            client.subscribe_topic(PROGRESS_TOPIC, reported)
+            futures = {client.submit(run_cell_reporting, c, out_dir(c), pure=False,
                                      key=f"tcf-cell-{c.id}-{time.time_ns()}"): c
                        for c in todo}
             for fut in as_completed(futures):

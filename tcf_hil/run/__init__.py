@@ -7,6 +7,7 @@ session owns the endpoints, supervises the SIC's process, records its publicatio
 the typed :class:`Manifest` and scores the result; a feature added there reaches them all.
 """
 
+from tcf_hil.run._figures import LiveFigures
 from tcf_hil.run._live import RUN_T0_NS, LiveTraffic, run_bridge
 from tcf_hil.run._manifest import Manifest, RunStatus, SicRecord
 from tcf_hil.run._replay import ReplayTraffic, copy_recording, replay_run
@@ -29,8 +30,8 @@ from tcf_hil.run._sic import (
     sic_reference_command,
 )
 
-__all__ = ["ENV_DOC", "RUN_T0_NS", "LiveTraffic", "Manifest", "ReplayTraffic", "RunResult",
-           "RunSession", "RunStatus", "SicProcess", "SicRecord", "Traffic", "Wire",
+__all__ = ["ENV_DOC", "RUN_T0_NS", "LiveFigures", "LiveTraffic", "Manifest", "ReplayTraffic",
+           "RunResult", "RunSession", "RunStatus", "SicProcess", "SicRecord", "Traffic", "Wire",
            "check_sic_command", "copy_recording", "follow_redirects", "replay_run",
            "run_bridge", "sensor_url", "sic_command", "sic_environment",
            "sic_reference_command", "udp_port_taken", "wait_for_listener"]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,7 @@ from tcf_hil.endpoints import SensorHost
 from tcf_hil.evaluation import EvalConfig
 from tcf_hil.faults import FaultLog, fault_plans, faults_active
 from tcf_hil.harvester import HarvesterModel, run_harvester
+from tcf_hil.run._figures import LiveFigures
 from tcf_hil.run._manifest import Manifest, SicRecord
 from tcf_hil.run._session import Announce, RunResult, RunSession, Wire, quiet
 from tcf_hil.run._sic import sensor_url
@@ -28,6 +30,8 @@ from tcf_hil.scenario import Scenario, scenario_to_dict
 # the track starts at simulation time 60 s: the harvester's lead before it never reaches
 # negative times (the CAN pose time is an unsigned 32-bit microsecond count)
 RUN_T0_NS = 60_000_000_000
+# the fault events that strike a frame out, wholly or in part (emulators.faults)
+LOSSES = frozenset({"udp_loss", "udp_burst_loss", "lidar_dropout"})
 
 
 class _LateClock:
@@ -46,6 +50,10 @@ class _LateClock:
 
     def is_set(self) -> bool:
         return self._set.is_set()
+
+    @property
+    def clock(self) -> SimClock | None:
+        return self._clock
 
     def monotonic_at(self, t_sim_ns: int) -> int:
         self._set.wait()
@@ -83,6 +91,10 @@ class LiveTraffic:
         self.harv_result: Any = None
         self.conflicts: list[str] = []
         self.flog: FaultLog | None = None
+        self.frames_done = 0  # frames the sender has handled (sent, or dropped by a fault)
+        self.lost_frames: set[int] = set()  # frames an injected fault struck out, wholly or in part
+        self.send_stats: Any = None  # the sender's live SendStats
+        self.node_stats: Any = None  # the harvester node's live NodeStats
 
     def preferred_ports(self) -> tuple[int, int]:
         return 7502, 7503
@@ -132,6 +144,8 @@ class LiveTraffic:
         def on_lidar_fault(ev: dict[str, Any]) -> None:
             assert flog is not None
             flog.log(ev)
+            if ev["kind"] in LOSSES:
+                self.lost_frames.add(int(ev.get("frame", -1)))
             if ev["kind"] == "lidar_reinit":  # the sensor serves its new identity
                 if api is not None:
                     api.update(lambda m: m.with_changes(init_id=ev["init_id"]))
@@ -139,11 +153,19 @@ class LiveTraffic:
                 # sender set the new init_id before this call)
                 write_bytes_atomic(out / "metadata.json", run.meta.dumps().encode())
 
+        def step(done: int, total: int) -> None:
+            self.frames_done = done
+            if self.progress is not None:
+                self.progress(done, total)
+
+        def on_sender(stats: Any) -> None:
+            self.send_stats = stats
+
         def lidar() -> None:
             try:
                 self.lidar_result = stream_lidar(
                     self.scn, sensor_ip=self.sensor_ip, record=out, run=run,
-                    stop=self.end_stream, clock=self.late, progress=self.progress,
+                    stop=self.end_stream, clock=self.late, progress=step, on_sender=on_sender,
                     pcap_in_place=True, forked=self.forked,
                     on_fault=on_lidar_fault if flog is not None else None,
                     pcap=self.record_lidar, route=wire.route)
@@ -181,9 +203,29 @@ class LiveTraffic:
                 log_path=self.out / "can.log", speed=speed, stop=self.harv_stop,
                 clock=harv_clock, t0_ns=t0, duration_s=self.lead_s * speed + seconds,
                 faults=self.can_faults, on_fault=flog.log if flog is not None else None,
-                on_conflict=self.conflicts.append)
+                on_conflict=self.conflicts.append, on_node=self._on_node)
 
         self._start_thread(harvester, "harvester")
+
+    def _on_node(self, stats: Any) -> None:
+        self.node_stats = stats
+
+    def truth(self) -> dict[str, Any] | None:
+        return self.run.ground_truth()
+
+    def figures(self, fig: LiveFigures) -> None:
+        run = self.run
+        fig.sim_total_s = run.frames / run.meta.frequency_hz
+        clock = self.late.clock
+        fig.frames_sent, fig.frames_total = self.frames_done, run.frames
+        if clock is not None:
+            fig.sim_s = min((clock.now_ns() - run.track.t0_ns) / 1e9, fig.sim_total_s)
+            fig.behind_s = max(0.0, fig.sim_s - self.frames_done / run.meta.frequency_hz)
+        fig.frames_lost = len(self.lost_frames)
+        if self.send_stats is not None:
+            fig.refused = self.send_stats.refused
+        if self.node_stats is not None:
+            fig.can = self.node_stats.pose_samples
 
     def describe(self, wire: Wire) -> str:
         api = sensor_url(wire.api) if wire.api is not None else "off"
@@ -240,7 +282,8 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                duration_s: float | None = None, backend: str = "auto",
                eval_cfg: EvalConfig | None = None, stop: threading.Event | None = None,
                announce: Announce = quiet, progress: Any = None, ready_s: float = 15.0,
-               record_lidar: bool = True, on_start: Any = None) -> RunResult:
+               record_lidar: bool = True, on_start: Any = None,
+               watch: Callable[[LiveFigures], None] | None = None) -> RunResult:
     """One live run of the program ``sic`` against ``scn`` into ``out``: a
     :class:`RunSession` driving :class:`LiveTraffic` (see both)."""
     traffic = LiveTraffic(scn, mode=mode, profile=profile, seed=seed, speed=speed,
@@ -248,4 +291,4 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                           record_lidar=record_lidar, progress=progress, announce=announce)
     return RunSession(traffic, sic, out, shell=shell, can=can, sensor_ip=sensor_ip,
                       grace_s=grace_s, ready_s=ready_s, stop=stop, announce=announce,
-                      eval_cfg=eval_cfg, on_start=on_start).run()
+                      eval_cfg=eval_cfg, on_start=on_start, watch=watch).run()

@@ -17,6 +17,7 @@ from typing import Any
 from protocols.ouster import SensorMetadata
 from tcf_hil._io import write_bytes_atomic
 from tcf_hil.endpoints import SensorHost
+from tcf_hil.run._figures import LiveFigures
 from tcf_hil.run._manifest import Manifest, SicRecord
 from tcf_hil.run._session import Announce, RunResult, RunSession, Wire, quiet
 from tcf_hil.run._sic import sensor_url
@@ -72,7 +73,7 @@ class ReplayTraffic:
 
         self.src, self.speed, self.loop, self.lead_s = src, speed, loop, lead_s
         self.ports = ports
-        self.truth = truth
+        self.truth_path = truth
         if truth is not None:  # read now: a bad inventory is an error before anything runs
             from tcf_hil.inventory import load_truth
 
@@ -132,14 +133,14 @@ class ReplayTraffic:
             write_bytes_atomic(out / "metadata.json", rec.meta_text.encode())
             if rec.can_log is not None:
                 _link_or_copy(rec.can_log, out / f"can{rec.can_log.suffix.lower()}")
-        if self.truth is not None:  # the ground truth given replaces the recorded one
+        if self.truth_path is not None:  # the ground truth given replaces the recorded one
             from tcf_hil.inventory import is_inventory
 
             for name in ("ground_truth.json", "inventory.csv", "visibility.json"):
                 with contextlib.suppress(FileNotFoundError):
                     (out / name).unlink()
-            shutil.copyfile(self.truth, out / ("inventory.csv" if is_inventory(self.truth)
-                                               else "ground_truth.json"))
+            shutil.copyfile(self.truth_path, out / (
+                "inventory.csv" if is_inventory(self.truth_path) else "ground_truth.json"))
 
     def manifest(self, sic: SicRecord | None) -> Manifest:
         m = self.src_man
@@ -165,10 +166,9 @@ class ReplayTraffic:
         from tcf_hil.replay import replay
 
         def send() -> None:
-            self.sent.update(replay(self.src, speed=self.speed, loop=self.loop,
-                                    sensor_ip=self.sensor_ip, spec=wire.spec,
-                                    node_id=self.node_id, answered=self.sdo_node is not None,
-                                    stop=self.end, rec=self.rec, route=wire.route))
+            replay(self.src, speed=self.speed, loop=self.loop, sensor_ip=self.sensor_ip,
+                   spec=wire.spec, node_id=self.node_id, answered=self.sdo_node is not None,
+                   stop=self.end, rec=self.rec, route=wire.route, sent=self.sent)
 
         if self.with_sic and wire.stop.wait(self.lead_s):
             return
@@ -198,6 +198,31 @@ class ReplayTraffic:
     def conflict(self) -> str | None:
         return None
 
+    def truth(self) -> dict[str, Any] | None:
+        """The ground truth the run is scored against (``--truth``, else the recording's)."""
+        from tcf_hil.inventory import load_truth
+
+        own = [self.src / "ground_truth.json", self.src / "inventory.csv"] \
+            if self.rec.is_run else []
+        for path in (self.truth_path, *own):
+            if path is not None and path.exists():
+                return load_truth(path)
+        return None
+
+    def figures(self, fig: LiveFigures) -> None:
+        rec, sent = self.rec, self.sent
+        fig.can_noun = "CAN frames"
+        fig.frames_total = None if self.loop else rec.frames
+        fig.sim_total_s = None if self.loop else rec.span_ns / 1e9
+        if not sent:
+            return
+        fig.sim_s = max(0.0, (sent["at_ns"] - rec.lidar_start_ns) / 1e9)
+        if fig.sim_total_s is not None:  # (the CAN log's tail after the last lidar frame)
+            fig.sim_s = min(fig.sim_s, fig.sim_total_s)
+        per_frame = rec.counts["lidar"] / rec.frames if rec.frames else 0
+        fig.frames_sent = int(sent["lidar"] // per_frame) if per_frame else 0
+        fig.refused, fig.can = sent["refused"], sent["can"]
+
     def finish(self) -> None:
         self.end.set()
         if self.thread is not None:
@@ -209,7 +234,7 @@ class ReplayTraffic:
             self.thread.join(timeout=30.0)
         if self.sdo is not None:
             self.sdo.close()
-        manifest.replay_sent = dict(self.sent)
+        manifest.replay_sent = {k: v for k, v in self.sent.items() if k != "at_ns"}
 
 
 def replay_run(src: Path, sic: str | None, out: Path | None, *, speed: float = 1.0,
@@ -220,7 +245,8 @@ def replay_run(src: Path, sic: str | None, out: Path | None, *, speed: float = 1
                eval_cfg: Any = None, meta: Path | None = None, can_log: Path | None = None,
                can_offset_s: float = 0.0, ports: tuple[int | None, int | None] = (None, None),
                progress: Callable[[int, int], None] | None = None,
-               truth: Path | None = None) -> RunResult:
+               truth: Path | None = None,
+               watch: Callable[[LiveFigures], None] | None = None) -> RunResult:
     """``tcf-hil run --replay SRC --sic COMMAND``: another SIC scored on recorded traffic
     (a run directory, or an Ouster pcap with ``meta`` and ``can_log``: see
     :class:`ReplayTraffic`). The new run directory holds the same recording (replayable in
@@ -231,4 +257,4 @@ def replay_run(src: Path, sic: str | None, out: Path | None, *, speed: float = 1
                             ports=ports, truth=truth)
     return RunSession(traffic, sic, out, shell=shell, can=can_spec, sensor_ip=sensor_ip,
                       http_port=http_port, grace_s=grace_s, ready_s=ready_s, stop=stop,
-                      announce=announce, eval_cfg=eval_cfg).run()
+                      announce=announce, eval_cfg=eval_cfg, watch=watch).run()

@@ -31,6 +31,7 @@ from tcf_hil.endpoints import SensorHost, UdpPorts, claim_sensor_host, reserve_u
 from tcf_hil.evaluation import EvalConfig
 from tcf_hil.harvester import open_bus
 from tcf_hil.recorder import FileWatcher, Inbox, PublishServer, Scores, empty_forest, score_forest
+from tcf_hil.run._figures import LiveFigures, LiveScore
 from tcf_hil.run._manifest import Manifest, RunStatus, SicRecord
 from tcf_hil.run._sic import SicProcess, describe, sic_command, sic_environment
 
@@ -91,6 +92,12 @@ class Traffic(Protocol):
 
     def describe(self, wire: Wire) -> str:
         """One line for the person: what is sent where."""
+
+    def truth(self) -> dict[str, Any] | None:
+        """The ground truth a live score is computed against (None: no live score)."""
+
+    def figures(self, fig: LiveFigures) -> None:
+        """Its figures so far into ``fig`` (called from another thread, often)."""
 
 
 @dataclass
@@ -156,6 +163,63 @@ def follow_redirects(route: Route, log: list[dict[str, Any]], t_mono0: float,
     return redirect
 
 
+class _Live:
+    """The run's :class:`LiveFigures` for ``watch``, from a thread of its own; the live
+    score of the latest publication from a helper process (with a SIC and a truth)."""
+
+    def __init__(self, watch: Callable[[LiveFigures], None] | None, traffic: Traffic,
+                 inbox: Inbox | None, out: Path | None) -> None:
+        self.watch, self.traffic, self.inbox, self.out = watch, traffic, inbox, out
+        self.fig = LiveFigures()
+        self.score: LiveScore | None = None
+        self.end = threading.Event()
+        self.thread: threading.Thread | None = None
+
+    def start(self, scored: bool) -> None:
+        if self.watch is None:
+            return
+        if scored and self.inbox is not None:
+            truth = self.traffic.truth()
+            if truth is not None:
+                self.score = LiveScore(truth)
+        self.thread = threading.Thread(target=self._run, name="live figures", daemon=True)
+        self.thread.start()
+
+    def phase(self, what: str) -> None:
+        self.fig.phase = what
+
+    def show(self) -> None:
+        if self.watch is None:
+            return
+        fig, inbox = self.fig, self.inbox
+        self.traffic.figures(fig)
+        if inbox is not None:
+            valid = inbox.valid
+            fig.publications, fig.invalid = len(inbox.items), len(inbox.items) - len(valid)
+            if self.score is not None:
+                if valid:
+                    assert self.out is not None
+                    self.score.offer(valid[-1].n, self.out / "sic" / valid[-1].file)
+                self.score.fill(fig)
+        self.watch(fig)
+
+    def _run(self) -> None:
+        while not self.end.wait(0.25):
+            with contextlib.suppress(Exception):  # a display never stops a run
+                self.show()
+
+    def close(self) -> None:
+        if self.thread is None:
+            return
+        self.end.set()
+        self.thread.join(timeout=5.0)
+        self.thread = None
+        with contextlib.suppress(Exception):
+            self.show()
+        if self.score is not None:
+            self.score.close()
+
+
 class RunSession:
     """One run of ``traffic`` into ``out`` with the program ``sic`` under test.
 
@@ -167,7 +231,10 @@ class RunSession:
     ``own`` (a CAN server of the run's own) or a bus to join (see
     :func:`tcf_hil.harvester.open_bus`). ``stop`` ends the run early (Ctrl-C): everything is
     closed and the forest published so far is scored. ``on_start`` gets the manifest once
-    the traffic flows (the SIC's pid is in it).
+    the traffic flows (the SIC's pid is in it). ``watch`` gets the run's
+    :class:`LiveFigures` four times a second from a thread of its own while the run goes
+    on, and once more at the end (with a SIC and a ground truth, the live score of its latest
+    forest is computed in a helper process: see :mod:`tcf_hil.run._figures`).
     """
 
     def __init__(self, traffic: Traffic, sic: str | None, out: Path | None, *,
@@ -175,12 +242,13 @@ class RunSession:
                  http_port: int | None = 0, grace_s: float = 30.0, ready_s: float = 15.0,
                  stop: threading.Event | None = None, announce: Announce = quiet,
                  eval_cfg: EvalConfig | None = None,
-                 on_start: Callable[[Manifest], None] | None = None) -> None:
+                 on_start: Callable[[Manifest], None] | None = None,
+                 watch: Callable[[LiveFigures], None] | None = None) -> None:
         self.traffic, self.sic, self.out, self.shell, self.can = traffic, sic, out, shell, can
         self.sensor_ip, self.http_port = sensor_ip, http_port
         self.grace_s, self.ready_s, self.eval_cfg = grace_s, ready_s, eval_cfg
         self.stop = stop or threading.Event()
-        self.announce, self.on_start = announce, on_start
+        self.announce, self.on_start, self.watch = announce, on_start, watch
         self.t_mono0 = time.monotonic()
 
     # ------------------------------------------------------------------------- endpoints
@@ -220,6 +288,7 @@ class RunSession:
             inbox = Inbox(out / "sic", self.t_mono0)
             server = PublishServer(inbox).start()
         proc: SicProcess | None = None
+        live = _Live(None, traffic, inbox, out)  # (no one watching: does nothing)
         status, message, rc = RunStatus.COMPLETE, "", None
         route = Route(meta.udp_dest, meta.udp_port_lidar, meta.udp_port_imu)
         redirects: list[dict[str, Any]] = []
@@ -239,8 +308,12 @@ class RunSession:
                     manifest.endpoints = {k: v for k, v in env.items() if k.startswith("TCF_")}
                     argv = sic_command(self.sic, env, self.shell)
                 traffic.prepare(wire)
+                if self.watch is not None:  # after the frame producer's fork (no threads)
+                    live = _Live(self.watch, traffic, inbox, out)
+                    live.start(self.sic is not None)
                 if self.sic is not None:
                     assert inbox is not None and out is not None
+                    live.phase("starting the SIC")
                     watcher = FileWatcher(inbox, Path(env["TCF_PUBLISH_FILE"]))
                     watcher.start()
                     announce(f"SIC: {describe(argv)}")
@@ -261,6 +334,8 @@ class RunSession:
                                          f"{route.port(lidar_port)} after {self.ready_s:g} s; "
                                          "starting anyway")
                 if self.sic is None or proc is not None:
+                    live.phase({"stream": "streaming", "replay": "replaying"}.get(
+                        traffic.noun, traffic.noun))
                     traffic.start(wire, manifest)
                     if out is not None:
                         manifest.write(out)  # replayable from here on
@@ -286,6 +361,7 @@ class RunSession:
                     status, message = RunStatus.INTERRUPTED, "stopped by the user"
                 if proc is not None:
                     if status == RunStatus.COMPLETE:
+                        live.phase("waiting for the SIC's final forest")
                         announce(f"{traffic.noun} ended; waiting for the SIC's final forest ...")
                     rc = proc.end(self.grace_s if status == RunStatus.COMPLETE else 0.0, stop)
                     if stop.is_set() and status == RunStatus.COMPLETE:
@@ -297,6 +373,7 @@ class RunSession:
             if status == RunStatus.FAILED:
                 raise
         finally:
+            live.close()
             traffic.close(manifest)
             if proc is not None:
                 proc.close()

@@ -16,6 +16,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -25,6 +26,7 @@ from pathlib import Path
 
 import can
 import pytest
+from _tty import run_in_terminal
 
 from protocols.ouster import SensorMetadata
 from protocols.pcap import read_udp
@@ -61,14 +63,55 @@ def assert_valid_recording(run: Path, frames_at_least: int = 1) -> dict:
     return {"manifest": man, "score": score}
 
 
+def live_lines(screen: list[str], what: str = "publications") -> list[str]:
+    """The redraws of a run's live display (:class:`tcf_hil.run.LiveFigures`)."""
+    return [line for line in screen if " · " in line and what in line]
+
+
 @pytest.fixture(scope="module")
 def reference_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Run as a person runs it, in a terminal (its screen is kept in terminal.txt)."""
     out = tmp_path_factory.mktemp("bridge") / "run"
     # the ideal sensor: these floors hold the loop's exactness (the demo test runs rev7)
-    p = tcf("run", "forest-ii", "--mode", "1024x10", "--speed", "2", "--sensor", "ideal",
-            "--out", str(out))
-    assert p.returncode == 0, p.stdout + p.stderr
+    rc, screen = run_in_terminal([*TCF, "run", "forest-ii", "--mode", "1024x10", "--speed",
+                                  "2", "--sensor", "ideal", "--out", str(out)], env=ENV)
+    (out.parent / "terminal.txt").write_text("\n".join(screen))
+    assert rc == 0, "\n".join(screen[-40:])
     return out
+
+
+def test_a_run_in_a_terminal_shows_its_progress_live(reference_run: Path) -> None:
+    """While it runs: the simulation time, frames sent, CAN poses, publications and the
+    live score of the SIC's latest forest, each growing; the live score is the score of
+    that very publication (score.json's timeline)."""
+    screen = (reference_run.parent / "terminal.txt").read_text().splitlines()
+    lines = live_lines(screen)
+    streaming = [x for x in lines if "streaming" in x and "sim " in x]
+    assert len(streaming) >= 10, "\n".join(screen[-40:])  # 25 s at 4 redraws a second
+
+    def figures(line: str) -> tuple[float, int, int, int]:
+        m = re.search(r"sim ([\d.]+)/([\d.]+) s · frames (\d+)/(\d+).* CAN poses (\d+) · "
+                      r"publications (\d+)", line)
+        assert m, line
+        assert float(m[2]) == 50.0 and int(m[4]) == 500  # the whole pass, 10 Hz
+        return float(m[1]), int(m[3]), int(m[5]), int(m[6])
+
+    seq = [figures(x) for x in streaming]
+    for k in range(4):
+        assert all(a[k] <= b[k] for a, b in itertools.pairwise(seq)), k  # never back
+        assert seq[-1][k] > seq[0][k], k  # and on
+    final = figures(lines[-1])
+    assert final[1] == 500 and final[2] > 4000  # 100 Hz poses over > 50 s with the lead
+    scored = [m for x in lines if (m := re.search(r"wc all ([\d.]+) % \(F1 ([\d.]+), "
+                                                 r"#(\d+)\)", x))]
+    assert scored, "\n".join(lines[-5:])
+    timeline = {t["n"]: t for t in
+                json.loads((reference_run / "score.json").read_text())["timeline"]}
+    for m in scored:
+        t = timeline[int(m[3])]
+        assert float(m[1]) == pytest.approx(t["wc_all"], abs=0.051)
+        assert float(m[2]) == pytest.approx(t["f1_all"], abs=0.0051)
+    assert any("Evaluation score (wc)" in x for x in screen[-30:])  # then the score table
 
 
 def test_reference_sic_scores_above_the_floor(reference_run: Path) -> None:
@@ -171,9 +214,15 @@ def test_export_of_a_live_run(reference_run: Path, tmp_path: Path) -> None:
 
 
 def test_replay_reproduces_the_score(reference_run: Path, tmp_path: Path) -> None:
+    """In a terminal: its live display shows the recording's time, frames and CAN frames."""
     out = tmp_path / "replayed"
-    p = tcf("run", "--replay", str(reference_run), "--speed", "2", "--out", str(out))
-    assert p.returncode == 0, p.stdout + p.stderr
+    rc, screen = run_in_terminal([*TCF, "run", "--replay", str(reference_run), "--speed", "2",
+                                  "--out", str(out)], env=ENV)
+    assert rc == 0, "\n".join(screen[-40:])
+    lines = live_lines(screen, "CAN frames")
+    assert any("replaying" in x for x in lines), "\n".join(screen[-40:])
+    last = re.search(r"frames (\d+)/500.* CAN frames (\d+)", lines[-1])
+    assert last and int(last[1]) >= 499 and int(last[2]) > 1000, lines[-1]
     a = json.loads((reference_run / "score.json").read_text())["all_trees"]
     b = json.loads((out / "score.json").read_text())["all_trees"]
     assert b["evaluation_score_percent"] == pytest.approx(a["evaluation_score_percent"], abs=5)
@@ -240,6 +289,8 @@ def test_sic_exiting_early_ends_the_run_with_a_clear_message(tmp_path: Path) -> 
             "--ready-timeout", "0")
     assert p.returncode == 3, p.stdout + p.stderr
     assert "exited with code 7" in p.stdout + p.stderr
+    # not on a terminal: no live display (and no escape sequences) in what is captured
+    assert "CAN poses" not in p.stderr and "\x1b[" not in p.stderr + p.stdout
     rec = assert_valid_recording(out)
     assert rec["manifest"]["status"] == "sic-exited"
     assert rec["manifest"]["sic"]["returncode"] == 7

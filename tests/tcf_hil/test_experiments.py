@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _tty import run_in_terminal
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -37,17 +38,31 @@ def _read_csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
         return list(r.fieldnames or []), list(r)
 
 
-def _events() -> tuple[list[tuple[str, str]], object]:
+def _events(progress: list[tuple[str, dict]] | None = None
+            ) -> tuple[list[tuple[str, str]], object]:
+    """(kind, cell id) of every event but 'progress' (whose rows go to ``progress``)."""
     seen: list[tuple[str, str]] = []
-    return seen, lambda kind, cell, _row: seen.append((kind, cell.id))
+
+    def on_event(kind: str, cell: object, row: dict | None) -> None:
+        if kind != "progress":
+            seen.append((kind, cell.id))  # type: ignore[attr-defined]
+        elif progress is not None and row is not None:
+            progress.append((cell.id, row))  # type: ignore[attr-defined]
+    return seen, on_event
 
 
 def test_sweep_on_a_two_worker_local_cluster_then_a_rerun_skips(tmp_path: Path) -> None:
     cells = [make_cell(with_sensor(load_scenario(f), "ideal"), m, max_frames=25)
              for f in ("forest-i", "forest-ii") for m in ("512x10", "1024x10")]
-    seen, on_event = _events()
+    progress: list[tuple[str, dict]] = []
+    seen, on_event = _events(progress)
     out = run_sweep(cells, tmp_path, executor="local", workers=2, on_event=on_event)
     assert (out.ran, out.skipped, out.failed) == (4, 0, [])
+    # the workers' frames reached this process while the cells ran (the scheduler's events)
+    for c in cells:
+        frames = [row["frames"] for cid, row in progress if cid == c.id]
+        assert frames and frames == sorted(frames) and 1 <= frames[0] <= frames[-1] <= 25, c
+        assert all(row["total"] == 25 for cid, row in progress if cid == c.id)
     head, rows = _read_csv(tmp_path / "results.csv")
     assert head == list(COLUMN_NAMES)
     assert [r["cell"] for r in rows] == [c.id for c in cells]  # grid order, not finish order
@@ -201,11 +216,13 @@ def test_every_results_column_is_documented_in_the_readme() -> None:
 
 
 def test_cli_paper_writes_tables_figures_and_refuses_bad_forests(tmp_path: Path) -> None:
-    p = subprocess.run([*TCF, "experiment", "paper", "--forests", "I", "--modes",
-                        "512x10,sampled", "--frames", "20", "--executor", "inline",
-                        "--out", str(tmp_path)], capture_output=True, text=True, env=ENV,
-                       timeout=600)
-    assert p.returncode == 0, p.stderr
+    """In a terminal: the running cell's frames and simulation time, then its score."""
+    rc, screen = run_in_terminal([*TCF, "experiment", "paper", "--forests", "I", "--modes",
+                                  "512x10,sampled", "--frames", "20", "--executor", "inline",
+                                  "--out", str(tmp_path)], env=ENV, timeout=600)
+    assert rc == 0, "\n".join(screen[-40:])
+    assert any(re.search(r"forest-i-512x10\S* frames 20/20, sim 2\.0 s", x) for x in screen)
+    assert any("latest: forest-i-" in x and "wc " in x for x in screen)
     md = (tmp_path / "summary.md").read_text()
     assert "Table 9 layout" in md and "Table 10 layout" in md and "W 2-1-1" in md
     assert "70.0" in md  # the paper's Experiment 5 example beside ours

@@ -8,12 +8,14 @@ from __future__ import annotations
 import collections
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _tty import run_in_terminal
 from ouster.sdk import pcap as opcap
 
 from protocols.harvester import Pose, encode_pose
@@ -22,6 +24,7 @@ from protocols.pcap import read_udp
 from tcf_hil.errors import ConfigError
 from tcf_hil.faults import apply_fault_options, faults_active, read_fault_log
 from tcf_hil.lidar import record_pcap
+from tcf_hil.run._live import LOSSES
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_toml
 
 TCF = [sys.executable, "-m", "tcf_hil.cli"]
@@ -108,7 +111,8 @@ def test_the_reference_sic_survives_every_fault_at_once(tmp_path: Path) -> None:
     """A live run, the SIC its own process: UDP loss, bursts, duplicates, reordering and
     jitter; frame dropouts and a re-initialised sensor; CAN loss, late poses, a bus-off and
     an NMT reset. The run completes, every fault is logged with its time, the SIC re-reads
-    the metadata once, and its forest is still right (Forest II, 24 stems)."""
+    the metadata once, and its forest is still right (Forest II, 24 stems). Run in a
+    terminal: its live display counts exactly the frames the faults struck out."""
     out = tmp_path / "run"
     faults = ["udp.loss=0.01", "udp.burst_rate=0.0005", "udp.burst_packets=8",
               "udp.duplicate=0.01", "udp.reorder=0.01", "udp.jitter_us=100",
@@ -116,11 +120,10 @@ def test_the_reference_sic_survives_every_fault_at_once(tmp_path: Path) -> None:
               "can.pose_delay_ms=30", "can.bus_off_at_s=[9]", "can.bus_off_s=0.5",
               "can.nmt_reset_at_s=[12]"]
     # the exact sensor: what is scored here is the faults' effect, not the beam's
-    p = subprocess.run([*TCF, "run", "forest-ii", "--mode", "512x10", "--speed", "2",
-                        "--sensor", "ideal", "--out", str(out),
-                        *(a for f in faults for a in ("--fault", f))],
-                       capture_output=True, text=True, env=ENV, timeout=400)
-    assert p.returncode == 0, p.stdout + p.stderr
+    rc, screen = run_in_terminal([*TCF, "run", "forest-ii", "--mode", "512x10", "--speed",
+                                  "2", "--sensor", "ideal", "--out", str(out),
+                                  *(a for f in faults for a in ("--fault", f))], env=ENV)
+    assert rc == 0, "\n".join(screen[-40:])
     score = json.loads((out / "score.json").read_text())
     assert score["status"] == "complete"
     injected = score["faults"]
@@ -145,6 +148,9 @@ def test_the_reference_sic_survives_every_fault_at_once(tmp_path: Path) -> None:
     m = score["all_trees"]
     assert m["f1"] >= 0.9 and m["evaluation_score_percent"] >= 75.0
     assert "Injected faults" in (out / "report.html").read_text()
+    struck = {e["frame"] for e in log if e["kind"] in LOSSES}
+    shown = [int(m[1]) for x in screen if (m := re.search(r"frames \d+/\d+.*, lost (\d+)", x))]
+    assert shown and shown == sorted(shown) and shown[-1] == len(struck), (shown, len(struck))
 
 
 def test_a_pose_torn_by_a_lost_tpdo_is_not_used() -> None:
