@@ -28,8 +28,9 @@ classification 0) and the beam's ``ring``.
   vegetation (branches, foliage), 3 low vegetation (understory), 1 unclassified (dead wood,
   stumps, boulders), 7 noise (a return that hit nothing), and the stems as 64, the first
   user-definable class (64-255) since LAS 1.4 has none for stems. The extra dimensions are
-  described in the Extra Bytes VLR, which CloudCompare, lidR and PDAL read. LAZ through
-  laspy's lazrs backend.
+  described in the Extra Bytes VLR, which CloudCompare, lidR and PDAL read. With ``epsg``
+  the OGC coordinate system WKT record (:func:`crs_wkt`). LAZ through laspy's lazrs
+  backend.
 - PLY (binary little-endian, double x, y, z: CloudCompare offers to shift on load) carries
   the same fields by name; so does PCD (binary), but with float32 x, y, z from the same
   kilometre offset as LAS, stated in a header comment (``# tcf-hil offset X Y Z``): open3d
@@ -543,7 +544,25 @@ def _local32(pts: NDArray[np.void], off: NDArray[np.float64]) -> NDArray[np.void
     return out
 
 
-def _las_header(info: CloudInfo, laspy: Any) -> Any:
+def crs_wkt(epsg: int) -> str:
+    """The coordinate system EPSG:``epsg`` as OGC WKT 1 (OGC 01-009, the form LAS 1.4 R15
+    names for its WKT record; GDAL's flavour, which PDAL, CloudCompare, lidR and QGIS read),
+    from PROJ's database through pyproj. An unknown code is an :class:`InputError` naming
+    ``--epsg``."""
+    import pyproj
+
+    try:
+        crs = pyproj.CRS.from_epsg(epsg)
+    except pyproj.exceptions.CRSError as err:
+        raise InputError("--epsg", "", f"EPSG:{epsg} is not a coordinate system PROJ knows "
+                         f"({err})") from err
+    wkt = crs.to_wkt(pyproj.enums.WktVersion.WKT1_GDAL)
+    if wkt is None:
+        raise InputError("--epsg", "", f"EPSG:{epsg} has no WKT 1 form")
+    return str(wkt)
+
+
+def _las_header(info: CloudInfo, laspy: Any, epsg: int | None = None) -> Any:
     from tcf_hil import __version__
 
     header = laspy.LasHeader(point_format=6, version="1.4")
@@ -555,16 +574,20 @@ def _las_header(info: CloudInfo, laspy: Any) -> Any:
                                             if info.gps_adjusted
                                             else laspy.header.GpsTimeType.WEEK_TIME)
     header.global_encoding.wkt = True  # LAS 1.4 R15: required with point formats 6-10
+    if epsg is not None:  # the OGC coordinate system WKT record (LASF_Projection, 2112)
+        from laspy.vlrs.known import WktCoordinateSystemVlr
+
+        header.vlrs.append(WktCoordinateSystemVlr(crs_wkt(epsg)))
     header.system_identifier = "tcf-hil emulated Ouster OS0-64"
     header.generating_software = f"tcf-hil {__version__}"
     return header
 
 
 def _write_las(path: Path, info: CloudInfo, frames: Iterator[NDArray[np.void]],
-               compress: bool) -> int:
+               compress: bool, epsg: int | None = None) -> int:
     import laspy
 
-    header = _las_header(info, laspy)
+    header = _las_header(info, laspy, epsg)
     n = 0
     with atomic_path(path) as tmp, laspy.open(tmp, mode="w", header=header,
                                               do_compress=compress) as w:
@@ -835,7 +858,10 @@ def export(run_dir: str | Path, out: str | Path, *, every: int = 1,
            progress: Callable[[int, int], None] | None = None) -> ExportResult:
     """Write ``out`` by its suffix: the cloud (``.las``, ``.laz``, ``.ply``, ``.pcd``; every
     ``every``-th frame) or the stems (``.geojson``, ``.csv``; ``stems``: ``truth``, ``sic``
-    or ``both``). The file appears only whole (a temporary name renamed)."""
+    or ``both``). ``epsg``: the coordinate system of the world coordinates (the scenario's
+    origin), written into LAS/LAZ as the OGC WKT record and into GeoJSON as its ``crs``
+    member; PLY, PCD and CSV have no place for one (a ValueError). The file appears only
+    whole (a temporary name renamed)."""
     from tcf_hil._io import write_bytes_atomic
 
     path = Path(out)
@@ -843,6 +869,11 @@ def export(run_dir: str | Path, out: str | Path, *, every: int = 1,
     if suffix not in CLOUD_SUFFIXES + STEM_SUFFIXES:
         raise InputError(str(path), "", f"unknown format {suffix or '(no suffix)'}; one of "
                          + ", ".join(CLOUD_SUFFIXES + STEM_SUFFIXES))
+    if epsg is not None and suffix not in (".las", ".laz", ".geojson"):
+        raise ValueError(f"{suffix} has no place for a coordinate system (LAS, LAZ and "
+                         "GeoJSON have)")
+    if epsg is not None:
+        crs_wkt(epsg)  # an unknown code fails before anything is read or written
     if suffix in STEM_SUFFIXES:
         gts, obs = stem_outcomes(run_dir)
         rows = {"truth": gts, "sic": obs, "both": gts + obs}[stems]
@@ -851,7 +882,7 @@ def export(run_dir: str | Path, out: str | Path, *, every: int = 1,
         return ExportResult(path, "stems", len(rows))
     info, frames = run_cloud(run_dir, every=every, progress=progress)
     if suffix in (".las", ".laz"):
-        n = _write_las(path, info, frames, suffix == ".laz")
+        n = _write_las(path, info, frames, suffix == ".laz", epsg)
     elif suffix == ".ply":
         from protocols.ply import ply_vertex_header
         from tcf_hil import __version__

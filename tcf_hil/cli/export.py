@@ -22,8 +22,10 @@ from tcf_hil.cli._shared import Progress, console, err_console
               help="Stems: the ground truth, the SIC's scored forest, or both (a 'source' "
                    "column tells them apart).")
 @click.option("--epsg", type=click.IntRange(min=1), default=None,
-              help="GeoJSON: the coordinate system of the scenario's origin (e.g. 3067 for "
-                   "ETRS-TM35FIN), written as the 'crs' member QGIS and GDAL read.")
+              help="The coordinate system of the scenario's origin (e.g. 3067 for "
+                   "ETRS-TM35FIN): LAS/LAZ get the OGC WKT record (from PROJ's database), "
+                   "GeoJSON the 'crs' member QGIS and GDAL read. PLY, PCD and CSV have no "
+                   "place for one.")
 def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | None) -> None:
     """Export a run directory for CloudCompare, lidR, 3DFin, QGIS and the like.
 
@@ -39,16 +41,16 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
 
     \b
     Examples:
-      tcf-hil export runs/forest-v --out forest-v.laz
+      tcf-hil export runs/forest-v --out forest-v.laz --epsg 3067
       tcf-hil export runs/forest-v --out stems.geojson --epsg 3067
       tcf-hil export runs/forest-v --out stems.csv --stems truth
     """
     from tcf_hil.export import export
 
     suffix = out.suffix.lower()
-    if epsg is not None and suffix != ".geojson":
-        raise click.BadParameter("applies to .geojson only (a LAS coordinate system needs its "
-                                 "WKT, which tcf-hil does not write yet)", param_hint="--epsg")
+    if epsg is not None and suffix not in (".las", ".laz", ".geojson"):
+        raise click.BadParameter(f"applies to .las, .laz and .geojson ({suffix or 'no suffix'} "
+                                 "has no place for a coordinate system)", param_hint="--epsg")
     with Progress(f"export {out.name}", total=None, keep=False) as bar:
         r = export(run_dir, out, every=every, stems=stems, epsg=epsg, progress=bar.counter)
     if r.kind == "cloud":

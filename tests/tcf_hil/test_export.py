@@ -96,6 +96,27 @@ def test_las_points_are_ouster_sdks_points_at_a_utm_origin(natural_run: Path,
     assert np.allclose(h.mins, xyz.min(axis=0)) and np.allclose(h.maxs, xyz.max(axis=0))
     assert h.generating_software.startswith("tcf-hil")
     assert set(las.point_format.extra_dimension_names) == {"stem_id", "component", "ring"}
+    assert h.parse_crs() is None  # no --epsg: no coordinate system claimed
+
+
+@pytest.mark.parametrize("suffix", ["las", "laz"])
+def test_epsg_goes_into_the_las_wkt_record(natural_run: Path, tmp_path: Path,
+                                           suffix: str) -> None:
+    """--epsg 3067 (ETRS-TM35FIN, Finland's national grid) as LAS 1.4's OGC coordinate
+    system WKT record, read back by laspy and pyproj; the points are unchanged."""
+    path = tmp_path / f"cloud.{suffix}"
+    assert main(["export", str(natural_run), "--out", str(path), "--every", "5",
+                 "--epsg", "3067"]) == 0
+    h = laspy.read(path).header
+    assert h.global_encoding.wkt
+    rec = [v for v in h.vlrs if v.record_id == 2112]
+    assert len(rec) == 1 and rec[0].user_id == "LASF_Projection"
+    assert rec[0].string.startswith('PROJCS["ETRS89 / TM35FIN(E,N)"')  # WKT 1 (OGC 01-009)
+    assert h.parse_crs().to_epsg() == 3067
+    plain = tmp_path / f"plain.{suffix}"
+    assert main(["export", str(natural_run), "--out", str(plain), "--every", "5"]) == 0
+    a, b = laspy.read(path), laspy.read(plain)
+    assert np.array_equal(a.points.array, b.points.array)
 
 
 def test_labels_agree_with_the_ground_truths_return_counts(natural_run: Path,
@@ -266,8 +287,16 @@ def test_bad_input_is_one_line_and_writes_nothing(natural_run: Path, tmp_path: P
     (run / "sensor_poses.csv").write_text("".join(lines[:5]) + "1,2,x,4,5,6,7,8\n")
     assert main(["export", str(run), "--out", str(out)]) == 1
     assert "sensor_poses.csv at line 6" in capsys.readouterr().err
-    # --epsg is for GeoJSON; the cloud has no coordinate system yet (a usage error)
-    assert main(["export", str(natural_run), "--out", str(out), "--epsg", "3067"]) == 2
+    # --epsg: PLY, PCD and CSV have no place for it (a usage error); a code PROJ does not
+    # know is one line naming --epsg, and nothing is written
+    for suffix in ("ply", "pcd", "csv"):
+        assert main(["export", str(natural_run), "--out", str(tmp_path / f"c.{suffix}"),
+                     "--epsg", "3067"]) == 2
+    assert "--epsg" in capsys.readouterr().err
+    assert main(["export", str(natural_run), "--out", str(out), "--epsg", "999999"]) == 1
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("Error:")]
+    assert len(lines) == 1 and "--epsg" in lines[0] and "EPSG:999999" in lines[0]
+    assert not out.exists()
     (run / "sensor_poses.csv").unlink()
     (run / "sensor_poses.csv").symlink_to(natural_run / "sensor_poses.csv")
     # without labels (a run recorded before them): points, unclassified
