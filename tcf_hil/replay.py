@@ -467,7 +467,7 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
                     sock.sendto(payload, route.address(port) if route is not None
                                 else (dest, port))
                     sent["udp"] += 1
-                    sent["lidar"] += port == lidar_port
+                    sent["lidar"] += port == lidar_port and len(payload) != IMU_PACKET_BYTES
                 except OSError:
                     sent["refused"] += 1
             elif bus is not None:

@@ -235,8 +235,9 @@ class LiveRun:
 
     def counter(self, done: int, total: int, unit: str = "MB") -> None:
         """A ``progress(done, total)`` callback for a step before the run (checking a
-        recording)."""
-        self._bar.update(completed=done, total=total, line=f"{done}/{total} {unit}")
+        recording): said in the line (the bar is the run's simulation time; a looping replay
+        has no total, and rich keeps a total once given)."""
+        self._bar.update(line=f"{done}/{total} {unit}")
 
     def phase(self, what: str) -> None:
         self._bar.update(description=what)

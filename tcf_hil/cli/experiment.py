@@ -4,6 +4,7 @@ forests, modes and seeds (Dask), and speed against error."""
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -119,12 +120,14 @@ def _progress_sweep(cells: Sequence[Any], out: Path, executor: str, workers: int
                     ) -> Any:
     """The sweep with a live display (quiet when stderr is not a terminal): cells done, the
     cells running with their frames and simulation time, and the latest cell's score."""
+    from protocols.ouster import parse_mode
     from tcf_hil.experiments.sweep import run_sweep
 
     announce_backend()
     failures = 0
     running: dict[str, str] = {}  # cell id -> "frames 312/1000, sim 31.2 s"
     ended: set[str] = set()  # (a worker's last report may come after its result)
+    lock = threading.Lock()
     latest = ""
     with Progress("cells", len(cells), extra=("failed {task.fields[failed]}",
                                               "{task.fields[live]}"), keep=True,
@@ -137,16 +140,19 @@ def _progress_sweep(cells: Sequence[Any], out: Path, executor: str, workers: int
 
         def on_event(kind: str, cell: Any, row: dict[str, Any] | None) -> None:
             nonlocal failures, latest
-            if kind == "progress":
-                if row is None or cell.id in ended:
+            if kind == "progress":  # (from Dask's event loop thread)
+                if row is None:
                     return
-                hz = int(str(cell.mode).split("x")[1]) if "x" in str(cell.mode) else 0
+                hz = parse_mode(cell.mode)[1] if cell.mode in MODES else 0
                 sim = f", sim {row['frames'] / hz:.1f} s" if hz else ""
-                running[cell.id] = f"frames {row['frames']}/{row['total']}{sim}"
-                prog.update(live=live())
+                with lock:
+                    if cell.id not in ended:
+                        running[cell.id] = f"frames {row['frames']}/{row['total']}{sim}"
+                    prog.update(live=live())
                 return
-            running.pop(cell.id, None)
-            ended.add(cell.id)
+            with lock:
+                running.pop(cell.id, None)
+                ended.add(cell.id)
             if kind == "failed":
                 failures += 1
                 prog.print(f"[red]failed[/] {cell.id}: {row and row.get('error')}")

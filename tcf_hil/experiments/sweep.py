@@ -9,6 +9,7 @@ finished cell of ``OUT`` (a sweep extended by seeds or presets keeps one table).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import io
@@ -41,7 +42,8 @@ def _throttled(send: Callable[[dict[str, Any]], None]) -> Callable[[int, int], N
         now = time.monotonic()
         if now - last[0] >= _PROGRESS_EVERY_S or done >= total:
             last[0] = now
-            send({"frames": done, "total": total})
+            with contextlib.suppress(Exception):  # a display never fails a cell
+                send({"frames": done, "total": total})
     return progress
 
 

@@ -13,7 +13,10 @@ shown its newest forest, never a queue of old ones.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import multiprocessing as mp
+import os
+import signal
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -80,16 +83,22 @@ class LiveFigures:
 _TRUTH: Any = None
 
 
-def _init(gt_doc: dict[str, Any]) -> None:
+def _init(gt_doc: dict[str, Any], cfg: Any) -> None:
     global _TRUTH
+    # a terminal's Ctrl-C reaches the whole process group: the session decides when this
+    # helper stops; and the pacing loop, not the score, gets the CPU when both want it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    with contextlib.suppress(OSError):
+        os.nice(19)
     import tcf_hil.evaluation
     import tcf_hil.recorder  # noqa: F401 - imported once, as the process starts
     from tcf_hil.stems_json import stem_table
 
     if "inventory" in gt_doc:  # (a field inventory is read as observed stems)
-        _TRUTH = (gt_doc, stem_table(gt_doc, "ground truth", "observed"))
+        _TRUTH = (gt_doc, stem_table(gt_doc, "ground truth", "observed"), cfg)
     else:
-        _TRUTH = (gt_doc, stem_table(gt_doc, "ground truth", "ground_truth"))
+        _TRUTH = (gt_doc, stem_table(gt_doc, "ground truth", "ground_truth"), cfg)
 
 
 def _score(path: str) -> tuple[float | None, float | None]:
@@ -98,10 +107,10 @@ def _score(path: str) -> tuple[float | None, float | None]:
     from tcf_hil.recorder import blank_absent
     from tcf_hil.stems_json import stem_table
 
-    gt_doc, gt = _TRUTH
+    gt_doc, gt, cfg = _TRUTH
     obs = stem_table(loads_json(Path(path).read_text(encoding="utf-8", errors="replace"),
                                 path), path, "observed")
-    ev = evaluate(gt, obs)
+    ev = evaluate(gt, obs, cfg)  # (score_forest's "all trees" evaluation, without "seen")
     if "inventory" in gt_doc:
         blank_absent(ev.metrics, gt_doc)
     wc, f1 = ev.metrics.get("evaluation_score_percent"), ev.metrics.get("f1")
@@ -109,13 +118,14 @@ def _score(path: str) -> tuple[float | None, float | None]:
 
 
 class LiveScore:
-    """Scores the latest valid publication against ``gt_doc`` (all trees) in a helper
-    process (see the module docstring). :meth:`offer` is called often and never waits."""
+    """Scores the latest valid publication against ``gt_doc`` (all trees, with the run's
+    ``cfg``) in a helper process (see the module docstring). :meth:`offer` is called often
+    and never waits."""
 
-    def __init__(self, gt_doc: dict[str, Any]) -> None:
+    def __init__(self, gt_doc: dict[str, Any], cfg: Any = None) -> None:
         # spawned, not forked: the bench has threads and a frame producer by now
         self._pool = cf.ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"),
-                                            initializer=_init, initargs=(gt_doc,))
+                                            initializer=_init, initargs=(gt_doc, cfg))
         self._pool.submit(int)  # the helper starts (and imports) now, while the SIC does
         self._pending: tuple[int, cf.Future[tuple[float | None, float | None]]] | None = None
         self._asked = 0
@@ -144,4 +154,10 @@ class LiveScore:
             fig.scored, fig.wc_all, fig.f1_all = self.result
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)  # nothing left behind
+        """Stop at once: a score under way is not waited for (nobody will see it)."""
+        procs = list((getattr(self._pool, "_processes", None) or {}).values())
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        for p in procs:
+            with contextlib.suppress(Exception):
+                p.terminate()
+                p.join(2.0)

@@ -219,8 +219,8 @@ class ReplayTraffic:
         fig.sim_s = max(0.0, (sent["at_ns"] - rec.lidar_start_ns) / 1e9)
         if fig.sim_total_s is not None:  # (the CAN log's tail after the last lidar frame)
             fig.sim_s = min(fig.sim_s, fig.sim_total_s)
-        per_frame = rec.counts["lidar"] / rec.frames if rec.frames else 0
-        fig.frames_sent = int(sent["lidar"] // per_frame) if per_frame else 0
+        lidar = rec.counts["lidar"]  # (a loop goes on past the recording's frames)
+        fig.frames_sent = sent["lidar"] * rec.frames // lidar if lidar else 0
         fig.refused, fig.can = sent["refused"], sent["can"]
 
     def finish(self) -> None:

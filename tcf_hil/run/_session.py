@@ -175,29 +175,34 @@ class _Live:
         self.end = threading.Event()
         self.thread: threading.Thread | None = None
 
-    def start(self, scored: bool) -> None:
+    def start(self, scored: bool, cfg: EvalConfig | None) -> None:
         if self.watch is None:
             return
-        if scored and self.inbox is not None:
-            truth = self.traffic.truth()
-            if truth is not None:
-                self.score = LiveScore(truth)
-        self.thread = threading.Thread(target=self._run, name="live figures", daemon=True)
-        self.thread.start()
+        try:  # a display never fails a run: without it the run goes on unwatched
+            if scored and self.inbox is not None:
+                truth = self.traffic.truth()
+                if truth is not None:
+                    self.score = LiveScore(truth, cfg)
+            self.thread = threading.Thread(target=self._run, name="live figures", daemon=True)
+            self.thread.start()
+        except Exception:
+            self.thread = None
+            self.close()
 
     def phase(self, what: str) -> None:
         self.fig.phase = what
 
-    def show(self) -> None:
+    def show(self, offer: bool = True) -> None:
         if self.watch is None:
             return
         fig, inbox = self.fig, self.inbox
         self.traffic.figures(fig)
         if inbox is not None:
-            valid = inbox.valid
-            fig.publications, fig.invalid = len(inbox.items), len(inbox.items) - len(valid)
+            items = list(inbox.items)  # one snapshot: the server thread appends
+            valid = [p for p in items if p.valid]
+            fig.publications, fig.invalid = len(items), len(items) - len(valid)
             if self.score is not None:
-                if valid:
+                if valid and offer:
                     assert self.out is not None
                     self.score.offer(valid[-1].n, self.out / "sic" / valid[-1].file)
                 self.score.fill(fig)
@@ -209,15 +214,18 @@ class _Live:
                 self.show()
 
     def close(self) -> None:
-        if self.thread is None:
-            return
-        self.end.set()
-        self.thread.join(timeout=5.0)
-        self.thread = None
-        with contextlib.suppress(Exception):
-            self.show()
+        """The last figures (no new score asked: the run's own follows), and the helper
+        stopped. Never raises."""
+        if self.thread is not None:
+            self.end.set()
+            self.thread.join(timeout=5.0)
+            self.thread = None
+            with contextlib.suppress(Exception):
+                self.show(offer=False)
         if self.score is not None:
-            self.score.close()
+            with contextlib.suppress(Exception):
+                self.score.close()
+            self.score = None
 
 
 class RunSession:
@@ -310,7 +318,7 @@ class RunSession:
                 traffic.prepare(wire)
                 if self.watch is not None:  # after the frame producer's fork (no threads)
                     live = _Live(self.watch, traffic, inbox, out)
-                    live.start(self.sic is not None)
+                    live.start(self.sic is not None, self.eval_cfg)
                 if self.sic is not None:
                     assert inbox is not None and out is not None
                     live.phase("starting the SIC")
