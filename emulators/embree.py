@@ -36,7 +36,7 @@ numba = numba_module()  # its cache directory set before the kernels below are d
 # words (RTCRay: org xyz, tnear, dir xyz, time, tfar, mask, id, flags; RTCHit: Ng xyz, u, v,
 # primID, geomID, instID[1], instPrimID[1]); the struct is 16-byte aligned.
 GEOMETRY_TYPE_TRIANGLE, GEOMETRY_TYPE_GRID, GEOMETRY_TYPE_ROUND_LINEAR_CURVE = 0, 2, 16
-GEOMETRY_TYPE_ORIENTED_DISC_POINT = 52
+GEOMETRY_TYPE_ORIENTED_DISC_POINT, GEOMETRY_TYPE_USER = 52, 120
 BUFFER_TYPE_INDEX, BUFFER_TYPE_VERTEX, BUFFER_TYPE_NORMAL, BUFFER_TYPE_GRID = 0, 1, 3, 8
 BUFFER_TYPE_FLAGS = 32
 FORMAT_UCHAR, FORMAT_UINT, FORMAT_UINT3 = 0x1001, 0x5001, 0x5003
@@ -48,8 +48,9 @@ INVALID_ID = 0xFFFFFFFF
 TNEAR, TIME, TFAR, MASK, RAY_ID, FLAGS = 3, 7, 8, 9, 10, 11
 NG_X, NG_Y, NG_Z, PRIM_ID, GEOM_ID, INST_ID = 12, 13, 14, 17, 18, 19
 RAYHIT_WORDS = 32  # 128 bytes: room for the largest RTCRayHit Embree 4 builds
-SCRATCH_WORDS = 8 * media.MAX_CROWNS
-"""After the RTCRayHit: room for the crowns a ray meets (:func:`_through`)."""
+SCRATCH_WORDS = 4
+"""After the RTCRayHit: the ray's key (:func:`emulators.media.ray_key`) and the struct's
+address, which tells :func:`_crown_hit` that the struct it is given is this one."""
 
 
 def _library_path() -> str | None:
@@ -85,7 +86,12 @@ def _lib() -> Any:
                 ("rtcSetNewGeometryBuffer", vp, [vp, cint, uint, cint, size, size]),
                 ("rtcCommitGeometry", None, [vp]), ("rtcAttachGeometry", uint, [vp, vp]),
                 ("rtcAttachGeometryByID", None, [vp, vp, uint]),
-                ("rtcReleaseGeometry", None, [vp])):
+                ("rtcReleaseGeometry", None, [vp]),
+                ("rtcSetGeometryUserPrimitiveCount", None, [vp, uint]),
+                ("rtcSetGeometryUserData", None, [vp, vp]),
+                ("rtcSetGeometryBoundsFunction", None, [vp, vp, vp]),
+                ("rtcSetGeometryIntersectFunction", None, [vp, vp]),
+                ("rtcSetGeometryOccludedFunction", None, [vp, vp])):
             fn = getattr(lib, name)
             fn.restype, fn.argtypes = res, args
         _LIB = lib
@@ -159,19 +165,20 @@ class DirectScene:
     miss as -1. Released with the object (the arrays :attr:`handles` points into too: keep
     the object while its handles are in use).
 
-    A ray is first searched through the crowns (where it would stop in their foliage,
-    :func:`emulators.media.march`), then through the Embree scenes no farther than that:
-    the triangles ``faces[:loose_from]`` and the terrain grid go into a scene in robust
-    mode (rays do not slip between two triangles through the edge they share: closed
-    meshes need it); the rest, loose triangles that share no edge (foliage facets, where
-    foliage is facets), and the curves go into a second scene without it, which a ray
-    enters first; it then enters the first no farther than what it hit there. Robust mode
+    A ray goes through up to three Embree scenes, in turn, each no farther than what it
+    hit in the one before: the porous crowns, as user primitives (:func:`_crown_hit`: where
+    a ray would stop in their foliage); the loose triangles that share no edge (foliage
+    facets, where foliage is facets) and the curves, without robust mode; then the
+    triangles ``faces[:loose_from]`` and the terrain grid in robust mode (rays do not slip
+    between two triangles through the edge they share: closed meshes need it). Robust mode
     costs 40 % of a cast through a natural stand's foliage facets (``pine-thinning``, one
     thread: 82.6 ms robust, 58.6 ms not), and the curves do not need it (a curve's surface
-    is one primitive's). Embree keeps triangles and curves in separate hierarchies of a
-    scene; a ray walks the second with the length the first left it, which is why what
-    stops rays soonest goes first (crowns before branches: ``pine-thinning``, one thread,
-    61 ms against 86 ms the other way round)."""
+    is one primitive's). What stops rays soonest goes first: Embree keeps each kind of
+    primitive in a hierarchy of its own within a scene and walks them in an order of its
+    own, and a ray walks each with the length the one before left it (crowns in a scene of
+    their own, before the branches: ``pine-thinning``, one thread, 116 ms a frame's rays,
+    against 163 ms for the crowns marched on a grid of their own before the branches,
+    and more in one scene with them)."""
 
     def __init__(self, vertices: NDArray[np.floating], faces: NDArray[np.integer],
                  curves: Curves | None = None, loose_from: int | None = None,
@@ -193,35 +200,31 @@ class DirectScene:
         self.terrain = terrain is not None
         self.terrain_prim = -2 - self.curve_count - self.crown_count
         """The primitive every terrain hit answers (after the curves and the crowns)."""
-        if cut < len(f) or self.curve_count:  # first: the foliage stops rays soonest
+        self._crown_rows = (None if crowns is None or not len(crowns)
+                            else _crown_geometry(crowns))  # kept: the callbacks read it
+        if self._crown_rows is not None:
+            rows.append([self._scene_of(0, v, f[:0], None, None, self._crown_rows), 0, 0, 0])
+        if cut < len(f) or self.curve_count:
             rows.append([self._scene_of(0, v, f[cut:], curves), cut, n_seg, 0])
         if cut > 0 or not rows or terrain is not None:
             rows.append([self._scene_of(SCENE_FLAG_ROBUST, v, f[:cut], None, terrain), 0, 0,
                          self.terrain_prim])
-        c = crowns if crowns is not None else media.Crowns(
-            *(np.zeros((0, 3)),) * 2, *(np.zeros(0),) * 3, np.zeros(0, np.int8), np.zeros(0))
-        head, start, items, zr = c.grid()
-        self._crown_arrays = (np.ascontiguousarray(c.table()), head, start, items,
-                              np.ascontiguousarray(zr))  # kept alive: the kernels read them
-        self.handles: tuple[Any, ...] = (
-            np.array(rows, np.int64), self.crown_count, self.curve_count,
-            *(int(a.ctypes.data) for a in self._crown_arrays), len(start) - 1, len(items))
+        self.handles: tuple[Any, ...] = (np.array(rows, np.int64), self.crown_count,
+                                         self.curve_count)
         """What the kernels cast through: (k, 4) each scene's handle, the index in ``faces``
         of its first triangle, the number of its curve segments (its discs' numbers
         follow them) and the primitive its terrain grid answers, in the order a ray enters
-        them; then the porous crowns
-        (:mod:`emulators.media`): their number, the number of the curve primitives before
-        them (crown ``c`` is primitive ``-2 - curve_count - c``), the addresses of their
-        table and of their grid's arrays (:meth:`emulators.media.Crowns.grid`; addresses,
-        not arrays: passing an array to a compiled call counts a reference, which costs
-        more than the search itself), and the grid's cells and entries."""
+        them; then the number of porous crowns and of the curve primitives before them
+        (crown ``c`` is primitive ``-2 - curve_count - c``)."""
         self.intersect: int = int(ctypes.cast(lib.rtcIntersect1, ctypes.c_void_p).value or 0)
 
     def _scene_of(self, flags: int, v: NDArray[np.float32], f: NDArray[np.uint32],
-                  curves: Curves | None, terrain: HeightGrid | None = None) -> int:
+                  curves: Curves | None, terrain: HeightGrid | None = None,
+                  user: NDArray[np.float64] | None = None) -> int:
         """A committed scene (``flags``): the triangles ``f`` of ``v`` as geometry 0, the
         curves' segments as geometry 1, their discs as geometry 2 and the terrain's grid
-        as geometry 3, each copied into buffers Embree owns; its handle."""
+        as geometry 3, each copied into buffers Embree owns, and ``user``, porous crowns
+        (:func:`_crown_geometry`), as user geometry 4; its handle."""
         lib = self._lib
         scene = lib.rtcNewScene(self._device)
         self._scenes.append(scene)
@@ -252,6 +255,15 @@ class DirectScene:
                 (BUFFER_TYPE_VERTEX, FORMAT_FLOAT3, 12,
                  np.ascontiguousarray(terrain.vertices, np.float32).reshape(-1, 3)),
                 (BUFFER_TYPE_GRID, FORMAT_GRID, 12, terrain.tiles()))))
+        if user is not None:
+            geom = lib.rtcNewGeometry(self._device, GEOMETRY_TYPE_USER)
+            lib.rtcSetGeometryUserPrimitiveCount(geom, len(user))
+            lib.rtcSetGeometryUserData(geom, user.ctypes.data)
+            lib.rtcSetGeometryBoundsFunction(geom, _crown_bounds.address, None)
+            lib.rtcSetGeometryIntersectFunction(geom, _crown_hit.address)
+            lib.rtcCommitGeometry(geom)
+            lib.rtcAttachGeometryByID(scene, geom, 4)
+            lib.rtcReleaseGeometry(geom)
         for gid, kind, buffers in geoms:
             geom = lib.rtcNewGeometry(self._device, kind)
             for btype, fmt, stride, arr in buffers:
@@ -334,8 +346,8 @@ _njit = numba.njit(cache=True, nogil=True)
 
 @_njit
 def new_rayhit() -> tuple[Any, Any, int]:
-    """A 64-byte aligned RTCRayHit: its float32 and uint32 words (and after them, room for
-    the crowns a ray meets), and its address."""
+    """A 64-byte aligned RTCRayHit: its float32 and uint32 words (and after them, the ray's
+    key and the struct's own address: :func:`_crown_hit` reads them), and its address."""
     raw = np.empty(RAYHIT_WORDS + SCRATCH_WORDS + 16, np.float32)
     skip = ((-raw.ctypes.data) % 64) // 4
     f = raw[skip:skip + RAYHIT_WORDS + SCRATCH_WORDS]
@@ -345,14 +357,13 @@ def new_rayhit() -> tuple[Any, Any, int]:
 @numba.njit(cache=True, nogil=True, inline="always")
 def intersect1(fn: int, scenes: Any, rf: Any, ru: Any, addr: int, ox: float, oy: float,
                oz: float, dx: float, dy: float, dz: float) -> tuple[float, int, float]:
-    """One ray (unit direction) through the porous crowns of ``scenes``
-    (:attr:`DirectScene.handles`; ``rf``/``ru``/``addr`` from :func:`new_rayhit`), then
-    through ``rtcIntersect1`` into each of its Embree scenes in turn, no farther than what it
-    met before: its hit distance (inf on a miss), primitive (-1 none; a triangle's index;
-    ``-2 - j`` for curve primitive ``j``, a segment or a disc after the segments; a crown
-    after them; the terrain grid last) and, on what is not a triangle, |cos| of the
-    incidence (from the geometric normal Embree reports; on a crown drawn; 0 on a triangle,
-    whose normal the caller knows)."""
+    """One ray (unit direction) through ``rtcIntersect1`` into each Embree scene of
+    ``scenes`` (:attr:`DirectScene.handles`; ``rf``/``ru``/``addr`` from
+    :func:`new_rayhit`) in turn, no farther than what it met before: its hit distance (inf
+    on a miss), primitive (-1 none; a triangle's index; ``-2 - j`` for curve primitive
+    ``j``, a segment or a disc after the segments; a crown after them; the terrain grid
+    last) and, on what is not a triangle, |cos| of the incidence (from the geometric normal
+    Embree reports; on a crown drawn; 0 on a triangle, whose normal the caller knows)."""
     rf[0], rf[1], rf[2], rf[TNEAR] = ox, oy, oz, 0.0
     rf[4], rf[5], rf[6], rf[TIME] = dx, dy, dz, 0.0
     rf[TFAR] = np.inf
@@ -360,11 +371,11 @@ def intersect1(fn: int, scenes: Any, rf: Any, ru: Any, addr: int, ox: float, oy:
     ru[PRIM_ID], ru[INST_ID] = INVALID_ID, INVALID_ID
     prim: Any = np.int32(-1)
     c = 0.0
-    if scenes[1] > 0:  # the porous crowns first: where the ray stops there bounds the rest
-        tm, cm, c = _through(scenes, addr, ru, ox, oy, oz, dx, dy, dz, np.inf)
-        if cm >= 0:
-            prim = np.int32(-2 - scenes[2] - cm)
-            rf[TFAR] = np.float32(tm)
+    key = np.uint64(0)
+    if scenes[1] > 0:  # porous crowns draw from the ray's key: made once a ray
+        key = media.ray_key(ru)
+        own = _u64(addr + RAYHIT_WORDS * 4, 2)
+        own[0], own[1] = key, np.uint64(addr)
     rows = scenes[0]
     for k in range(rows.shape[0]):
         ru[GEOM_ID] = INVALID_ID  # tfar stays: only a nearer hit answers
@@ -373,6 +384,9 @@ def intersect1(fn: int, scenes: Any, rf: Any, ru: Any, addr: int, ox: float, oy:
         if g == 0:
             prim = np.int32(rows[k, 1] + np.int64(ru[PRIM_ID]))
             c = 0.0
+        elif g == 4:  # a porous crown: the foliage faces it at a random orientation
+            prim = np.int32(-2 - scenes[2] - np.int64(ru[PRIM_ID]))
+            c = math.sqrt(media.uniform(key, 2))
         elif g != INVALID_ID:  # a curve segment (1), a disc (2, numbered after them), the
             # terrain (3: one primitive)
             prim = np.int32(rows[k, 3] if g == 3 else
@@ -402,48 +416,9 @@ def _f64(addr: int, shape: Any) -> Any:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _i64(addr: int, n: int) -> Any:
-    """The int64 array of ``n`` at ``addr``."""
-    return numba.carray(_to_ptr(addr), n, np.int64)  # type: ignore[call-arg]
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _through(scenes: Any, addr: int, ru: Any, ox: float, oy: float, oz: float, dx: float,
-             dy: float, dz: float, t_max: float) -> tuple[float, int, float]:
-    """The ray (its RTCRayHit at ``addr``, words ``ru``, origin and direction set: its
-    draws are a hash of them) through the porous crowns of ``scenes``
-    (:attr:`DirectScene.handles`) short of ``t_max``: (where it stops, the crown it stops
-    in, |cos incidence| there), or (inf, -1, 0) where it passes them all
-    (:func:`emulators.media.march`)."""
-    K = media.MAX_CROWNS
-    nc, n_cells, n_items = scenes[1], scenes[8], scenes[9]
-    tab = _f64(scenes[3], (nc, media.COLUMNS))
-    head = _f64(scenes[4], (7,))
-    start = _i64(scenes[5], n_cells + 1)
-    items = _i64(scenes[6], n_items)
-    zr = _f64(scenes[7], (n_cells + n_items, 2))
-    fv = _f64(addr + RAYHIT_WORDS * 4, (3 * K,))
-    ids = _i64(addr + RAYHIT_WORDS * 4 + 24 * K, K)
-    a, b, s = fv[0:K], fv[K:2 * K], fv[2 * K:3 * K]
-    key = media.ray_key(ru)
-    stop, n = media.march(tab, head, start, items, zr, ox, oy, oz, dx, dy, dz, t_max,
-                          -math.log(media.uniform(key, 0)), a, b, s, ids)
-    if not stop < np.inf:
-        return np.inf, -1, 0.0
-    # of several crowns that overlap where it stops, one by its share of the density there
-    tot = 0.0
-    for j in range(n):
-        if a[j] <= stop <= b[j]:
-            tot += s[j]
-    pick = media.uniform(key, 1) * tot
-    hit = np.int64(-1)
-    for j in range(n):
-        if a[j] <= stop <= b[j] and s[j] > 0.0:
-            hit = ids[j]
-            pick -= s[j]
-            if pick <= 0.0:
-                break
-    return stop, int(hit), math.sqrt(media.uniform(key, 2))
+def _u64(addr: int, n: int) -> Any:
+    """The uint64 array of ``n`` at ``addr``."""
+    return numba.carray(_to_ptr(addr), n, np.uint64)  # type: ignore[call-arg]
 
 
 @_njit
@@ -457,3 +432,77 @@ def cast_rays(fn: int, scenes: Any, o: Any, d: Any, t: Any, prim: Any, cn: Any) 
                                       d[i, 0], d[i, 1], d[i, 2])
         if keep:
             cn[i] = c
+
+
+def _crown_geometry(c: media.Crowns) -> NDArray[np.float64]:
+    """The crowns as Embree user primitives, rows of :data:`CROWN_WORDS` float64: their
+    table (:meth:`emulators.media.Crowns.table`), each crown's own 64-bit key in the last
+    of its columns (a hash of its row), and its box (lower xyz, upper xyz), for
+    :func:`_crown_hit` and :func:`_crown_bounds` (both read the geometry's user data)."""
+    t = np.zeros((len(c), CROWN_WORDS))
+    t[:, :media.COLUMNS] = c.table()
+    t[:, media.COLUMNS - 1] = 0.0
+    t.view(np.uint64)[:, media.COLUMNS - 1] = media.row_keys(t[:, :media.COLUMNS])
+    v32, _ = c.envelopes()
+    v = v32.reshape(len(c), -1, 3)
+    t[:, media.COLUMNS:media.COLUMNS + 3] = v.min(axis=1)
+    t[:, media.COLUMNS + 3:media.COLUMNS + 6] = v.max(axis=1)
+    return t
+
+
+CROWN_WORDS = media.COLUMNS + 6
+
+
+@numba.cfunc(types.void(types.voidptr), cache=True)
+def _crown_bounds(args: Any) -> None:
+    """RTCBoundsFunction: crown ``primID``'s box (``RTCBoundsFunctionArguments``: the
+    geometry's user data, primID and timeStep, the output ``RTCBounds``)."""
+    w = numba.carray(args, 3, np.uint64)
+    prim = np.int64(w[1] & np.uint64(0xFFFFFFFF))
+    src = _f64(np.int64(w[0]) + (prim * CROWN_WORDS + media.COLUMNS) * 8, (6,))
+    dst = numba.carray(_to_ptr(np.int64(w[2])), 8, np.float32)  # type: ignore[call-arg]
+    for i in range(3):
+        dst[i] = np.float32(src[i])
+        dst[4 + i] = np.float32(src[3 + i])
+
+
+@numba.cfunc(types.void(types.voidptr), cache=True)
+def _crown_hit(args: Any) -> None:
+    """RTCIntersectFunctionN for one ray (``rtcIntersect1``): where the ray stops in crown
+    ``primID`` on its own, its entry plus an exponential free path of the crown's
+    extinction drawn from the ray's and the crown's keys, reported as a hit where that is
+    inside the crown and nearer than what the ray holds. Overlapping crowns each draw their
+    own: the nearest stop of independent exponential paths is the free path of their summed
+    extinction, and the crown it falls in is each one's with the share of its density
+    there (competing exponentials), so the ray's stop is Beer-Lambert's through them all."""
+    w = numba.carray(args, 6, np.uint64)
+    valid = numba.carray(_to_ptr(np.int64(w[0])), 1, np.int32)  # type: ignore[call-arg]
+    if valid[0] == 0:
+        return
+    prim = np.int64(w[2] & np.uint64(0xFFFFFFFF))
+    row_at = np.int64(w[1]) + prim * (CROWN_WORDS * 8)
+    row = _f64(row_at, (media.COLUMNS,))
+    sigma = row[media.SIGMA]
+    if not sigma > 0.0:
+        return
+    rh = np.int64(w[4])
+    rf = numba.carray(_to_ptr(rh), RAYHIT_WORDS, np.float32)
+    ru = numba.carray(_to_ptr(rh), RAYHIT_WORDS, np.uint32)
+    ox, oy, oz = np.float64(rf[0]), np.float64(rf[1]), np.float64(rf[2])
+    dx, dy, dz = np.float64(rf[4]), np.float64(rf[5]), np.float64(rf[6])
+    u, v = media.interval(row, ox, oy, oz, dx, dy, dz)
+    a = max(u, np.float64(rf[TNEAR]), 0.0)
+    if not v > a:
+        return
+    mine = _u64(rh + RAYHIT_WORDS * 4, 2)  # the key the caster put after its RTCRayHit,
+    # where Embree hands over the caller's struct (else it is made again here)
+    key = mine[0] if mine[1] == np.uint64(rh) else media.ray_key(ru)
+    stop = a - math.log(media.uniform(key ^ _u64(row_at + (media.COLUMNS - 1) * 8, 1)[0],
+                                      0)) / sigma
+    if stop <= v and stop < np.float64(rf[TFAR]):
+        rf[TFAR] = np.float32(stop)
+        rf[NG_X], rf[NG_Y], rf[NG_Z] = -rf[4], -rf[5], -rf[6]
+        rf[NG_Z + 1], rf[NG_Z + 2] = 0.0, 0.0
+        ru[PRIM_ID] = np.uint32(prim)
+        ru[GEOM_ID] = np.uint32(w[5] >> np.uint64(32))
+        ru[INST_ID] = INVALID_ID

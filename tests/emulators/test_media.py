@@ -122,8 +122,11 @@ def test_crowns_stop_rays_as_beer_lambert_says(shape: int) -> None:
 
 
 def test_overlapping_crowns_add_their_density_and_share_the_hits() -> None:
-    """Two crowns in one place stop rays as one of their summed extinction would, and each
-    takes its share of the stops."""
+    """Two crowns in one place stop rays as one of their summed extinction would (as many,
+    at depths of the same law: each crown draws its own path and the nearer stops the ray),
+    and each takes its share of the stops."""
+    from scipy import stats
+
     a = ((0.0, 0.0, 10.0), (0.0, 0.0, -1.0), 8.0, 2.0, 0.0, ELLIPSOID, 0.2)
     b = ((0.0, 0.0, 10.0), (0.0, 0.0, -1.0), 8.0, 2.0, 0.0, ELLIPSOID, 0.6)
     ds = scene(crowns([a, b]))
@@ -132,10 +135,13 @@ def test_overlapping_crowns_add_their_density_and_share_the_hits() -> None:
     o, d = o64.astype(np.float32), d64.astype(np.float32)
     t2, p2, _ = ds.cast_n(o, d)
     t1, p1, _ = one.cast_n(o, d)
-    assert np.array_equal(t1, t2)  # the same draw, the same summed density
+    crown = (p2 == -2) | (p2 == -3)
+    n1, n2 = np.count_nonzero(p1 == -2), np.count_nonzero(crown)
+    assert abs(n2 - n1) < 4.0 * math.sqrt(n1)
+    assert stats.ks_2samp(t1[p1 == -2], t2[crown]).pvalue > 1e-3
     first = np.count_nonzero(p2 == -2)
     second = np.count_nonzero(p2 == -3)
-    assert first + second == np.count_nonzero(p1 == -2)
+    assert first + second == n2
     assert first / (first + second) == pytest.approx(0.25, abs=0.015)
 
 
