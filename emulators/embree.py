@@ -90,8 +90,7 @@ def _lib() -> Any:
                 ("rtcSetGeometryUserPrimitiveCount", None, [vp, uint]),
                 ("rtcSetGeometryUserData", None, [vp, vp]),
                 ("rtcSetGeometryBoundsFunction", None, [vp, vp, vp]),
-                ("rtcSetGeometryIntersectFunction", None, [vp, vp]),
-                ("rtcSetGeometryOccludedFunction", None, [vp, vp])):
+                ("rtcSetGeometryIntersectFunction", None, [vp, vp])):
             fn = getattr(lib, name)
             fn.restype, fn.argtypes = res, args
         _LIB = lib
@@ -162,8 +161,8 @@ class DirectScene:
     go to :func:`cast_rays` or :func:`intersect1`, which answer a triangle by its index in
     ``faces``, curve primitive ``j`` (segments, then discs) as ``-2 - j``, crown ``c`` as
     ``-2 - curve_count - c``, the terrain as :attr:`terrain_prim` (after the crowns) and a
-    miss as -1. Released with the object (the arrays :attr:`handles` points into too: keep
-    the object while its handles are in use).
+    miss as -1. Released with the object (the scenes :attr:`handles` names, and the crowns'
+    rows their callbacks read: keep the object while its handles are in use).
 
     A ray goes through up to three Embree scenes, in turn, each no farther than what it
     hit in the one before: the porous crowns, as user primitives (:func:`_crown_hit`: where
@@ -259,8 +258,9 @@ class DirectScene:
             geom = lib.rtcNewGeometry(self._device, GEOMETRY_TYPE_USER)
             lib.rtcSetGeometryUserPrimitiveCount(geom, len(user))
             lib.rtcSetGeometryUserData(geom, user.ctypes.data)
-            lib.rtcSetGeometryBoundsFunction(geom, _crown_bounds.address, None)
-            lib.rtcSetGeometryIntersectFunction(geom, _crown_hit.address)
+            bounds, hit = crown_callbacks()
+            lib.rtcSetGeometryBoundsFunction(geom, bounds, None)
+            lib.rtcSetGeometryIntersectFunction(geom, hit)
             lib.rtcCommitGeometry(geom)
             lib.rtcAttachGeometryByID(scene, geom, 4)
             lib.rtcReleaseGeometry(geom)
@@ -453,7 +453,6 @@ def _crown_geometry(c: media.Crowns) -> NDArray[np.float64]:
 CROWN_WORDS = media.COLUMNS + 6
 
 
-@numba.cfunc(types.void(types.voidptr), cache=True)
 def _crown_bounds(args: Any) -> None:
     """RTCBoundsFunction: crown ``primID``'s box (``RTCBoundsFunctionArguments``: the
     geometry's user data, primID and timeStep, the output ``RTCBounds``)."""
@@ -466,7 +465,6 @@ def _crown_bounds(args: Any) -> None:
         dst[4 + i] = np.float32(src[3 + i])
 
 
-@numba.cfunc(types.void(types.voidptr), cache=True)
 def _crown_hit(args: Any) -> None:
     """RTCIntersectFunctionN for one ray (``rtcIntersect1``): where the ray stops in crown
     ``primID`` on its own, its entry plus an exponential free path of the crown's
@@ -494,15 +492,40 @@ def _crown_hit(args: Any) -> None:
     a = max(u, np.float64(rf[TNEAR]), 0.0)
     if not v > a:
         return
-    mine = _u64(rh + RAYHIT_WORDS * 4, 2)  # the key the caster put after its RTCRayHit,
+    kept = _u64(rh + RAYHIT_WORDS * 4, 2)  # the key the caster put after its RTCRayHit,
     # where Embree hands over the caller's struct (else it is made again here)
-    key = mine[0] if mine[1] == np.uint64(rh) else media.ray_key(ru)
-    stop = a - math.log(media.uniform(key ^ _u64(row_at + (media.COLUMNS - 1) * 8, 1)[0],
-                                      0)) / sigma
-    if stop <= v and stop < np.float64(rf[TFAR]):
-        rf[TFAR] = np.float32(stop)
-        rf[NG_X], rf[NG_Y], rf[NG_Z] = -rf[4], -rf[5], -rf[6]
-        rf[NG_Z + 1], rf[NG_Z + 2] = 0.0, 0.0
-        ru[PRIM_ID] = np.uint32(prim)
-        ru[GEOM_ID] = np.uint32(w[5] >> np.uint64(32))
-        ru[INST_ID] = INVALID_ID
+    key = kept[0] if kept[1] == np.uint64(rh) else media.ray_key(ru)
+    mine_key = _u64(row_at + (media.COLUMNS - 1) * 8, 1)[0]
+    stop = np.float32(a - math.log(media.uniform(key ^ mine_key, 0)) / sigma)
+    if not np.float64(stop) <= v:
+        return
+    held = rf[TFAR]
+    if stop > held:
+        return
+    if stop == held:  # a tie in float32: the crown of the lower key, whatever the order
+        if ru[GEOM_ID] != np.uint32(w[5] >> np.uint64(32)):
+            return  # what the ray holds is no crown (not in this scene: never)
+        other = np.int64(w[1]) + np.int64(ru[PRIM_ID]) * (CROWN_WORDS * 8)
+        if not mine_key < _u64(other + (media.COLUMNS - 1) * 8, 1)[0]:
+            return
+    rf[TFAR] = stop
+    rf[NG_X], rf[NG_Y], rf[NG_Z] = -rf[4], -rf[5], -rf[6]
+    rf[NG_Z + 1], rf[NG_Z + 2] = 0.0, 0.0
+    ru[PRIM_ID] = np.uint32(prim)
+    ru[GEOM_ID] = np.uint32(w[5] >> np.uint64(32))
+    ru[INST_ID] = INVALID_ID
+
+
+_CALLBACKS: list[tuple[int, int]] = []
+
+
+def crown_callbacks() -> tuple[int, int]:
+    """The addresses of :func:`_crown_bounds` and :func:`_crown_hit` compiled as C
+    callbacks (numba's ``cfunc``; compiled, or loaded from its cache, on first use: a
+    ``cfunc`` compiles where it is declared, and the module imports without compiled
+    kernels too)."""
+    if not _CALLBACKS:
+        sig = types.void(types.voidptr)
+        _CALLBACKS.append((numba.cfunc(sig, cache=True)(_crown_bounds).address,
+                           numba.cfunc(sig, cache=True)(_crown_hit).address))
+    return _CALLBACKS[0]

@@ -217,4 +217,3 @@ if jit_enabled():
     ray_key = _kernel(ray_key)
     uniform = _kernel(uniform)
     interval = _kernel(interval)
-

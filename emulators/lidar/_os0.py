@@ -44,8 +44,8 @@ FloatArray = NDArray[np.float64]
 DirectCast = tuple[int, tuple[Any, ...], NDArray[np.int32]]
 """An Embree scene the emulator's compiled kernel casts through itself
 (:mod:`emulators.embree`): rtcIntersect1's address, what a ray is cast through
-(:attr:`emulators.embree.DirectScene.handles`: its crowns, then its scenes in the order a ray
-enters them), and the stem id by primitive: the triangles', the other primitives' last to
+(:attr:`emulators.embree.DirectScene.handles`: its scenes in the order a ray enters them,
+the crowns' first), and the stem id by primitive: the triangles', the other primitives' last to
 first, then -1 (the miss), so that a miss (-1) and primitive j (-2 - j) index it from the
 end."""
 

@@ -637,7 +637,7 @@ def test_culling_beyond_the_sensors_reach_changes_no_return() -> None:
 
 
 def test_foliage_as_crowns_and_as_facets_stop_the_same_rays(scenery_forest) -> None:  # type: ignore[no-untyped-def]
-    """The two ways to cast foliage, porous crowns with a free path drawn per ray and facets
+    """The two ways to cast foliage, porous crowns with a free path drawn per ray and crown, and
     at the same extinction, give a stand the same look: the share of rays each component
     stops and how far the foliage stops them, within their sampling error (200,000 rays
     from inside the stand, in every direction)."""
