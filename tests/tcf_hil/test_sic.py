@@ -94,6 +94,55 @@ def test_sklearn_and_scipy_give_the_same_clusters() -> None:
     assert len(set(a.tolist())) < 10
 
 
+def _pairs_components(pts: np.ndarray, r: float) -> np.ndarray:
+    """The neighbour graph's components as listed pairs give them (scipy)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(pts).query_pairs(r, output_type="ndarray")
+    g = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])),
+                   shape=(len(pts), len(pts)))
+    return connected_components(g, directed=False)[1].astype(np.int64)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 600),
+       r=st.sampled_from([0.05, 0.3, 0.7]), spread=st.floats(0.01, 3.0),
+       lattice=st.booleans())
+def test_the_cube_grid_gives_the_components_and_labels_listed_pairs_give(
+        seed: int, n: int, r: float, spread: float, lattice: bool) -> None:
+    """The components found on a grid of cubes (tcf_hil.sic._components) are those of the
+    listed pairs, numbered alike: blobs and scattered points, duplicates, points on a
+    lattice of the radius itself (pairs at exactly r, and just over it), far offsets."""
+    from tcf_hil.sic._components import radius_components
+
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-5.0, 5.0, (max(1, n // 100), 3)) + 1000.0
+    pts = centres[rng.integers(0, len(centres), n)] + rng.normal(0.0, spread, (n, 3))
+    if lattice:
+        pts[: n // 2] = np.round(pts[: n // 2] / r) * r
+    pts[: n // 10] = pts[n // 10: 2 * (n // 10)]  # duplicates
+    got = radius_components(pts, r)
+    if got is None:
+        pytest.skip("compiled kernels are off here")
+    assert np.array_equal(got, _pairs_components(pts, r))
+
+
+def test_the_tuned_sic_clusters_a_natural_cloud_as_listed_pairs_do() -> None:
+    """On a natural stand's cloud (branches and foliage about the stems), cluster_points
+    gives the same labels as the listed pairs."""
+    from tcf_hil.sic._components import radius_components
+
+    rng = np.random.default_rng(3)
+    stems = rng.uniform(0, 20, (40, 2))
+    pts = np.vstack([np.column_stack([s + rng.normal(0, 0.8, (800, 2)),
+                                      rng.uniform(0, 12, 800)]) for s in stems])
+    if radius_components(pts, 0.3) is None:
+        pytest.skip("compiled kernels are off here")
+    assert np.array_equal(cluster_points(pts, 0.3, "scipy"), _pairs_components(pts, 0.3))
+
+
 def _score(f: Forest, preset: str, **kw: object) -> dict:
     cloud = sample_surfaces(f)
     s = f.scenario.stems
