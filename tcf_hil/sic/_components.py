@@ -20,9 +20,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from emulators.jit import jit_enabled, numba_module, register_kernel_source
+from emulators.jit import jit_enabled, numba_module
 
-register_kernel_source(__file__)  # join_cubes is a kernel (see emulators.jit)
+# Not registered as a kernel source (emulators.jit.register_kernel_source): join_cubes calls
+# only this file's own _join, whose changes numba's cache notices by itself, and a source
+# registered here would give every process that imports the SIC a kernel cache directory
+# of its own, cold for the lidar kernels a process without it compiled (a sensor started
+# by `tcf-hil lidar stream` took a minute to send its first frame).
 
 _REACH = 2  # cubes apart on an axis that can still hold two points within r
 
