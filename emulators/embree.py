@@ -441,7 +441,6 @@ def _crown_geometry(c: media.Crowns) -> NDArray[np.float64]:
     :func:`_crown_hit` and :func:`_crown_bounds` (both read the geometry's user data)."""
     t = np.zeros((len(c), CROWN_WORDS))
     t[:, :media.COLUMNS] = c.table()
-    t[:, media.COLUMNS - 1] = 0.0
     t.view(np.uint64)[:, media.COLUMNS - 1] = media.row_keys(t[:, :media.COLUMNS])
     v32, _ = c.envelopes()
     v = v32.reshape(len(c), -1, 3)
