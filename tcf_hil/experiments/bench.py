@@ -152,7 +152,7 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
         say(f"{mode}, {f'{tol:g} mm' if geometry == 'mesh' else 'curves'}, "
             f"{fp or scn.sensor.footprint}, {backend}")
         run = LidarRun(scn, mode=mode, backend=backend, max_frames=grid.frames,
-                       t0_ns=RUN_T0_NS, faults=False)
+                       t0_ns=RUN_T0_NS, faults=False, keep_poses=False)
         model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed,
                                              RUN_T0_NS)
         sics = [OfflineSic(p, run.meta, model.node_config()) for p in grid.presets]

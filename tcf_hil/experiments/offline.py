@@ -153,7 +153,7 @@ def run_offline(scn: Scenario, *, mode: str = "1024x10",
     ``first_frame_id``: the sensor's first frame_id."""
     run = LidarRun(scn, mode=mode, profile=profile, seed=seed, backend=backend,
                    max_frames=max_frames, t0_ns=t0_ns, faults=False, forest=forest,
-                   first_frame_id=first_frame_id)
+                   first_frame_id=first_frame_id, keep_poses=False)  # no sidecar files here
     model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed, t0_ns)
     sic = OfflineSic(preset, run.meta, model.node_config(), voxel_m=voxel_m)
     frames, emu_s = drive(run, model, [sic], progress)

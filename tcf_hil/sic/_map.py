@@ -123,6 +123,8 @@ class _Tile:
     pending: int = 0  # in chunks not yet compacted
     dirty: bool = False
     stems: list[dict[str, Any]] = field(default_factory=list)
+    basis: int = 0  # the tile's own points its stems were found on
+    evicted: bool = False  # lost its points since its stems were found
 
 
 @dataclass
@@ -190,7 +192,16 @@ class StemMap:
                 tile = self.tiles[tid] = _Tile()
             tile.chunks.append(f32[a:b])
             tile.pending += b - a
-            tile.dirty = True
+            if tile.dirty:
+                pass
+            elif not tile.evicted:
+                tile.dirty = True
+            elif tile.points + tile.pending > tile.basis and 4 * tile.pending >= tile.points:
+                # a tile that lost its points runs again once it holds more than its stems
+                # were found on (a few far returns must not replace them): its points
+                # counted without repeats, after a quarter as many new ones (amortised)
+                self._compact(tile)
+                tile.dirty = tile.points > tile.basis
             if tile.pending > max(tile.points, 50_000):
                 self._compact(tile)
         self.stats.points += len(keep)
@@ -230,6 +241,7 @@ class StemMap:
                 self._run_tile(ids[k])  # compacts: duplicates leave the count here
             n = tile.points + tile.pending
             tile.chunks, tile.points, tile.pending = [], 0, 0
+            tile.dirty, tile.evicted = False, True  # its stems stay
             self.stats.points -= n
             self.stats.evicted_points += n
 
@@ -255,18 +267,19 @@ class StemMap:
     def _run_tile(self, tid: tuple[int, int]) -> None:
         t0 = time.perf_counter()
         i, j = tid
+        lo = np.array([i, j], dtype=np.float64) * self.tile - self.margin
+        hi = lo + self.tile + 2 * self.margin
         parts = []
         for di in (-1, 0, 1):
             for dj in (-1, 0, 1):
                 nb = self.tiles.get((i + di, j + dj))
                 if nb is not None and (nb.points or nb.pending):
-                    parts.append(self._compact(nb))
+                    p = self._compact(nb)  # the border's points only (compared in float64)
+                    parts.append(p[np.all((p[:, :2] >= lo) & (p[:, :2] < hi), axis=1)])
         tile = self.tiles[tid]
-        tile.dirty = False
+        tile.dirty = tile.evicted = False
+        tile.basis = tile.points  # compacted above
         pts = np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 3))
-        lo = np.array([i, j], dtype=np.float64) * self.tile - self.margin
-        hi = lo + self.tile + 2 * self.margin
-        pts = pts[np.all((pts[:, :2] >= lo) & (pts[:, :2] < hi), axis=1)]
         stems: list[dict[str, Any]] = []
         if len(pts):
             gz = self.ground.height(pts[:, :2])

@@ -23,7 +23,7 @@ from emulators.jit import jit_enabled
 from tcf_hil.experiments.bench import pareto
 from tcf_hil.experiments.cells import COLUMN_NAMES, SAMPLED, make_cell, run_cell
 from tcf_hil.experiments.offline import run_offline
-from tcf_hil.experiments.sweep import run_sweep
+from tcf_hil.experiments.sweep import _worker_env, estimated_cost, run_sweep
 from tcf_hil.experiments.tables import ci95, write_tables
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict, with_sensor
 
@@ -94,6 +94,24 @@ def test_sweep_on_a_two_worker_local_cluster_then_a_rerun_skips(tmp_path: Path) 
     # a changed spec under the same id is not "finished"
     changed = [dataclasses.replace(cells[0], max_frames=20)]
     assert run_sweep(changed, tmp_path / "x", executor="inline").ran == 1
+
+
+def test_local_workers_share_the_cpus_and_the_costliest_cells_go_first(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TCF_HIL_RAY_THREADS", raising=False)
+    cpus = len(os.sched_getaffinity(0))
+    assert _worker_env(2) == {"TCF_HIL_RAY_THREADS": str(max(1, cpus // 2))}
+    assert _worker_env(10 * cpus) == {"TCF_HIL_RAY_THREADS": "1"}
+    monkeypatch.setenv("TCF_HIL_RAY_THREADS", "3")  # the user's word stands
+    assert _worker_env(2) == {}
+
+    def cost(forest: str, mode: str) -> float:
+        return estimated_cost(make_cell(load_scenario(forest), mode))
+
+    assert cost("forest-v-natural", "1024x10") > cost("forest-v", "1024x10")
+    assert cost("forest-v", "2048x10") > cost("forest-v", "1024x10") > cost("forest-v", "512x10")
+    assert cost("forest-x", "512x10") > cost("forest-i", "512x10")
+    assert cost("forest-v", SAMPLED) < cost("forest-v", "512x10")
 
 
 def test_a_failing_sic_fails_its_cell_only_and_a_rerun_retries_it(tmp_path: Path) -> None:

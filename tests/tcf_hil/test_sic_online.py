@@ -189,6 +189,38 @@ def test_map_eviction_keeps_the_stems_of_dropped_tiles() -> None:
     assert xs == [-20, 20]
 
 
+def test_an_evicted_tile_keeps_its_stems_until_it_holds_more_points_again() -> None:
+    """A tile that lost its points keeps the stems found on them: later returns run it
+    again (and replace its stems) only once it holds more points than they were found on,
+    not a few far ones, nor the same points again."""
+    rng = np.random.default_rng(2)
+    cloud = _cylinder_cloud([(-15.0, 5.0), (15.0, 5.0)], rng)  # tiles (-2, 0) and (1, 0)
+    left, right = cloud[cloud[:, 0] < 0], cloud[cloud[:, 0] >= 0]
+    stem = left[(left[:, 2] > 0.5)]  # the left stem's own points (the ground is not kept)
+    smap = StemMap(stem_params("tuned"), voxel_m=0.01, max_points=11_000)
+    smap.add(left, np.array([-15.0, 5.0]))
+    smap.add(right, np.array([15.0, 5.0]))  # the left tiles go, their stems found first
+    tile = smap.tiles[(-2, 0)]
+    assert tile.evicted and tile.points + tile.pending == 0 and tile.basis > 1000
+    kept = [o["dbh"] for o in tile.stems]
+    assert len(kept) == 1
+    smap.update()  # the right tiles
+    smap.max_points = 10**6  # no more evictions
+    runs = smap.stats.tile_runs
+    smap.add(stem[::20], np.array([15.0, 5.0]))  # a few returns from afar: held, not run
+    assert not tile.dirty
+    smap.update()
+    assert smap.stats.tile_runs == runs and [o["dbh"] for o in tile.stems] == kept
+    smap.add(stem, np.array([15.0, 5.0]))  # all it was found on again: not more
+    assert not tile.dirty
+    more = _cylinder_cloud([(-15.0, 5.0)], rng)
+    smap.add(more[more[:, 0] < 0], np.array([15.0, 5.0]))  # and new returns: more
+    assert tile.dirty
+    smap.update()
+    assert not tile.evicted and tile.basis > 1.5 * len(stem)
+    assert len(tile.stems) == 1 and tile.stems[0]["dbh"] == pytest.approx(0.30, abs=0.01)
+
+
 def test_publications_over_http_and_file_are_kept_and_checked(tmp_path: Path) -> None:
     inbox = Inbox(tmp_path / "sic")
     server = PublishServer(inbox).start()
