@@ -144,11 +144,11 @@ def _worker_env(workers: int) -> dict[str, str]:
     (``TCF_HIL_RAY_THREADS``, unless set here already). Each worker runs one cell at a
     time; casting over every CPU in each of them costs more than it gains (two workers on
     2 cores, a natural stand's cell: 76 s with two threads each, 71 s with one)."""
+    from tcf_hil.scene import default_threads  # this machine's CPUs, unless the variable is set
+
     if os.environ.get("TCF_HIL_RAY_THREADS"):
         return {}
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (
-        os.cpu_count() or 1)
-    return {"TCF_HIL_RAY_THREADS": str(max(1, cpus // max(1, workers)))}
+    return {"TCF_HIL_RAY_THREADS": str(max(1, default_threads() // max(1, workers)))}
 
 
 def estimated_cost(c: Cell) -> float:
@@ -232,13 +232,13 @@ def run_sweep(cells: Sequence[Cell], out: str | Path, *, executor: str = "local"
 
         try:
             client.subscribe_topic(PROGRESS_TOPIC, reported)
-            # the costliest first (Dask runs the higher priority first): the last cells to
-            # start are short ones
-            rank = {c.id: r for r, c in enumerate(sorted(todo, key=estimated_cost))}
+            # the costliest first (submitted first, and Dask runs the higher priority
+            # first among those waiting): the last cells to start are short ones
+            order = sorted(todo, key=estimated_cost, reverse=True)
             futures = {client.submit(run_cell_reporting, c, out_dir(c), pure=False,
-                                     priority=rank[c.id],
+                                     priority=len(order) - r,
                                      key=f"tcf-cell-{c.id}-{time.time_ns()}"): c
-                       for c in todo}
+                       for r, c in enumerate(order)}
             for fut in as_completed(futures):
                 c = futures[fut]
                 try:

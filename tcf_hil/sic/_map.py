@@ -143,7 +143,8 @@ class StemMap:
     with a ``margin_m`` border from its neighbours, keeping the stems whose centre lies inside
     it) for at most ``budget_s``; ``forest`` assembles the observed document. The map holds
     at most ``max_points``: beyond that the tiles farthest from the machine lose their
-    points (their stems stay, final: the sensor no longer reaches them).
+    points (their stems stay: the sensor hardly reaches them now). Such a tile runs again
+    only once it holds more points than its stems were found on.
     """
 
     def __init__(self, params: StemParams, *, voxel_m: float = 0.03, tile_m: float = 10.0,
@@ -192,11 +193,10 @@ class StemMap:
                 tile = self.tiles[tid] = _Tile()
             tile.chunks.append(f32[a:b])
             tile.pending += b - a
-            if tile.dirty:
-                pass
-            elif not tile.evicted:
+            if not tile.evicted:
                 tile.dirty = True
-            elif tile.points + tile.pending > tile.basis and 4 * tile.pending >= tile.points:
+            elif (not tile.dirty and tile.points + tile.pending > tile.basis
+                  and 4 * tile.pending >= tile.points):
                 # a tile that lost its points runs again once it holds more than its stems
                 # were found on (a few far returns must not replace them): its points
                 # counted without repeats, after a quarter as many new ones (amortised)

@@ -63,6 +63,9 @@ def test_sweep_on_a_two_worker_local_cluster_then_a_rerun_skips(tmp_path: Path) 
         frames = [row["frames"] for cid, row in progress if cid == c.id]
         assert frames and frames == sorted(frames) and 1 <= frames[0] <= frames[-1] <= 25, c
         assert all(row["total"] == 25 for cid, row in progress if cid == c.id)
+    # the two costliest cells started first, one on each worker
+    started = list(dict.fromkeys(cid for cid, _ in progress))
+    assert set(started[:2]) == {c.id for c in sorted(cells, key=estimated_cost)[2:]}
     head, rows = _read_csv(tmp_path / "results.csv")
     assert head == list(COLUMN_NAMES)
     assert [r["cell"] for r in rows] == [c.id for c in cells]  # grid order, not finish order
