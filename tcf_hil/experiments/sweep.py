@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from tcf_hil._io import ensure_dir, read_json, write_bytes_atomic, write_json_atomic
-from tcf_hil.experiments.cells import COLUMN_NAMES, Cell, CellResult, run_cell
+from tcf_hil.experiments.cells import COLUMN_NAMES, SAMPLED, Cell, CellResult, run_cell
 
 Event = Callable[[str, Cell, dict[str, Any] | None], None]
 """on_event(kind, cell, row): kind is 'skipped', 'done' or 'failed' (``row``: the cell's), or
@@ -158,7 +158,7 @@ def estimated_cost(c: Cell) -> float:
     stems here). A local sweep starts the costliest cells first, so that a long cell does
     not start last while the other workers idle."""
     scn = c.scenario()
-    if c.mode == "sampled":
+    if c.mode == SAMPLED:
         return float(scn.stems.count)
     cols, hz = (int(v) for v in c.mode.split("x"))
     tr = scn.track
