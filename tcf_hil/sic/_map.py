@@ -241,7 +241,7 @@ class StemMap:
                 self._run_tile(ids[k])  # compacts: duplicates leave the count here
             n = tile.points + tile.pending
             tile.chunks, tile.points, tile.pending = [], 0, 0
-            tile.dirty, tile.evicted = False, True  # its stems stay
+            tile.evicted = True  # its stems stay (it ran above if it was dirty)
             self.stats.points -= n
             self.stats.evicted_points += n
 
