@@ -103,16 +103,22 @@ class GroundGrid:
         ni, nj = self.z.shape
         a, b = i - self.i0, j - self.j0
         ok = (a >= 0) & (a < ni) & (b >= 0) & (b < nj)
-        out = np.full(len(xy), np.inf)
-        out[ok] = self.z[a[ok], b[ok]]
-        if self.slope and ok.any():
+        every = bool(ok.all())  # as a rule: the points of a frame just added
+        if not every:
+            xy, i, j, a, b = xy[ok], i[ok], j[ok], a[ok], b[ok]
+        f = a * nj + b  # flat cell index (the grids are C-contiguous)
+        h = self.z.ravel().take(f)
+        if self.slope and len(f):
             gx, gy = self._gradient()
-            ax, by = a[ok], b[ok]
-            sx, sy = gx[ax, by], gy[ax, by]
+            sx, sy = gx.ravel().take(f), gy.ravel().take(f)
             # offsets from the cell centre, in [-cell/2, cell/2)
-            u = xy[ok, 0] - (i[ok] + 0.5) * self.cell
-            v = xy[ok, 1] - (j[ok] + 0.5) * self.cell
-            out[ok] += 0.5 * self.cell * (np.abs(sx) + np.abs(sy)) + sx * u + sy * v
+            u = xy[:, 0] - (i + 0.5) * self.cell
+            v = xy[:, 1] - (j + 0.5) * self.cell
+            h += 0.5 * self.cell * (np.abs(sx) + np.abs(sy)) + sx * u + sy * v
+        if every:
+            return h
+        out = np.full(len(ok), np.inf)
+        out[ok] = h
         return out
 
 
@@ -125,6 +131,8 @@ class _Tile:
     stems: list[dict[str, Any]] = field(default_factory=list)
     basis: int = 0  # the tile's own points its stems were found on
     evicted: bool = False  # lost its points since its stems were found
+    keys: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    # ^ the voxel keys of the compacted points (chunks[0] where points > 0), sorted
 
 
 @dataclass
@@ -215,12 +223,31 @@ class StemMap:
         return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
 
     def _compact(self, tile: _Tile) -> NDArray[np.float32]:
-        if len(tile.chunks) == 1 and tile.pending == 0:
-            return tile.chunks[0]
-        pts = np.concatenate(tile.chunks) if tile.chunks else np.zeros((0, 3), np.float32)
-        if len(pts):
-            _, first = np.unique(self._keys(pts), return_index=True)
-            pts = pts[np.sort(first)]
+        """The tile's points without repeats (one per voxel, the first seen), in the order
+        they came. The compacted points' keys are kept sorted, so that new points are sorted
+        and looked up, not all of them again (a near tile of 0.5 M points takes ~20 k new
+        ones a frame)."""
+        if tile.pending == 0:
+            return tile.chunks[0] if tile.chunks else np.zeros((0, 3), np.float32)
+        base = tile.chunks[0] if tile.points else None
+        new = np.concatenate(tile.chunks[1:] if base is not None else tile.chunks)
+        nk = self._keys(new)
+        order = np.argsort(nk, kind="stable")  # stable: the first of equal keys first
+        sk = nk[order]
+        first = np.empty(len(sk), bool)
+        first[:1] = True
+        np.not_equal(sk[1:], sk[:-1], out=first[1:])
+        uk, ui = sk[first], order[first]
+        if base is not None:
+            bk = tile.keys
+            fresh = bk[np.minimum(np.searchsorted(bk, uk), len(bk) - 1)] != uk
+            uk, ui = uk[fresh], ui[fresh]
+            # two sorted runs: the stable sort (timsort) merges them in one pass
+            tile.keys = np.sort(np.concatenate([bk, uk]), kind="stable")
+            pts = np.concatenate([base, new[np.sort(ui)]])
+        else:
+            tile.keys = uk
+            pts = new[np.sort(ui)]
         self.stats.points -= tile.points + tile.pending - len(pts)
         tile.chunks = [pts]
         tile.points, tile.pending = len(pts), 0
@@ -241,6 +268,7 @@ class StemMap:
                 self._run_tile(ids[k])  # compacts: duplicates leave the count here
             n = tile.points + tile.pending
             tile.chunks, tile.points, tile.pending = [], 0, 0
+            tile.keys = tile.keys[:0]
             tile.evicted = True  # its stems stay (it ran above if it was dirty)
             self.stats.points -= n
             self.stats.evicted_points += n
@@ -275,7 +303,16 @@ class StemMap:
                 nb = self.tiles.get((i + di, j + dj))
                 if nb is not None and (nb.points or nb.pending):
                     p = self._compact(nb)  # the border's points only (compared in float64)
-                    parts.append(p[np.all((p[:, :2] >= lo) & (p[:, :2] < hi), axis=1)])
+                    # a tile's points lie within it (up to float32's rounding, far inside
+                    # the margin): only the axes along which the neighbour is offset can
+                    # leave points outside the border, and the tile itself keeps them all
+                    keep = None
+                    for a, dv in ((0, di), (1, dj)):
+                        if dv:
+                            q = p[:, a]
+                            m = (q >= lo[a]) & (q < hi[a])
+                            keep = m if keep is None else keep & m
+                    parts.append(p if keep is None else p[keep])
         tile = self.tiles[tid]
         tile.dirty = tile.evicted = False
         tile.basis = tile.points  # compacted above

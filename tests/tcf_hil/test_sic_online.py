@@ -221,6 +221,59 @@ def test_an_evicted_tile_keeps_its_stems_until_it_holds_more_points_again() -> N
     assert len(tile.stems) == 1 and tile.stems[0]["dbh"] == pytest.approx(0.30, abs=0.01)
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), sizes=st.lists(st.integers(0, 400), min_size=1,
+                                                      max_size=8),
+       when=st.lists(st.booleans(), min_size=8, max_size=8))
+def test_a_compacted_tile_holds_the_first_point_of_each_voxel_in_arrival_order(
+        seed: int, sizes: list[int], when: list[bool]) -> None:
+    """Compaction (against the sorted keys of what was compacted before, at any moment)
+    equals one pass over all the points: the first of each voxel, in the order they came."""
+    from tcf_hil.sic._map import _Tile
+
+    rng = np.random.default_rng(seed)
+    smap = StemMap(stem_params("tuned"), voxel_m=0.1)
+    tile, seen = _Tile(), []
+    for n, now in zip(sizes, when, strict=False):
+        # a few voxels only, so that most points repeat one seen before
+        pts = (rng.integers(0, 6, (n, 3)) * 0.1 + rng.uniform(0.01, 0.09, (n, 3)))
+        pts = pts.astype(np.float32)
+        tile.chunks.append(pts)
+        tile.pending += n
+        smap.stats.points += n
+        seen.append(pts)
+        if now:
+            smap._compact(tile)
+    got = smap._compact(tile)
+    allp = np.concatenate(seen)
+    keys = smap._keys(allp)
+    _, first = np.unique(keys, return_index=True)
+    np.testing.assert_array_equal(got, allp[np.sort(first)])
+    np.testing.assert_array_equal(tile.keys, np.unique(keys))
+    assert tile.points == smap.stats.points == len(got) and tile.pending == 0
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(0, 300))
+def test_ground_height_is_the_same_for_a_point_whatever_points_come_with_it(
+        seed: int, n: int) -> None:
+    """The sloped ground grid's height under points all inside it and under the same points
+    among others outside it (inf there) agree to the bit."""
+    from tcf_hil.sic._map import GroundGrid
+
+    rng = np.random.default_rng(seed)
+    grid = GroundGrid(1.0, slope=True)
+    ground = rng.uniform(-8, 8, (200, 3))
+    ground[:, 2] = 0.3 * ground[:, 0] - 0.1 * ground[:, 1] + rng.normal(0, 0.05, 200)
+    grid.add(ground)
+    xy = rng.uniform(-60, 60, (n, 2))  # the grid spans about -40..40 (its margin)
+    inside = grid.height(xy)
+    lo, hi = (np.array([grid.i0, grid.j0]), np.array([grid.i0, grid.j0]) + grid.z.shape)
+    ok = np.all((np.floor(xy) >= lo) & (np.floor(xy) < hi), axis=1)
+    assert np.all(np.isinf(inside[~ok]))
+    np.testing.assert_array_equal(inside[ok], grid.height(xy[ok]))
+
+
 def test_publications_over_http_and_file_are_kept_and_checked(tmp_path: Path) -> None:
     inbox = Inbox(tmp_path / "sic")
     server = PublishServer(inbox).start()
