@@ -224,9 +224,8 @@ class StemMap:
 
     def _compact(self, tile: _Tile) -> NDArray[np.float32]:
         """The tile's points without repeats (one per voxel, the first seen), in the order
-        they came. The compacted points' keys are kept sorted, so that new points are sorted
-        and looked up, not all of them again (a near tile of 0.5 M points takes ~20 k new
-        ones a frame)."""
+        they came. The compacted points' keys are kept sorted, so that only the new points
+        are sorted and looked up in them, not all of the tile's points again."""
         if tile.pending == 0:
             return tile.chunks[0] if tile.chunks else np.zeros((0, 3), np.float32)
         base = tile.chunks[0] if tile.points else None
@@ -268,7 +267,7 @@ class StemMap:
                 self._run_tile(ids[k])  # compacts: duplicates leave the count here
             n = tile.points + tile.pending
             tile.chunks, tile.points, tile.pending = [], 0, 0
-            tile.keys = tile.keys[:0]
+            tile.keys = np.zeros(0, np.int64)  # not a view: the keys' memory goes too
             tile.evicted = True  # its stems stay (it ran above if it was dirty)
             self.stats.points -= n
             self.stats.evicted_points += n
