@@ -66,10 +66,11 @@ class HarvesterModel:
         traj = Trajectory.from_config(scn.track, terrain, t0_ns)
         return cls(scn, traj, PoseError(scn.harvester.pose_error, seed, t0_ns))
 
-    def truth(self, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                                np.ndarray, np.ndarray]:
-        """Error-free (position (n, 3), heading deg, pitch deg, roll deg, speed, status)."""
-        st = self.trajectory.vehicle_state(t_ns)
+    def truth(self, t_ns: np.ndarray, *, pointwise: bool = False
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Error-free (position (n, 3), heading deg, pitch deg, roll deg, speed, status);
+        ``pointwise``: each time's values with the bits it has when asked alone."""
+        st = self.trajectory.vehicle_state(t_ns, pointwise=pointwise)
         status = (STATUS_VALID | np.where(st.moving, STATUS_MOVING, 0)
                   | np.where(st.speed < 0, STATUS_REVERSE, 0)
                   | (np.minimum(st.pass_no, 255) << STATUS_PASS_SHIFT))
@@ -87,6 +88,20 @@ class HarvesterModel:
         pos, hd = self.error.apply(pos, hd, t)
         return Pose(float(pos[0, 0]), float(pos[0, 1]), float(pos[0, 2]), float(hd[0]),
                     float(pitch[0]), float(roll[0]), float(speed[0]), t_us, int(status[0]))
+
+    def bus_poses(self, t_ns: list[int]) -> list[Pose]:
+        """:meth:`bus_pose` at each of ``t_ns``, evaluated together (what an offline run
+        feeds per lidar frame: the per-call overhead of the trajectory and the terrain was
+        a few per cent of a cell). Each pose has the bits :meth:`bus_pose` gives it."""
+        if not t_ns:
+            return []
+        t_us = [t // 1000 for t in t_ns]
+        t = np.array(t_us, dtype=np.int64) * 1000
+        pos, hd, pitch, roll, speed, status = self.truth(t, pointwise=True)
+        pos, hd = self.error.apply(pos, hd, t)
+        return [Pose(float(pos[i, 0]), float(pos[i, 1]), float(pos[i, 2]), float(hd[i]),
+                     float(pitch[i]), float(roll[i]), float(speed[i]), us, int(status[i]))
+                for i, us in enumerate(t_us)]
 
     def truth_pose(self, t_us: int) -> Pose:
         """The error-free pose at a bus time stamp (full microseconds)."""

@@ -292,7 +292,10 @@ class Trajectory:
         return self.t0_ns + self.duration_ns
 
     # -- poses ------------------------------------------------------------------------------
-    def vehicle_state(self, t_ns: IntArray | int) -> VehicleState:
+    def vehicle_state(self, t_ns: IntArray | int, *, pointwise: bool = False) -> VehicleState:
+        """The machine's state at each of ``t_ns``. ``pointwise``: the terrain's heights
+        evaluated point by point (:meth:`Terrain.height`), so each state has the same bits as
+        when asked alone."""
         t = np.atleast_1d(np.asarray(t_ns, dtype=np.int64))
         ts = (t - self.t0_ns).astype(np.float64) / 1e9
         j = np.clip(np.searchsorted(self.leg_start_s, ts, side="right") - 1, 0,
@@ -320,14 +323,16 @@ class Trajectory:
             # its front, rear, left and right edges (bumps shorter than it are bridged)
             L, W = self.track.footprint_m
             fx, fy = np.cos(yaw), np.sin(yaw)
-            h = self.terrain.height
+            def h(hx: FloatArray, hy: FloatArray) -> FloatArray:
+                return self.terrain.height(hx, hy, pointwise=pointwise)
+
             front, rear = h(x + fx * L / 2, y + fy * L / 2), h(x - fx * L / 2, y - fy * L / 2)
             left, right = h(x - fy * W / 2, y + fx * W / 2), h(x + fy * W / 2, y - fx * W / 2)
             pitch = np.arctan2(rear - front, L)
             roll = np.arctan2(left - right, W)
             z = (front + rear + left + right) / 4.0
         else:
-            z = self.terrain.height(x, y)
+            z = self.terrain.height(x, y, pointwise=pointwise)
         return VehicleState(np.column_stack([x, y, z]), yaw, pitch, roll, sp * gear,
                             tag, sp > 0)
 

@@ -123,11 +123,14 @@ def drive(run: LidarRun, model: HarvesterModel, sics: list[OfflineSic],
             break
         emu_s += time.perf_counter() - t0
         t_end = int(fr.timestamps_ns.max()) + period_ns
+        times = []
         while next_pose <= t_end:
-            for cob, data in encode_pose(model.bus_pose(next_pose), ncfg.node_id):
-                for s in sics:
-                    s.can_frame(cob, data, next_pose / 1e9)
+            times.append(next_pose)
             next_pose += period_ns
+        for t_pose, pose in zip(times, model.bus_poses(times), strict=True):
+            for cob, data in encode_pose(pose, ncfg.node_id):
+                for s in sics:
+                    s.can_frame(cob, data, t_pose / 1e9)
         payload = [d.payload for d in dgs if d.port == lp]
         arr = np.frombuffer(b"".join(payload), dtype=np.uint8).reshape(len(payload), -1)
         for s in sics:

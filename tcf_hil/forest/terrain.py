@@ -102,8 +102,13 @@ class Terrain:
         gx, gy = self.tilt
         return self.elevation_m + (gx * x + gy * y if (gx or gy) else 0.0)
 
-    def height(self, x: Any, y: Any) -> FloatArray:
-        """Ground height at local (x, y); arrays broadcast, float64 throughout."""
+    def height(self, x: Any, y: Any, *, pointwise: bool = False) -> FloatArray:
+        """Ground height at local (x, y); arrays broadcast, float64 throughout.
+
+        ``pointwise``: each point's waves summed on their own (one dot product a point, as
+        for a point asked alone), so a point's height has the same bits whatever other points
+        come with it; the default sums a chunk of points in one matrix product, whose
+        rounding may differ in the last bit."""
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         shape = np.broadcast_shapes(x.shape, y.shape)
@@ -117,7 +122,10 @@ class Terrain:
         for i in range(0, len(xf), _CHUNK):
             arg = np.multiply.outer(xf[i:i + _CHUNK], kx) + np.multiply.outer(yf[i:i + _CHUNK], ky)
             arg += ph
-            out[i:i + _CHUNK] += np.cos(arg) @ a
+            if pointwise:
+                out[i:i + _CHUNK] += np.matmul(np.cos(arg)[:, None, :], a)[:, 0]
+            else:
+                out[i:i + _CHUNK] += np.cos(arg) @ a
         return out.reshape(shape)
 
     def gradient(self, x: Any, y: Any) -> tuple[FloatArray, FloatArray]:

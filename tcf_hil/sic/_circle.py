@@ -8,10 +8,15 @@ answer instead of a wild one.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
+
+from emulators.jit import jit_enabled, numba_module
+
+# Not registered as a kernel source (emulators.jit.register_kernel_source), for the reason
+# given in _components.py: the kernel here calls nothing of another file.
 
 
 class Circle(NamedTuple):
@@ -92,3 +97,76 @@ def fit_circle(xy: NDArray[np.float64], r_min: float = 0.01, r_max: float = 1.0,
         return None
     arc = _arc_coverage(np.arctan2(p[:, 1] - cy, p[:, 0] - cx))
     return Circle(float(cx + m[0]), float(cy + m[1]), float(r), rms, arc)
+
+
+def slice_centres(xy: Any, order: Any, lo: Any, hi: Any, min_points: int, max_r: float,
+                  rcond: float, out: Any) -> None:
+    """The centre line's slices of one stem in one pass: slice ``s`` holds the points
+    ``xy[order[lo[s]:hi[s]]]`` (its (x, y), ``xy`` (n, 2) float64); ``out[s]`` gets its
+    :func:`fit_circle_algebraic` centre where the fit exists, its radius is at most
+    ``max_r`` and its arc at least 90 degrees, else the points' mean, and NaN where the slice
+    has fewer than ``min_points`` points. ``rcond``: lstsq's, as numpy's ``None`` sets it
+    for (k, 3) (machine epsilon times k): the same solver, the same bits as numpy here."""
+    for s in range(lo.shape[0]):
+        k = hi[s] - lo[s]
+        if k < min_points:
+            out[s, 0] = np.nan
+            out[s, 1] = np.nan
+            continue
+        q = np.empty((k, 2))
+        for i in range(k):
+            q[i, 0] = xy[order[lo[s] + i], 0]
+            q[i, 1] = xy[order[lo[s] + i], 1]
+        mx = 0.0
+        my = 0.0
+        for i in range(k):
+            mx += q[i, 0]
+            my += q[i, 1]
+        mx /= k
+        my /= k
+        a = np.empty((k, 3))
+        b = np.empty(k)
+        for i in range(k):
+            px = q[i, 0] - mx
+            py = q[i, 1] - my
+            a[i, 0] = px
+            a[i, 1] = py
+            a[i, 2] = 1.0
+            b[i] = -(px * px + py * py)
+        ok = False
+        cx = cy = 0.0
+        rank = 0
+        if k >= 3:
+            sol, _, rank, _ = np.linalg.lstsq(a, b, rcond=rcond * k)  # type: ignore[assignment]
+            cx = -sol[0] / 2.0
+            cy = -sol[1] / 2.0
+        if rank >= 3:
+            r2 = cx * cx + cy * cy - sol[2]
+            if r2 > 0 and math.sqrt(r2) <= max_r:
+                ang = np.empty(k)
+                for i in range(k):
+                    ang[i] = np.mod(np.arctan2(a[i, 1] - cy, a[i, 0] - cx), 2.0 * math.pi)
+                ang.sort()
+                gap = ang[0] + 2.0 * math.pi - ang[k - 1]
+                for i in range(1, k):
+                    gap = max(gap, ang[i] - ang[i - 1])
+                ok = math.degrees(2.0 * math.pi - gap) >= 90.0
+        if ok:
+            out[s, 0] = cx + mx
+            out[s, 1] = cy + my
+        else:
+            out[s, 0] = mx
+            out[s, 1] = my
+
+
+_KERNELS: list[Any] = []
+
+
+def slice_centres_kernel() -> Any:
+    """:func:`slice_centres` compiled, or None where compiled kernels are off (the caller
+    fits slice by slice in numpy)."""
+    if not jit_enabled():
+        return None
+    if not _KERNELS:
+        _KERNELS.append(numba_module().njit(cache=True, nogil=True)(slice_centres))
+    return _KERNELS[0]

@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from protocols.stems import QUALITY_BY_CLASS
-from tcf_hil.sic._circle import fit_circle, fit_circle_algebraic
+from tcf_hil.sic._circle import fit_circle, fit_circle_algebraic, slice_centres_kernel
 from tcf_hil.sic._components import radius_components
 from tcf_hil.sic._params import PRESETS, StemParams, stem_params
 
@@ -166,6 +166,39 @@ def centre_line_curve(zs: FloatArray, cs: FloatArray, base: FloatArray | None = 
     return float(dev.max())
 
 
+def _centre_line(p: FloatArray, rel: FloatArray, ground_z: float, lo: float, hi: float,
+                 prm: StemParams) -> tuple[list[float], list[tuple[float, float]]]:
+    """Heights and centres of the slices every ``slice_step_m`` from ``lo`` to ``hi`` above
+    the ground that hold ``min_slice_points``: the algebraic circle fit's centre where it
+    is a stem's (radius at most ``max_dbh_m``, arc at least 90 degrees), else the mean."""
+    half = prm.slice_thickness_m / 2.0
+    order = np.argsort(rel)
+    rs = rel[order]
+    zc = np.arange(lo, hi + 1e-9, prm.slice_step_m)
+    a, b = np.searchsorted(rs, zc - half), np.searchsorted(rs, zc + half)
+    kernel = slice_centres_kernel()
+    if kernel is not None:  # all slices in one compiled pass, the same numbers
+        out = np.empty((len(zc), 2))
+        kernel(np.ascontiguousarray(p[:, :2]), order, a, b, prm.min_slice_points,
+               prm.max_dbh_m, float(np.finfo(np.float64).eps), out)
+        kept = np.flatnonzero(~np.isnan(out[:, 0]))
+        return ([zc[s] + ground_z for s in kept],
+                [(float(out[s, 0]), float(out[s, 1])) for s in kept])
+    zs: list[float] = []
+    cs: list[tuple[float, float]] = []
+    for s in range(len(zc)):
+        if b[s] - a[s] < prm.min_slice_points:
+            continue
+        q = p[order[a[s]:b[s]], :2]
+        fit = fit_circle_algebraic(q)
+        if fit is not None and fit.r <= prm.max_dbh_m and fit.arc_deg >= 90.0:
+            cs.append((fit.cx, fit.cy))
+        else:
+            cs.append(tuple(q.mean(axis=0)))
+        zs.append(zc[s] + ground_z)
+    return zs, cs
+
+
 def _tree_properties(p: FloatArray, ground_z: float, prm: StemParams) -> dict[str, float]:
     zmax, zmin = float(p[:, 2].max()), float(p[:, 2].min())
     out = {"x": float(p[:, 0].mean()), "y": float(p[:, 1].mean()), "ground": ground_z,
@@ -184,21 +217,7 @@ def _tree_properties(p: FloatArray, ground_z: float, prm: StemParams) -> dict[st
     # Centre line from slices every slice_step, from 0.5 m above ground to the top.
     lo = max(0.5, float(rel.min()) + half)
     hi = float(rel.max()) - half
-    zs, cs = [], []
-    if hi > lo:
-        order = np.argsort(rel)
-        rs = rel[order]
-        for zc in np.arange(lo, hi + 1e-9, prm.slice_step_m):
-            a, b = np.searchsorted(rs, [zc - half, zc + half])
-            if b - a < prm.min_slice_points:
-                continue
-            q = p[order[a:b], :2]
-            fit = fit_circle_algebraic(q)
-            if fit is not None and fit.r <= prm.max_dbh_m and fit.arc_deg >= 90.0:
-                cs.append((fit.cx, fit.cy))
-            else:
-                cs.append(tuple(q.mean(axis=0)))
-            zs.append(zc + ground_z)
+    zs, cs = _centre_line(p, rel, ground_z, lo, hi, prm) if hi > lo else ([], [])
     base = top = None
     if zs:
         # Ends of the centre line: the lowest slice's centre carried down to the ground and

@@ -202,3 +202,40 @@ def test_bad_parameters_are_refused() -> None:
         stem_params("tuned", cluster_radius_m=0.0)
     with pytest.raises(ValueError, match="unknown SIC preset"):
         stem_params("fast")
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), bow=st.floats(0.0, 0.6), arc=st.floats(5.0, 360.0),
+       noise=st.floats(0.0, 0.05), height=st.floats(1.5, 25.0))
+def test_the_compiled_centre_line_is_the_numpy_one(seed: int, bow: float, arc: float,
+                                                   noise: float, height: float) -> None:
+    """Every slice's fit, fallback to the mean and skip, compiled or slice by slice in numpy:
+    the same numbers (the same LAPACK solver; partial arcs, a bow, straight walls, repeats)."""
+    import tcf_hil.sic._stems as stems
+    from tcf_hil.sic._circle import slice_centres_kernel
+
+    if slice_centres_kernel() is None:
+        pytest.skip("compiled kernels are off (TCF_HIL_NO_JIT or no numba)")
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(20, 3000))
+    z = rng.uniform(0.0, height, n)
+    ang = rng.uniform(0.0, math.radians(arc), n)
+    r = 0.02 + 0.3 * (1.0 - z / 30.0)
+    pts = np.column_stack([50 + bow * np.sin(z / height * math.pi) + r * np.cos(ang),
+                           20 + r * np.sin(ang), z])
+    pts[:, :2] += rng.normal(0.0, noise + 1e-9, (n, 2))
+    if seed % 3 == 0:  # a straight wall (collinear) and repeated points
+        pts[: n // 2, 1] = 20.0
+        pts[n // 2: n // 2 + 20] = pts[n // 2]
+    prm = stem_params("tuned", min_slice_points=int(rng.integers(1, 8)))
+    rel = pts[:, 2] - 0.0
+    args = (pts, rel, 0.0, 0.5, float(rel.max()) - 0.15, prm)
+    compiled = stems._centre_line(*args)
+    try:
+        stems.slice_centres_kernel = lambda: None  # type: ignore[assignment]
+        numpy_path = stems._centre_line(*args)
+    finally:
+        stems.slice_centres_kernel = slice_centres_kernel
+    assert np.asarray(compiled[0]).tobytes() == np.asarray(numpy_path[0]).tobytes()
+    assert (np.asarray(compiled[1], np.float64).tobytes()
+            == np.asarray(numpy_path[1], np.float64).tobytes())

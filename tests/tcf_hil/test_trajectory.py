@@ -8,6 +8,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hs
 
 from tcf_hil.errors import ConfigError
 from tcf_hil.forest import Terrain
@@ -192,3 +194,36 @@ def test_pose_error_is_deterministic_and_has_its_statistics() -> None:
 def test_trajectory_matches_the_config_it_was_built_from() -> None:
     cfg = dataclasses.replace(TrackConfig(), speed_m_s=4.0)
     assert Trajectory.from_config(cfg, FLAT).duration_ns == 25 * 10**9
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=hs.integers(0, 2**32 - 1), n=hs.integers(1, 40))
+def test_a_pointwise_height_has_the_bits_of_the_point_asked_alone(seed: int, n: int) -> None:
+    rng = np.random.default_rng(seed)
+    k = rng.uniform(-0.5, 0.5, (int(rng.integers(1, 60)), 2))
+    waves = np.column_stack([k, rng.uniform(0.0, 0.5, len(k)), rng.uniform(0, 2 * math.pi,
+                                                                           len(k))])
+    terrain = Terrain(float(rng.uniform(-5, 5)), waves, tilt=(0.01, -0.02))
+    x, y = rng.uniform(-200, 200, n), rng.uniform(-200, 200, n)
+    alone = np.array([terrain.height(x[i:i + 1], y[i:i + 1])[0] for i in range(n)])
+    assert terrain.height(x, y, pointwise=True).tobytes() == alone.tobytes()
+    np.testing.assert_allclose(terrain.height(x, y), alone, rtol=0, atol=1e-12)
+
+
+def test_bus_poses_together_are_the_bus_poses_one_by_one() -> None:
+    """An offline run evaluates a frame's poses together; the TPDOs must be the node's."""
+    from tcf_hil.forest import generate_forest
+    from tcf_hil.harvester import HarvesterModel
+    from tcf_hil.scenario import load_scenario
+
+    scn = load_scenario("forest-iv-natural")
+    scn = dataclasses.replace(scn, harvester=dataclasses.replace(
+        scn.harvester, pose_error=PoseErrorConfig(position_sd_m=0.05, heading_sd_deg=0.5,
+                                                  drift_m_per_s=0.01)))
+    forest = generate_forest(scn)
+    assert not forest.terrain.is_flat
+    model = HarvesterModel.from_scenario(scn, forest.terrain, forest.seed)
+    t = [T0 - 10**9 + k * 10_000_000 + 777 for k in range(0, 5200, 3)]
+    together = [p for a in range(0, len(t), 11) for p in model.bus_poses(t[a:a + 11])]
+    assert together == [model.bus_pose(x) for x in t]
+    assert model.bus_poses([]) == []
