@@ -159,6 +159,85 @@ def slice_centres(xy: Any, order: Any, lo: Any, hi: Any, min_points: int, max_r:
             out[s, 1] = my
 
 
+def robust_circle(xy: Any, r_min: float, r_max: float, iterations: int, huber_m: float,
+                  eps: float, out: Any) -> None:
+    """:func:`fit_circle`'s centre and radius in one compiled pass, the same numbers (the
+    same LAPACK and BLAS calls in the same order): ``out`` = (cx, cy, r, 1) or (.., 0) where
+    :func:`fit_circle` gives None. ``eps``: machine epsilon (lstsq's ``rcond`` as numpy's
+    ``None`` sets it). A singular step raises numpy's LinAlgError (the caller then fits in
+    numpy, which stops its iterations there)."""
+    k = xy.shape[0]
+    out[3] = 0.0
+    if k < 3:
+        return
+    mx = 0.0
+    my = 0.0
+    for i in range(k):
+        mx += xy[i, 0]
+        my += xy[i, 1]
+    mx /= k
+    my /= k
+    p = np.empty((k, 2))
+    a = np.empty((k, 3))
+    b = np.empty(k)
+    for i in range(k):
+        px = xy[i, 0] - mx
+        py = xy[i, 1] - my
+        p[i, 0] = px
+        p[i, 1] = py
+        a[i, 0] = px
+        a[i, 1] = py
+        a[i, 2] = 1.0
+        b[i] = -(px * px + py * py)
+    sol, _, rank, _ = np.linalg.lstsq(a, b, rcond=eps * k)
+    if rank < 3:
+        return
+    acx = -sol[0] / 2.0
+    acy = -sol[1] / 2.0
+    r2 = acx * acx + acy * acy - sol[2]
+    if not r2 > 0:
+        return
+    cx = (acx + mx) - mx
+    cy = (acy + my) - my
+    r = min(max(math.sqrt(r2), r_min), r_max)
+    if math.hypot(cx, cy) > 10.0 * r_max:
+        cx, cy = 0.0, 0.0
+    lam = 1e-3
+    J = np.empty((k, 3))
+    JW = np.empty((k, 3))
+    res = np.empty(k)
+    M = np.empty((3, 3))
+    for _ in range(iterations):
+        for i in range(k):
+            dx = p[i, 0] - cx
+            dy = p[i, 1] - cy
+            d = max(math.hypot(dx, dy), 1e-12)
+            rs = d - r
+            aa = abs(rs)
+            w = 1.0 if aa <= huber_m else huber_m / max(aa, 1e-12)
+            res[i] = rs
+            J[i, 0] = -dx / d
+            J[i, 1] = -dy / d
+            J[i, 2] = -1.0
+            JW[i, 0] = J[i, 0] * w
+            JW[i, 1] = J[i, 1] * w
+            JW[i, 2] = J[i, 2] * w
+        H = JW.T @ J
+        g = JW.T @ res
+        for u in range(3):
+            for v in range(3):
+                M[u, v] = H[u, v] + (lam * (H[u, u] + 1e-12) if u == v else lam * 0.0)
+        step = np.linalg.solve(M, -g)
+        cx, cy = cx + step[0], cy + step[1]
+        r = min(max(r + step[2], r_min), r_max)
+        if max(abs(step[0]), abs(step[1]), abs(step[2])) < 1e-7:
+            break
+    out[0] = cx + mx
+    out[1] = cy + my
+    out[2] = r
+    out[3] = 1.0 if (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(r)) else 0.0
+
+
 _KERNELS: list[Any] = []
 
 
@@ -168,5 +247,23 @@ def slice_centres_kernel() -> Any:
     if not jit_enabled():
         return None
     if not _KERNELS:
-        _KERNELS.append(numba_module().njit(cache=True, nogil=True)(slice_centres))
+        njit = numba_module().njit
+        _KERNELS.append(njit(cache=True, nogil=True)(slice_centres))
+        _KERNELS.append(njit(cache=True, nogil=True)(robust_circle))
     return _KERNELS[0]
+
+
+def fit_circle_centre(xy: NDArray[np.float64], r_max: float) -> tuple[float, float, float] | None:
+    """(cx, cy, r) of :func:`fit_circle` (default bounds but ``r_max``), compiled where
+    kernels are on."""
+    if slice_centres_kernel() is None:
+        c = fit_circle(xy, r_max=r_max)
+        return None if c is None else (c.cx, c.cy, c.r)
+    out = np.zeros(4)
+    try:
+        _KERNELS[1](np.ascontiguousarray(xy, np.float64), 0.01, r_max, 15, 0.01,
+                    float(np.finfo(np.float64).eps), out)
+    except np.linalg.LinAlgError:  # numpy's fit stops at a singular step; so does this
+        c = fit_circle(xy, r_max=r_max)
+        return None if c is None else (c.cx, c.cy, c.r)
+    return (float(out[0]), float(out[1]), float(out[2])) if out[3] else None

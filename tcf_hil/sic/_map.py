@@ -71,13 +71,16 @@ class GroundGrid:
         z[self.i0 - lo_i:self.i0 - lo_i + ni, self.j0 - lo_j:self.j0 - lo_j + nj] = self.z
         self.z, self.i0, self.j0 = z, lo_i, lo_j
 
-    def add(self, pts: FloatArray) -> None:
-        if len(pts) == 0:
-            return
+    def add(self, pts: FloatArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Take the points' z into their cells' minima; returns their cells (i, j), which
+        :meth:`height` can be given for the same points."""
         i, j = self._ij(pts[:, :2])
+        if len(pts) == 0:
+            return i, j
         self._grow(i, j)
         np.minimum.at(self.z, (i - self.i0, j - self.j0), pts[:, 2])
         self._grad = None
+        return i, j
 
     def _gradient(self) -> tuple[FloatArray, FloatArray]:
         if self._grad is None:
@@ -94,12 +97,14 @@ class GroundGrid:
             self._grad = (g[0], g[1])
         return self._grad
 
-    def height(self, xy: FloatArray) -> FloatArray:
+    def height(self, xy: FloatArray,
+               ij: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None) -> FloatArray:
         """Ground height under each point: its cell's minimum, or with ``slope`` the cell's
-        plane (inf where the cell is unseen)."""
+        plane (inf where the cell is unseen). ``ij``: the points' cells, as :meth:`add`
+        returned them for the same points."""
         if len(xy) == 0:
             return np.zeros(0)
-        i, j = self._ij(xy)
+        i, j = self._ij(xy) if ij is None else ij
         ni, nj = self.z.shape
         a, b = i - self.i0, j - self.j0
         ok = (a >= 0) & (a < ni) & (b >= 0) & (b < nj)
@@ -179,8 +184,7 @@ class StemMap:
             self._last_xy = np.asarray(sensor_xy, dtype=np.float64)
         if len(pts) == 0:
             return 0
-        self.ground.add(pts)
-        gz = self.ground.height(pts[:, :2])
+        gz = self.ground.height(pts[:, :2], self.ground.add(pts))
         keep = pts[pts[:, 2] > gz + self.params.ground_threshold_m]
         if len(keep) == 0:
             return 0

@@ -504,7 +504,12 @@ class OnboardSic:
         om, dm = rays
         r = range_mm.astype(np.float64) * 1e-3
         hit = r > 0
-        m = [om[c][:, cols] + r * dm[c][:, cols] for c in range(3)]  # machine frame (H, k)
+        k = len(cols)
+        at: NDArray[np.int64] | slice = cols
+        if k and int(cols[0]) >= 0 and int(cols[-1]) - int(cols[0]) == k - 1 and (
+                k == 1 or bool((np.diff(cols) == 1).all())):
+            at = slice(int(cols[0]), int(cols[0]) + k)  # as a rule, a whole frame: views
+        m = [om[c][:, at] + r * dm[c][:, at] for c in range(3)]  # machine frame (H, k)
         out = np.empty((int(hit.sum()), 3))
         for i in range(3):
             w = rot[:, i, 0] * m[0] + rot[:, i, 1] * m[1] + rot[:, i, 2] * m[2] + pos[:, i]

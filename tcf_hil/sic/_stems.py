@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from protocols.stems import QUALITY_BY_CLASS
-from tcf_hil.sic._circle import fit_circle, fit_circle_algebraic, slice_centres_kernel
+from tcf_hil.sic._circle import fit_circle_algebraic, fit_circle_centre, slice_centres_kernel
 from tcf_hil.sic._components import radius_components
 from tcf_hil.sic._params import PRESETS, StemParams, stem_params
 
@@ -208,11 +208,11 @@ def _tree_properties(p: FloatArray, ground_z: float, prm: StemParams) -> dict[st
     sl = p[np.abs(rel - BREAST_HEIGHT_M) <= half]
     dbh = math.nan
     if len(sl) >= prm.min_slice_points:
-        c = fit_circle(sl[:, :2], r_max=prm.max_dbh_m / 2.0)
+        c = fit_circle_centre(sl[:, :2], prm.max_dbh_m / 2.0)
         if c is not None:
-            dbh = 2.0 * c.r
+            dbh = 2.0 * c[2]
             if prm.centre == "breast_height":
-                out["x"], out["y"] = c.cx, c.cy
+                out["x"], out["y"] = c[0], c[1]
     out["dbh"] = dbh
     # Centre line from slices every slice_step, from 0.5 m above ground to the top.
     lo = max(0.5, float(rel.min()) + half)

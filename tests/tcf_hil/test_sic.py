@@ -239,3 +239,23 @@ def test_the_compiled_centre_line_is_the_numpy_one(seed: int, bow: float, arc: f
     assert np.asarray(compiled[0]).tobytes() == np.asarray(numpy_path[0]).tobytes()
     assert (np.asarray(compiled[1], np.float64).tobytes()
             == np.asarray(numpy_path[1], np.float64).tobytes())
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), arc=st.floats(2.0, 360.0), noise=st.floats(0.0, 0.05),
+       n=st.integers(1, 400), repeats=st.booleans())
+def test_the_compiled_dbh_fit_is_fit_circle(seed: int, arc: float, noise: float, n: int,
+                                            repeats: bool) -> None:
+    """The breast-height fit compiled gives fit_circle's centre and radius to the bit, and
+    None where it does (short arcs, repeated points, fewer than three points)."""
+    from tcf_hil.sic._circle import fit_circle_centre, slice_centres_kernel
+
+    if slice_centres_kernel() is None:
+        pytest.skip("compiled kernels are off (TCF_HIL_NO_JIT or no numba)")
+    rng = np.random.default_rng(seed)
+    xy = _arc(float(rng.uniform(-80, 80)), float(rng.uniform(-80, 80)),
+              float(rng.uniform(0.02, 0.6)), arc, n, noise, int(seed))
+    if repeats:
+        xy[: n // 2] = xy[0]
+    c = fit_circle(xy, r_max=0.75)
+    assert fit_circle_centre(xy, 0.75) == (None if c is None else (c.cx, c.cy, c.r))
