@@ -99,17 +99,44 @@ def fit_circle(xy: NDArray[np.float64], r_min: float = 0.01, r_max: float = 1.0,
     return Circle(float(cx + m[0]), float(cy + m[1]), float(r), rms, arc)
 
 
+def kasa(q: Any, eps: float) -> tuple[float, float, Any, Any, int]:
+    """The Kåsa system of ``q`` (k, 2) solved as :func:`fit_circle_algebraic` solves it:
+    (mean x, mean y, A (k, 3) with the centred points in its first two columns, the lstsq
+    solution, its rank; rank 0 with fewer than 3 points). ``eps``: machine epsilon (lstsq's
+    ``rcond`` is eps * k, as numpy's ``None`` sets it): the same solver, the same bits."""
+    k = q.shape[0]
+    mx = 0.0
+    my = 0.0
+    for i in range(k):
+        mx += q[i, 0]
+        my += q[i, 1]
+    mx /= k
+    my /= k
+    a = np.empty((k, 3))
+    b = np.empty(k)
+    for i in range(k):
+        px = q[i, 0] - mx
+        py = q[i, 1] - my
+        a[i, 0] = px
+        a[i, 1] = py
+        a[i, 2] = 1.0
+        b[i] = -(px * px + py * py)
+    if k < 3:
+        return mx, my, a, np.zeros(3), 0
+    sol, _, rank, _ = np.linalg.lstsq(a, b, rcond=eps * k)
+    return mx, my, a, sol, int(rank)
+
+
 def slice_centres(xy: Any, order: Any, lo: Any, hi: Any, min_points: int, max_r: float,
                   rcond: float, out: Any) -> None:
     """The centre line's slices of one stem in one pass: slice ``s`` holds the points
     ``xy[order[lo[s]:hi[s]]]`` (its (x, y), ``xy`` (n, 2) float64); ``out[s]`` gets its
     :func:`fit_circle_algebraic` centre where the fit exists, its radius is at most
     ``max_r`` and its arc at least 90 degrees, else the points' mean, and NaN where the slice
-    has fewer than ``min_points`` points. ``rcond``: lstsq's, as numpy's ``None`` sets it
-    for (k, 3) (machine epsilon times k): the same solver, the same bits as numpy here."""
+    has fewer than ``min_points`` points. ``rcond``: machine epsilon (see :func:`kasa`)."""
     for s in range(lo.shape[0]):
         k = hi[s] - lo[s]
-        if k < min_points:
+        if k < min_points or k == 0:
             out[s, 0] = np.nan
             out[s, 1] = np.nan
             continue
@@ -117,29 +144,10 @@ def slice_centres(xy: Any, order: Any, lo: Any, hi: Any, min_points: int, max_r:
         for i in range(k):
             q[i, 0] = xy[order[lo[s] + i], 0]
             q[i, 1] = xy[order[lo[s] + i], 1]
-        mx = 0.0
-        my = 0.0
-        for i in range(k):
-            mx += q[i, 0]
-            my += q[i, 1]
-        mx /= k
-        my /= k
-        a = np.empty((k, 3))
-        b = np.empty(k)
-        for i in range(k):
-            px = q[i, 0] - mx
-            py = q[i, 1] - my
-            a[i, 0] = px
-            a[i, 1] = py
-            a[i, 2] = 1.0
-            b[i] = -(px * px + py * py)
+        mx, my, a, sol, rank = kasa(q, rcond)
         ok = False
-        cx = cy = 0.0
-        rank = 0
-        if k >= 3:
-            sol, _, rank, _ = np.linalg.lstsq(a, b, rcond=rcond * k)  # type: ignore[assignment]
-            cx = -sol[0] / 2.0
-            cy = -sol[1] / 2.0
+        cx = -sol[0] / 2.0
+        cy = -sol[1] / 2.0
         if rank >= 3:
             r2 = cx * cx + cy * cy - sol[2]
             if r2 > 0 and math.sqrt(r2) <= max_r:
@@ -170,26 +178,7 @@ def robust_circle(xy: Any, r_min: float, r_max: float, iterations: int, huber_m:
     out[3] = 0.0
     if k < 3:
         return
-    mx = 0.0
-    my = 0.0
-    for i in range(k):
-        mx += xy[i, 0]
-        my += xy[i, 1]
-    mx /= k
-    my /= k
-    p = np.empty((k, 2))
-    a = np.empty((k, 3))
-    b = np.empty(k)
-    for i in range(k):
-        px = xy[i, 0] - mx
-        py = xy[i, 1] - my
-        p[i, 0] = px
-        p[i, 1] = py
-        a[i, 0] = px
-        a[i, 1] = py
-        a[i, 2] = 1.0
-        b[i] = -(px * px + py * py)
-    sol, _, rank, _ = np.linalg.lstsq(a, b, rcond=eps * k)
+    mx, my, p, sol, rank = kasa(xy, eps)  # p: the centred points in its first two columns
     if rank < 3:
         return
     acx = -sol[0] / 2.0
@@ -247,7 +236,9 @@ def slice_centres_kernel() -> Any:
     if not jit_enabled():
         return None
     if not _KERNELS:
+        global kasa
         njit = numba_module().njit
+        kasa = njit(cache=True, nogil=True, inline="always")(kasa)
         _KERNELS.append(njit(cache=True, nogil=True)(slice_centres))
         _KERNELS.append(njit(cache=True, nogil=True)(robust_circle))
     return _KERNELS[0]
