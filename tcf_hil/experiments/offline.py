@@ -65,6 +65,9 @@ class OfflineSic:
                  ) -> None:
         import canopen  # the SIC's own decoder of the TPDOs
 
+        from tcf_hil.sic._circle import use_compiled_fits
+
+        use_compiled_fits()  # nothing is paced here: a cold compile costs no frames
         self.meta = meta
         self.cfg = SicConfig(preset=preset, node_id=ncfg.node_id, voxel_m=voxel_m)
         self.sic = OnboardSic(self.cfg)

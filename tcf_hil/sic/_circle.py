@@ -8,6 +8,7 @@ answer instead of a wild one.
 from __future__ import annotations
 
 import math
+import threading
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -227,20 +228,49 @@ def robust_circle(xy: Any, r_min: float, r_max: float, iterations: int, huber_m:
     out[3] = 1.0 if (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(r)) else 0.0
 
 
-_KERNELS: list[Any] = []
+_KERNELS: list[Any] = []  # slice_centres and robust_circle compiled, both once built
+_build_lock = threading.Lock()
+_wanted = False  # see use_compiled_fits
+
+
+def _build() -> None:
+    """Compile both kernels (or load them from numba's cache) and run each once on the
+    argument types their callers pass, so that the first real call finds them ready."""
+    global kasa
+    with _build_lock:
+        if _KERNELS:
+            return
+        njit = numba_module().njit
+        if not hasattr(kasa, "py_func"):  # not yet numba's
+            kasa = njit(cache=True, nogil=True, inline="always")(kasa)
+        sc = njit(cache=True, nogil=True)(slice_centres)
+        rc = njit(cache=True, nogil=True)(robust_circle)
+        eps = float(np.finfo(np.float64).eps)
+        xy = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+        idx = np.arange(4, dtype=np.intp)  # argsort's and searchsorted's integers
+        sc(xy, idx, idx[:1], idx[3:], 3, 1.5, eps, np.empty((1, 2)))
+        rc(xy, 0.01, 0.75, 15, 0.01, eps, np.zeros(4))
+        _KERNELS.extend((sc, rc))
+
+
+def use_compiled_fits(on: bool = True) -> None:
+    """Let the stem algorithm's fits run compiled in this process: offline cells and
+    experiments. A live SIC keeps them in numpy (the same numbers): a cold compile takes
+    about 10 s, and a first tile run stalled that long loses the frames the sensor sends
+    meanwhile (320 frames of 500 at --speed 2, measured), where a warm cache loads in
+    a fraction of a second."""
+    global _wanted
+    _wanted = on
 
 
 def slice_centres_kernel() -> Any:
-    """:func:`slice_centres` compiled, or None where compiled kernels are off (the caller
-    fits slice by slice in numpy)."""
-    if not jit_enabled():
+    """:func:`slice_centres` compiled, or None where compiled fits are not wanted here
+    (:func:`use_compiled_fits`) or kernels are off (the caller fits slice by slice in
+    numpy)."""
+    if not (_wanted and jit_enabled()):
         return None
     if not _KERNELS:
-        global kasa
-        njit = numba_module().njit
-        kasa = njit(cache=True, nogil=True, inline="always")(kasa)
-        _KERNELS.append(njit(cache=True, nogil=True)(slice_centres))
-        _KERNELS.append(njit(cache=True, nogil=True)(robust_circle))
+        _build()
     return _KERNELS[0]
 
 

@@ -212,8 +212,9 @@ def test_the_compiled_centre_line_is_the_numpy_one(seed: int, bow: float, arc: f
     """Every slice's fit, fallback to the mean and skip, compiled or slice by slice in numpy:
     the same numbers (the same LAPACK solver; partial arcs, a bow, straight walls, repeats)."""
     import tcf_hil.sic._stems as stems
-    from tcf_hil.sic._circle import slice_centres_kernel
+    from tcf_hil.sic._circle import slice_centres_kernel, use_compiled_fits
 
+    use_compiled_fits()
     if slice_centres_kernel() is None:
         pytest.skip("compiled kernels are off (TCF_HIL_NO_JIT or no numba)")
     rng = np.random.default_rng(seed)
@@ -248,8 +249,9 @@ def test_the_compiled_dbh_fit_is_fit_circle(seed: int, arc: float, noise: float,
                                             repeats: bool) -> None:
     """The breast-height fit compiled gives fit_circle's centre and radius to the bit, and
     None where it does (short arcs, repeated points, fewer than three points)."""
-    from tcf_hil.sic._circle import fit_circle_centre, slice_centres_kernel
+    from tcf_hil.sic._circle import fit_circle_centre, slice_centres_kernel, use_compiled_fits
 
+    use_compiled_fits()
     if slice_centres_kernel() is None:
         pytest.skip("compiled kernels are off (TCF_HIL_NO_JIT or no numba)")
     rng = np.random.default_rng(seed)
