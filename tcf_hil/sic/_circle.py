@@ -234,8 +234,8 @@ _wanted = False  # see use_compiled_fits
 
 
 def _build() -> None:
-    """Compile both kernels (or load them from numba's cache) and run each once on the
-    argument types their callers pass, so that the first real call finds them ready."""
+    """Declare both kernels (numba compiles them, or loads them from its cache, at their
+    first call); once, whichever thread asks first."""
     global kasa
     with _build_lock:
         if _KERNELS:
@@ -243,14 +243,8 @@ def _build() -> None:
         njit = numba_module().njit
         if not hasattr(kasa, "py_func"):  # not yet numba's
             kasa = njit(cache=True, nogil=True, inline="always")(kasa)
-        sc = njit(cache=True, nogil=True)(slice_centres)
-        rc = njit(cache=True, nogil=True)(robust_circle)
-        eps = float(np.finfo(np.float64).eps)
-        xy = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
-        idx = np.arange(4, dtype=np.intp)  # argsort's and searchsorted's integers
-        sc(xy, idx, idx[:1], idx[3:], 3, 1.5, eps, np.empty((1, 2)))
-        rc(xy, 0.01, 0.75, 15, 0.01, eps, np.zeros(4))
-        _KERNELS.extend((sc, rc))
+        _KERNELS.extend((njit(cache=True, nogil=True)(slice_centres),
+                         njit(cache=True, nogil=True)(robust_circle)))
 
 
 def use_compiled_fits(on: bool = True) -> None:
