@@ -65,7 +65,7 @@ class OfflineSic:
                  ) -> None:
         import canopen  # the SIC's own decoder of the TPDOs
 
-        from tcf_hil.sic._circle import use_compiled_fits
+        from tcf_hil.sic import use_compiled_fits
 
         use_compiled_fits()  # nothing is paced here: a cold compile costs no frames
         self.meta = meta

@@ -14,13 +14,14 @@ from typing import TYPE_CHECKING, Any
 from tcf_hil.sic._params import PRESETS, StemParams, stem_params
 
 if TYPE_CHECKING:
-    from tcf_hil.sic._circle import Circle, fit_circle, fit_circle_algebraic
+    from tcf_hil.sic._circle import Circle, fit_circle, fit_circle_algebraic, use_compiled_fits
     from tcf_hil.sic._cli import sic_command
     from tcf_hil.sic._map import StemMap
     from tcf_hil.sic._online import CanPose, LidarStats, OnboardSic, PoseTrack, SicConfig
     from tcf_hil.sic._stems import cluster_points, identify_stems, remove_ground
 
 _LAZY = {"Circle": "_circle", "fit_circle": "_circle", "fit_circle_algebraic": "_circle",
+         "use_compiled_fits": "_circle",
          "cluster_points": "_stems", "identify_stems": "_stems", "remove_ground": "_stems",
          "StemMap": "_map", "CanPose": "_online", "LidarStats": "_online",
          "OnboardSic": "_online", "PoseTrack": "_online", "SicConfig": "_online",
@@ -43,6 +44,7 @@ __all__ = [
     "remove_ground",
     "sic_command",
     "stem_params",
+    "use_compiled_fits",
 ]
 
 
