@@ -5,6 +5,7 @@ loss, late poses, bus-off with recovery, NMT reset by a second master."""
 from __future__ import annotations
 
 import collections
+import statistics
 import itertools
 import time
 from collections.abc import Iterator
@@ -169,12 +170,14 @@ def test_poses_leave_late_by_the_delay_asked(bus_name: str, monitor: can.BusABC)
     sync_t = [m.timestamp for m in msgs if m.arbitration_id == 0x80]
     tpdo_t = [m.timestamp for m in msgs if m.arbitration_id == 0x38A]
     assert len(tpdo_t) > 40
-    # each TPDO3 leaves 50 ms after a SYNC (5 SYNC periods later), not right after its own
-    lag = [min(t - s for s in sync_t if s <= t + 1e-4) for t in tpdo_t]
-    # still right after a SYNC on the bus (a busy CI machine may stall one send a period)...
-    assert sorted(lag)[int(0.9 * len(lag))] < 0.012
-    first_sync, first_tpdo = sync_t[0], tpdo_t[0]
-    assert 0.045 < first_tpdo - first_sync < 0.08  # ...but of one 50 ms earlier
+    # each TPDO3 leaves 50 ms after its own SYNC, not right after it. Batches are delayed in
+    # order and none is lost, so the k-th TPDO3 carries the k-th SYNC's pose: pair them by
+    # index. A stalled host can only make a frame later, never earlier, so the floor is exact;
+    # the median stays near 50 ms even when a stall holds back a few batches.
+    lag = [t - s for s, t in zip(sync_t, tpdo_t)]
+    assert min(lag) > 0.049
+    assert statistics.median(lag) < 0.09
+    assert len(sync_t) - len(tpdo_t) <= 7  # only the batches still held at the stop are missing
 
 
 def test_bus_off_is_silent_then_recovers_with_emcy(bus_name: str, monitor: can.BusABC) -> None:
