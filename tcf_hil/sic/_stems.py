@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 from protocols.stems import QUALITY_BY_CLASS
 from tcf_hil.sic._circle import fit_circle_algebraic, fit_circle_centre, slice_centres_kernel
 from tcf_hil.sic._components import radius_components
+from tcf_hil.sic._fast import column_max, column_min, finite_rows, stable_argsort, unique_first
 from tcf_hil.sic._params import PRESETS, StemParams, stem_params
 
 __all__ = ["BREAST_HEIGHT_M", "PRESETS", "StemParams", "centre_line_curve", "cluster_points",
@@ -43,7 +44,7 @@ def remove_ground(points: FloatArray, cell_m: float = 1.0, threshold_m: float = 
     """
     if len(points) == 0:
         return np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0)
-    ij = np.floor((points[:, :2] - points[:, :2].min(axis=0)) / cell_m).astype(np.int64)
+    ij = np.floor((points[:, :2] - column_min(points[:, :2])) / cell_m).astype(np.int64)
     key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
     uniq, cell = np.unique(key, return_inverse=True)
     zmin = np.full(len(uniq), np.inf)
@@ -72,10 +73,10 @@ def cluster_points(points: FloatArray, radius_m: float,
         return np.zeros(0, np.int64)
     if voxel_m > 0:
         v = np.floor(points / voxel_m).astype(np.int64)
-        v -= v.min(axis=0)
-        span = v.max(axis=0) + 1
+        v -= column_min(v)
+        span = column_max(v) + 1
         key = (v[:, 0] * span[1] + v[:, 1]) * span[2] + v[:, 2]
-        _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+        _, first, inverse = unique_first(key)  # np.unique's, faster
         rep = cluster_points(points[first], radius_m, neighbors)
         return rep[inverse.reshape(-1)]
     if neighbors == "sklearn":
@@ -104,12 +105,14 @@ def merge_fragments(local: FloatArray, members: list[NDArray[np.int64]],
     if n < 2:
         return members
     band = 0.5
-    zlo = np.array([local[m, 2].min() for m in members])
-    zhi = np.array([local[m, 2].max() for m in members])
-    bottom = np.array([local[m][local[m, 2] <= z + band, :2].mean(axis=0)
-                       for m, z in zip(members, zlo, strict=True)])
-    top = np.array([local[m][local[m, 2] >= z - band, :2].mean(axis=0)
-                    for m, z in zip(members, zhi, strict=True)])
+    qs = [local[m] for m in members]  # each cluster's points, gathered once
+    zlo = np.array([q[:, 2].min() for q in qs])
+    zhi = np.array([q[:, 2].max() for q in qs])
+    bottom = np.array([q[q[:, 2] <= z + band, :2].mean(axis=0)
+                       for q, z in zip(qs, zlo, strict=True)])
+    top = np.array([q[q[:, 2] >= z - band, :2].mean(axis=0)
+                    for q, z in zip(qs, zhi, strict=True)])
+    del qs
     parent = list(range(n))
 
     def find(i: int) -> int:
@@ -242,10 +245,11 @@ def identify_stems(points: FloatArray, params: StemParams | None = None, *,
     """
     prm = params or StemParams()
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    finite = np.all(np.isfinite(pts), axis=1)
+    fin = finite_rows(pts)
+    finite = slice(None) if fin is None else fin
     pts = pts[finite]
     # Work in local offsets: circle fits at UTM-sized coordinates would lose precision.
-    ref = np.array([*np.floor(pts[:, :2].min(axis=0)), 0.0]) if len(pts) else np.zeros(3)
+    ref = np.array([*np.floor(column_min(pts[:, :2])), 0.0]) if len(pts) else np.zeros(3)
     local = pts - ref
     if ground_z is None:
         ground, cell, zmin = remove_ground(local, prm.ground_cell_m, prm.ground_threshold_m)
@@ -258,7 +262,7 @@ def identify_stems(points: FloatArray, params: StemParams | None = None, *,
                             prm.cluster_voxel_m)
     objects: list[dict[str, Any]] = []
     if len(above):
-        order = np.argsort(labels, kind="stable")
+        order = stable_argsort(labels)
         starts = np.flatnonzero(np.r_[True, np.diff(labels[order]) != 0])
         ends = np.r_[starts[1:], len(order)]
         clusters = [above[order[a:b]] for a, b in zip(starts, ends, strict=True)]

@@ -129,6 +129,28 @@ def test_the_cube_grid_gives_the_components_and_labels_listed_pairs_give(
     assert np.array_equal(got, _pairs_components(pts, r))
 
 
+@settings(max_examples=150, deadline=None)
+@given(keys=st.lists(st.integers(-(2**62), 2**62 - 1), max_size=300),
+       small=st.booleans(), offset=st.integers(-(2**40), 2**40))
+def test_the_packed_sort_is_numpys_stable_argsort_and_unique(keys: list[int], small: bool,
+                                                              offset: int) -> None:
+    """tcf_hil.sic._fast (each key's index packed below it, sorted as plain integers)
+    gives np.argsort(kind="stable") and np.unique(return_index, return_inverse) exactly:
+    repeated keys, negative and offset keys, and keys too wide to pack (numpy's own)."""
+    from tcf_hil.sic._fast import sorted_with_order, stable_argsort, unique_first
+
+    k = np.array(keys, dtype=np.int64)
+    if small:  # few distinct values, many repeats: what voxel and cube keys are
+        k = k % 7 + offset
+    order = np.argsort(k, kind="stable")
+    sk, got = sorted_with_order(k)
+    assert np.array_equal(got, order) and np.array_equal(sk, k[order])
+    assert np.array_equal(stable_argsort(k), order)
+    want = np.unique(k, return_index=True, return_inverse=True)
+    for a, b in zip(unique_first(k), want, strict=True):
+        assert np.array_equal(a, b.reshape(-1))
+
+
 def test_the_tuned_sic_clusters_a_natural_cloud_as_listed_pairs_do() -> None:
     """On a natural stand's cloud (branches and foliage about the stems), cluster_points
     gives the same labels as the listed pairs."""

@@ -246,11 +246,48 @@ def test_a_compacted_tile_holds_the_first_point_of_each_voxel_in_arrival_order(
             smap._compact(tile)
     got = smap._compact(tile)
     allp = np.concatenate(seen)
-    keys = smap._keys(allp)
+    keys = smap._keys_of(smap._voxels(allp))
     _, first = np.unique(keys, return_index=True)
     np.testing.assert_array_equal(got, allp[np.sort(first)])
     np.testing.assert_array_equal(tile.keys, np.unique(keys))
     assert tile.points == smap.stats.points == len(got) and tile.pending == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 2000), spread=st.floats(0.05, 25.0),
+       far=st.booleans())
+def test_a_frame_goes_to_its_tiles_one_point_a_voxel_the_first_in_arrival_order(
+        seed: int, n: int, spread: float, far: bool) -> None:
+    """StemMap.add keeps the first point of each voxel of the frame, in arrival order, and
+    hands each tile its own (the packed sort of offsets from the frame's corner against
+    numpy's unique and lexsort of the map's global voxel keys): repeats, tile and voxel
+    boundaries, a map kilometres from its datum."""
+    rng = np.random.default_rng(seed)
+    smap = StemMap(stem_params("tuned"), max_points=10**9)
+    base = np.array([3000.0, -2000.0, 0.0]) if far else np.zeros(3)
+    pts = base + np.column_stack([rng.uniform(-spread, spread, (n, 2)),
+                                  rng.uniform(1.0, 9.0, n)])
+    pts = np.round(pts / 0.015) * 0.015  # on the voxel and tile boundaries too
+    pts[: n // 5] = pts[n // 5: 2 * (n // 5)]  # repeats
+    g = np.arange(-spread - 1.0, spread + 1.0, 0.5)
+    gx, gy = np.meshgrid(g, g)
+    smap.add(base + np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)]))
+    # ^ flat ground under every cell: every point of the frame lies above it
+    smap.tiles.clear()
+    smap.add(pts)
+    keys = smap._keys_of(smap._voxels(pts))
+    _, first = np.unique(keys, return_index=True)
+    keep = pts[np.sort(first)]
+    t = np.floor(keep[:, :2] / smap.tile).astype(np.int64)
+    order = np.lexsort((t[:, 1], t[:, 0]))
+    keep, t = keep[order], t[order]
+    want: dict[tuple[int, int], list[np.ndarray]] = {}
+    for p, (i, j) in zip(keep, t.tolist(), strict=True):
+        want.setdefault((i, j), []).append(p)
+    assert sorted(smap.tiles) == sorted(want)
+    for tid, tile in smap.tiles.items():
+        got = np.concatenate(tile.chunks)
+        np.testing.assert_array_equal(got, np.array(want[tid], dtype=np.float32))
 
 
 @settings(max_examples=40, deadline=None)
