@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from emulators.jit import jit_enabled, numba_module
-from tcf_hil.sic._fast import column_max, column_min, sorted_with_order
+from tcf_hil.sic._fast import column_max, column_min, run_starts, sorted_with_order
 
 # Not registered as a kernel source (emulators.jit.register_kernel_source): join_cubes calls
 # only this file's own _join, whose changes numba's cache notices by itself, and a source
@@ -117,9 +117,7 @@ def radius_components(points: NDArray[np.float64], radius_m: float
     span = column_max(ijk) + _REACH + 1  # room for the offsets on every side
     key = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
     sk, order = sorted_with_order(key)  # the points by cube; in a cube, by index
-    new_cube = np.empty(n, bool)
-    new_cube[:1] = True
-    np.not_equal(sk[1:], sk[:-1], out=new_cube[1:])
+    new_cube = run_starts(sk)
     start = np.flatnonzero(new_cube)
     keys = sk[start]
     parent = np.arange(len(keys), dtype=np.int64)

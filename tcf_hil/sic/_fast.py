@@ -56,15 +56,30 @@ def stable_argsort(key: NDArray[np.integer]) -> IntArray:
     return sorted_with_order(key)[1]
 
 
+def run_starts(sk: NDArray[Any]) -> NDArray[np.bool_]:
+    """True at the first element of each run of equal values in a sorted array."""
+    first = np.empty(len(sk), bool)
+    first[:1] = True
+    np.not_equal(sk[1:], sk[:-1], out=first[1:])
+    return first
+
+
+def offset_key(v: NDArray[np.int64]) -> IntArray:
+    """One int64 key a row of an (n, 3) integer array (voxel indices), ordered as the rows
+    are lexicographically: the offsets from the rows' least corner, in the span they take.
+    Small keys leave :func:`sorted_with_order` room to pack the index in."""
+    lo = column_min(v)
+    span = column_max(v) - lo + 1
+    return ((v[:, 0] - lo[0]) * span[1] + (v[:, 1] - lo[1])) * span[2] + (v[:, 2] - lo[2])
+
+
 def unique_first(key: NDArray[np.integer]) -> tuple[IntArray, IntArray, IntArray]:
     """``np.unique(key, return_index=True, return_inverse=True)``: the distinct keys in
     ascending order, the index of each one's first occurrence, and each key's position
     among them."""
     sk, order = sorted_with_order(key)
     n = len(sk)
-    first = np.empty(n, bool)
-    first[:1] = True
-    np.not_equal(sk[1:], sk[:-1], out=first[1:])
+    first = run_starts(sk)
     inverse = np.empty(n, np.int64)
     inverse[order] = np.cumsum(first) - 1
     return sk[first], order[first], inverse

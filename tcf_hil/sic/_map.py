@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from protocols.stems import QUALITY_BY_CLASS
-from tcf_hil.sic._fast import column_max, column_min, finite_rows, sorted_with_order
+from tcf_hil.sic._fast import column_min, finite_rows, offset_key, run_starts, sorted_with_order
 from tcf_hil.sic._stems import StemParams, identify_stems
 
 FloatArray = NDArray[np.float64]
@@ -196,14 +196,8 @@ class StemMap:
             return 0
         # one point per voxel within the frame (the first), then per tile; the voxels keyed
         # from the frame's own corner, so that the packed sort has room for the index
-        v = np.floor(keep / self.voxel).astype(np.int64)
-        v -= column_min(v)
-        span = column_max(v) + 1
-        sk, order = sorted_with_order((v[:, 0] * span[1] + v[:, 1]) * span[2] + v[:, 2])
-        first = np.empty(len(sk), bool)
-        first[:1] = True
-        np.not_equal(sk[1:], sk[:-1], out=first[1:])
-        keep = keep[np.sort(order[first])]
+        sk, order = sorted_with_order(offset_key(np.floor(keep / self.voxel).astype(np.int64)))
+        keep = keep[np.sort(order[run_starts(sk)])]
         t = np.floor(keep[:, :2] / self.tile).astype(np.int64)
         t0 = column_min(t)
         nj = int(t[:, 1].max() - t0[1]) + 1
@@ -256,14 +250,9 @@ class StemMap:
         nk = self._keys_of(v)
         # stable: the first of equal keys first; sorted by the voxels' offsets from the
         # chunk's corner (the same order as the keys'), which leave the packed sort room
-        lo = column_min(v)
-        span = column_max(v) - lo + 1
-        _, order = sorted_with_order(((v[:, 0] - lo[0]) * span[1] + (v[:, 1] - lo[1]))
-                                     * span[2] + (v[:, 2] - lo[2]))
+        _, order = sorted_with_order(offset_key(v))
         sk = nk[order]
-        first = np.empty(len(sk), bool)
-        first[:1] = True
-        np.not_equal(sk[1:], sk[:-1], out=first[1:])
+        first = run_starts(sk)
         uk, ui = sk[first], order[first]
         if base is not None:
             bk = tile.keys

@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from protocols.stems import QUALITY_BY_CLASS
 from tcf_hil.sic._circle import fit_circle_algebraic, fit_circle_centre, slice_centres_kernel
 from tcf_hil.sic._components import radius_components
-from tcf_hil.sic._fast import column_max, column_min, finite_rows, stable_argsort, unique_first
+from tcf_hil.sic._fast import column_min, finite_rows, offset_key, stable_argsort, unique_first
 from tcf_hil.sic._params import PRESETS, StemParams, stem_params
 
 __all__ = ["BREAST_HEIGHT_M", "PRESETS", "StemParams", "centre_line_curve", "cluster_points",
@@ -72,10 +72,7 @@ def cluster_points(points: FloatArray, radius_m: float,
     if n == 0:
         return np.zeros(0, np.int64)
     if voxel_m > 0:
-        v = np.floor(points / voxel_m).astype(np.int64)
-        v -= column_min(v)
-        span = column_max(v) + 1
-        key = (v[:, 0] * span[1] + v[:, 1]) * span[2] + v[:, 2]
+        key = offset_key(np.floor(points / voxel_m).astype(np.int64))
         _, first, inverse = unique_first(key)  # np.unique's, faster
         rep = cluster_points(points[first], radius_m, neighbors)
         return rep[inverse.reshape(-1)]

@@ -151,6 +151,26 @@ def test_the_packed_sort_is_numpys_stable_argsort_and_unique(keys: list[int], sm
         assert np.array_equal(a, b.reshape(-1))
 
 
+@settings(max_examples=150, deadline=None)
+@given(rows=st.lists(st.tuples(*[st.integers(-50, 50)] * 3), min_size=1, max_size=200),
+       offset=st.integers(-(2**30), 2**30))
+def test_offset_keys_order_rows_as_lexsort_and_runs_start_at_new_rows(
+        rows: list[tuple[int, int, int]], offset: int) -> None:
+    """_fast.offset_key orders voxel rows lexicographically (equal keys exactly for equal
+    rows), wherever the rows lie; _fast.run_starts marks the first of each run."""
+    from tcf_hil.sic._fast import offset_key, run_starts
+
+    v = np.array(rows, dtype=np.int64) + offset
+    key = offset_key(v)
+    order = np.argsort(key, kind="stable")
+    want = np.lexsort((v[:, 2], v[:, 1], v[:, 0]))
+    assert np.array_equal(order, want)
+    sv = v[order]
+    new_row = np.r_[True, np.any(sv[1:] != sv[:-1], axis=1)]
+    assert np.array_equal(run_starts(key[order]), new_row)
+    assert key.min() >= 0 and int(key.max()) < 101**3
+
+
 def test_the_tuned_sic_clusters_a_natural_cloud_as_listed_pairs_do() -> None:
     """On a natural stand's cloud (branches and foliage about the stems), cluster_points
     gives the same labels as the listed pairs."""
