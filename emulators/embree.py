@@ -36,7 +36,7 @@ numba = numba_module()  # its cache directory set before the kernels below are d
 # words (RTCRay: org xyz, tnear, dir xyz, time, tfar, mask, id, flags; RTCHit: Ng xyz, u, v,
 # primID, geomID, instID[1], instPrimID[1]); the struct is 16-byte aligned.
 GEOMETRY_TYPE_TRIANGLE, GEOMETRY_TYPE_GRID, GEOMETRY_TYPE_ROUND_LINEAR_CURVE = 0, 2, 16
-GEOMETRY_TYPE_ORIENTED_DISC_POINT, GEOMETRY_TYPE_USER = 52, 120
+GEOMETRY_TYPE_SPHERE_POINT, GEOMETRY_TYPE_ORIENTED_DISC_POINT, GEOMETRY_TYPE_USER = 50, 52, 120
 BUFFER_TYPE_INDEX, BUFFER_TYPE_VERTEX, BUFFER_TYPE_NORMAL, BUFFER_TYPE_GRID = 0, 1, 3, 8
 BUFFER_TYPE_FLAGS = 32
 FORMAT_UCHAR, FORMAT_UINT, FORMAT_UINT3 = 0x1001, 0x5001, 0x5003
@@ -141,13 +141,19 @@ class Curves:
     (Embree reads that point: it must be there), which Embree then joins without a sphere:
     a segment flagged with a neighbour after it that no segment is ends open. ``discs``
     (q, 4) float32 centre and radius and ``disc_normals`` (q, 3): flat discs (Embree's
-    ``ORIENTED_DISC_POINT``), e.g. to close such ends; numbered after the segments."""
+    ``ORIENTED_DISC_POINT``), e.g. to close such ends; numbered after the segments.
+    ``joints`` (p, 4) float32 centre and radius, p at most the segments: spheres (Embree's
+    ``SPHERE_POINT``) that fill where two joined segments meet, sphere ``j`` answering as
+    segment ``j`` (no primitives of their own): where Embree cuts two segments' tubes at
+    their joint a ray grazing the surface there can slip through the cut, and a sphere
+    inside the surface stops it."""
 
     points: NDArray[np.float32]
     segments: NDArray[np.uint32]
     flags: NDArray[np.uint8]
     discs: NDArray[np.float32] | None = None
     disc_normals: NDArray[np.float32] | None = None
+    joints: NDArray[np.float32] | None = None
 
     def __len__(self) -> int:
         """Primitives: the segments and the discs."""
@@ -221,9 +227,10 @@ class DirectScene:
                   curves: Curves | None, terrain: HeightGrid | None = None,
                   user: NDArray[np.float64] | None = None) -> int:
         """A committed scene (``flags``): the triangles ``f`` of ``v`` as geometry 0, the
-        curves' segments as geometry 1, their discs as geometry 2 and the terrain's grid
-        as geometry 3, each copied into buffers Embree owns, and ``user``, porous crowns
-        (:func:`_crown_geometry`), as user geometry 4; its handle."""
+        curves' segments as geometry 1, their discs as geometry 2, the terrain's grid as
+        geometry 3 and the curves' joint spheres as geometry 5, each copied into buffers
+        Embree owns, and ``user``, porous crowns (:func:`_crown_geometry`), as user
+        geometry 4; its handle."""
         lib = self._lib
         scene = lib.rtcNewScene(self._device)
         self._scenes.append(scene)
@@ -249,6 +256,12 @@ class DirectScene:
                  np.ascontiguousarray(curves.discs, np.float32)),
                 (BUFFER_TYPE_NORMAL, FORMAT_FLOAT3, 12,
                  np.ascontiguousarray(curves.disc_normals, np.float32)))))
+        if curves is not None and curves.joints is not None and len(curves.joints):
+            if len(curves.joints) > len(curves.segments):
+                raise ValueError("Curves: more joint spheres than segments")
+            geoms.append((5, GEOMETRY_TYPE_SPHERE_POINT, (
+                (BUFFER_TYPE_VERTEX, FORMAT_FLOAT4, 16,
+                 np.ascontiguousarray(curves.joints, np.float32)),)))
         if terrain is not None:
             geoms.append((3, GEOMETRY_TYPE_GRID, (
                 (BUFFER_TYPE_VERTEX, FORMAT_FLOAT3, 12,
@@ -387,8 +400,8 @@ def intersect1(fn: int, scenes: Any, rf: Any, ru: Any, addr: int, ox: float, oy:
         elif g == 4:  # a porous crown: the foliage faces it at a random orientation
             prim = np.int32(-2 - scenes[2] - np.int64(ru[PRIM_ID]))
             c = math.sqrt(media.uniform(key, 2))
-        elif g != INVALID_ID:  # a curve segment (1), a disc (2, numbered after them), the
-            # terrain (3: one primitive)
+        elif g != INVALID_ID:  # a curve segment (1) or its joint's sphere (5: answers as
+            # the segment), a disc (2, numbered after them), the terrain (3: one primitive)
             prim = np.int32(rows[k, 3] if g == 3 else
                             -2 - np.int64(ru[PRIM_ID]) - (rows[k, 2] if g == 2 else 0))
             nx, ny, nz = np.float64(rf[NG_X]), np.float64(rf[NG_Y]), np.float64(rf[NG_Z])

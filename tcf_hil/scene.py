@@ -411,6 +411,12 @@ def make_caster(name: str, vertices: FloatArray, faces: NDArray[np.int64],
         raise ConfigError("ray backend", name, f"an installed backend ({err})") from err
 
 
+JOINT_SPHERES = True
+"""Round curves' stems get a sphere inside the surface at each joint (:attr:`TubeCurves.joints
+<tcf_hil.forest.mesh.TubeCurves>`); False: without them, the benchmarks' side-by-side
+reference."""
+
+
 @dataclass
 class Scene:
     """Terrain plus stems in local coordinates: triangles with per-triangle object ids and,
@@ -562,7 +568,8 @@ class Scene:
         seg_id = np.concatenate([seg_id, [0]])
         seg_mat = np.concatenate([seg_mat, [MATERIALS.index("ground")]]).astype(np.uint8)
         curves = Curves(pts.astype(np.float32), seg.astype(np.uint32), flags,
-                        tc.discs.astype(np.float32), tc.disc_normals.astype(np.float32))
+                        tc.discs.astype(np.float32), tc.disc_normals.astype(np.float32),
+                        tc.joints.astype(np.float32) if JOINT_SPHERES else None)
         faces, tri_id, tri_mat, loose_from = _loose_last(faces, tri_id, tri_mat)
         try:
             caster = EmbreeCaster(verts, faces, curves=curves, loose_from=loose_from,

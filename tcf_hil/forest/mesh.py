@@ -177,6 +177,8 @@ CURVE_TOLERANCE_M = 1e-4
 between its points: 0.1 mm, a fifth of issue 21's 0.5 mm aim, the rest left to float32."""
 CAP_OVERLAP_M = 5e-5
 """A top's disc is this much wider than the tube it closes, so no ray slips between them."""
+JOINT_INSET_M = 1e-5
+"""How far a joint's sphere (:attr:`TubeCurves.joints`) is drawn in below r cos a."""
 
 
 @dataclass(frozen=True)
@@ -186,7 +188,9 @@ class TubeCurves:
     neighbours (1 one before it, 2 one after it: Embree then joins them without a cap, or
     leaves the end open where the point after is a guide, not a segment's); ``segment_id``
     (k,) its stem id; ``discs`` (q, 4) centre and radius and ``disc_normals`` (q, 3) of the
-    flat discs closing the tops; ``disc_id`` (q,) their stem ids."""
+    flat discs closing the tops; ``disc_id`` (q,) their stem ids; ``joints`` (k, 4) centre
+    and radius of a sphere inside the surface at each segment's first point (Embree's
+    ``Curves.joints``: it fills the cut where two segments meet)."""
 
     points: FloatArray
     segments: NDArray[np.int64]
@@ -195,6 +199,7 @@ class TubeCurves:
     discs: FloatArray
     disc_normals: FloatArray
     disc_id: NDArray[np.int32]
+    joints: FloatArray
 
 
 def stem_curves(stems: StemSet, ids: NDArray[np.int32] | None = None,
@@ -221,7 +226,7 @@ def stem_curves(stems: StemSet, ids: NDArray[np.int32] | None = None,
     if n_stems == 0:
         z4, z3 = np.zeros((0, 4)), np.zeros((0, 3))
         return TubeCurves(z4, np.zeros(0, np.int64), np.zeros(0, np.uint8),
-                          np.zeros(0, np.int32), z4, z3, np.zeros(0, np.int32))
+                          np.zeros(0, np.int32), z4, z3, np.zeros(0, np.int32), z4)
     rings = all_ring_positions(stems, tolerance_m, probe_step_m=0.01)
     counts = np.array([len(r) for r in rings], np.int64)
     idx = np.repeat(np.arange(n_stems), counts)
@@ -263,9 +268,16 @@ def stem_curves(stems: StemSet, ids: NDArray[np.int32] | None = None,
     flags = np.full(len(segments), 3, np.uint8)
     flags[np.searchsorted(segments, at_out[first])] &= np.uint8(2)  # nothing before the first
     top = r[last] > CAP_OVERLAP_M
+    # a sphere at each segment's first ring, centred on the centre line, of radius r cos a
+    # (a = atan r', the taper's angle): the distance from there to a cone's surface, so
+    # inside the surface, r a^2 / 2 under it at the ring (micrometres; millimetres where the
+    # butt swells), and no farther than the flat top; less JOINT_INSET_M for float32 and
+    # the profile's curvature
+    reach = np.minimum(r / np.sqrt(1.0 + slope**2), np.repeat(stems.length, counts) - s)
+    joints = np.column_stack([c, np.maximum(reach - JOINT_INSET_M, 0.0)])[seg_mask]
     return TubeCurves(points, segments.astype(np.int64), flags, sid[seg_stem],
                       np.column_stack([c[last], r[last] + CAP_OVERLAP_M])[top], axis[top],
-                      sid[top])
+                      sid[top], joints)
 
 
 def terrain_grid(terrain: Terrain, bounds: tuple[float, float, float, float],
