@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
+from scipy.ndimage import maximum_filter1d
 
 from tcf_hil.errors import ConfigError
 from tcf_hil.forest.stems import StemSet
@@ -43,13 +44,19 @@ _PROBES_PER_BATCH = 200_000
 
 
 def all_ring_positions(stems: StemSet, tolerance_m: float, max_ring_step_m: float = 2.0,
-                       probe_step_m: float = 0.05, ids: NDArray[np.int64] | None = None
-                       ) -> list[FloatArray]:
+                       probe_step_m: float = 0.05, ids: NDArray[np.int64] | None = None,
+                       reach_m: float = 0.0) -> list[FloatArray]:
     """The ring positions of stems ``ids`` (all by default), from ``-below`` to the top:
     the curvature of each stem's centre line and radius probed every ``probe_step_m``, and
     rings spaced so that the straight segments between them stay within ``tolerance_m`` of
     the bent, tapered surface ((|C''| + |r''|) ds^2 / 8), at most ``max_ring_step_m`` apart,
     with one at the base (s = 0), where the stem meets the ground.
+
+    ``reach_m`` > 0: each probe takes the greatest curvature within that distance of it, so
+    that a segment which runs into a sharp bend (a crook's start) is spaced for the bend,
+    not for the straight stem before it (without it, rays grazing a crooked stem 0.2 mm
+    inside its surface crossed it whole just before the crook: the segment there had been
+    spaced by the straight stem's curvature). 0 keeps each probe's own (the meshes').
 
     The probes of stems of about the same length are evaluated together (a few hundred
     thousand at a time), each stem's exactly as on its own."""
@@ -75,6 +82,9 @@ def all_ring_positions(stems: StemSet, tolerance_m: float, max_ring_step_m: floa
         pv = probe[valid]
         bend = np.zeros(probe.shape)
         bend[valid] = stems.curvature_bound(idx, pv) + stems.radius_d2(idx, pv)
+        if reach_m > 0:  # probes past a stem's top are 0: they raise nothing
+            bend = maximum_filter1d(bend, 2 * math.ceil(reach_m / probe_step_m) + 1, axis=1,
+                                    mode="nearest")
         step = np.minimum(max_ring_step_m,
                           np.sqrt(8.0 * tolerance_m / np.maximum(bend, 1e-12)))
         density = np.cumsum(np.where(valid, probe_step_m / step, 0.0), axis=1)
@@ -177,8 +187,13 @@ CURVE_TOLERANCE_M = 1e-4
 between its points: 0.1 mm, a fifth of issue 21's 0.5 mm aim, the rest left to float32."""
 CAP_OVERLAP_M = 5e-5
 """A top's disc is this much wider than the tube it closes, so no ray slips between them."""
-JOINT_INSET_M = 1e-5
-"""How far a joint's sphere (:attr:`TubeCurves.joints`) is drawn in below r cos a."""
+CURVE_REACH_M = 0.25
+"""How far along a stem a curve's ring spacing looks for sharper bends
+(:func:`all_ring_positions`' ``reach_m``)."""
+JOINT_INSET_M = 5e-5
+"""How far a joint's sphere (:attr:`TubeCurves.joints`) is drawn in under the curve point's:
+half the curve's tolerance, so that it stays inside the stem where the profile and the
+centre line bend, and still fills a cut that a ray reaches 0.05 mm deep."""
 
 
 @dataclass(frozen=True)
@@ -210,8 +225,9 @@ def stem_curves(stems: StemSet, ids: NDArray[np.int32] | None = None,
     1..n).
 
     The points follow the mesh's ring positions for ``tolerance_m`` (:func:`ring_positions`,
-    probed every centimetre: straight segments stay within it of the bent, tapered
-    surface). Each is the sphere that touches the true surface all along one ring: centred
+    probed every centimetre, each probe taking the sharpest bend within
+    :data:`CURVE_REACH_M`: straight segments stay within it of the bent, tapered surface).
+    Each is the sphere that touches the true surface all along one ring: centred
     where the surface's normals from that ring meet the centre line (``r r'`` along the
     tangent from the ring's centre, a few centimetres below it where the butt swells) with
     radius ``r sqrt(1 + r'^2)``; the sweep between two such spheres touches both rings and
@@ -220,14 +236,17 @@ def stem_curves(stems: StemSet, ids: NDArray[np.int32] | None = None,
     pine's butt.) The top is flat, as the stem's (a broken top is a cut):
     the last segment is flagged as having a neighbour, a guide point straight on, so Embree
     leaves it open instead of rounding it with a sphere, and a disc closes it. The bottom,
-    below the ground, keeps its sphere."""
+    below the ground, keeps its sphere. Where two segments join, Embree cuts their tubes
+    at the ring the joint's sphere touches, and a grazing ray can slip through the cut:
+    ``joints`` holds each segment's first sphere, drawn in by :data:`JOINT_INSET_M`, to
+    fill it."""
     n_stems = len(stems)
     sid = np.arange(1, n_stems + 1, dtype=np.int32) if ids is None else ids.astype(np.int32)
     if n_stems == 0:
         z4, z3 = np.zeros((0, 4)), np.zeros((0, 3))
         return TubeCurves(z4, np.zeros(0, np.int64), np.zeros(0, np.uint8),
                           np.zeros(0, np.int32), z4, z3, np.zeros(0, np.int32), z4)
-    rings = all_ring_positions(stems, tolerance_m, probe_step_m=0.01)
+    rings = all_ring_positions(stems, tolerance_m, probe_step_m=0.01, reach_m=CURVE_REACH_M)
     counts = np.array([len(r) for r in rings], np.int64)
     idx = np.repeat(np.arange(n_stems), counts)
     s = np.concatenate(rings)
@@ -268,13 +287,12 @@ def stem_curves(stems: StemSet, ids: NDArray[np.int32] | None = None,
     flags = np.full(len(segments), 3, np.uint8)
     flags[np.searchsorted(segments, at_out[first])] &= np.uint8(2)  # nothing before the first
     top = r[last] > CAP_OVERLAP_M
-    # a sphere at each segment's first ring, centred on the centre line, of radius r cos a
-    # (a = atan r', the taper's angle): the distance from there to a cone's surface, so
-    # inside the surface, r a^2 / 2 under it at the ring (micrometres; millimetres where the
-    # butt swells), and no farther than the flat top; less JOINT_INSET_M for float32 and
-    # the profile's curvature
-    reach = np.minimum(r / np.sqrt(1.0 + slope**2), np.repeat(stems.length, counts) - s)
-    joints = np.column_stack([c, np.maximum(reach - JOINT_INSET_M, 0.0)])[seg_mask]
+    # at each segment's first point, its sphere drawn in by JOINT_INSET_M: it touches the
+    # surface along the ring, where Embree's cut between two segments lies, and lies
+    # inside the stem elsewhere (a test holds it); never past a flat top
+    top_gap = np.repeat(stems.length, counts) - (s + shift)
+    joints = np.column_stack([pts[:, :3], np.maximum(np.minimum(pts[:, 3], top_gap)
+                                                     - JOINT_INSET_M, 0.0)])[seg_mask]
     return TubeCurves(points, segments.astype(np.int64), flags, sid[seg_stem],
                       np.column_stack([c[last], r[last] + CAP_OVERLAP_M])[top], axis[top],
                       sid[top], joints)

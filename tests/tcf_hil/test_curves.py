@@ -102,43 +102,51 @@ def test_curves_join_within_a_tube_and_end_flat_at_its_top() -> None:
 @pytest.mark.parametrize("name", ["natural", "forest-x"])
 def test_joint_spheres_lie_inside_the_true_surface(name: str) -> None:
     """Each segment's joint sphere (what fills Embree's cut where two segments meet) is
-    centred on its first ring and lies inside the stem: every point of it (64 directions)
+    centred on its first point and lies inside the stem: every point of it (64 directions)
     lies in a cross-section of the stem, within its radius there, and below a flat top; at
     the butt's swell, along crooks and bows and at thin and broken tops alike (each top's
-    last joint, each butt's first above the buried end, and 400 more; the centre line
-    sampled every 0.1 mm about the joint). The buried end's own joint is left out: it lies
-    in the curve's round bottom, under the ground."""
-    from tcf_hil.forest.mesh import CURVE_TOLERANCE_M, all_ring_positions
+    last joint, each stem's first at the ground, and 400 more; the cross-section found
+    between samples of the centre line 0.1 mm apart). The joints below the ground are left
+    out: their spheres may reach past the buried end, into the curve's round bottom."""
+    from tcf_hil.forest.mesh import CURVE_REACH_M, CURVE_TOLERANCE_M, all_ring_positions
 
     forest = generate_forest(scenario_from_dict(NATURAL) if name == "natural"
                              else load_scenario(name))
     tubes, ids = forest.tubes()
     tc = stem_curves(tubes, ids)
     assert tc.joints.shape == (len(tc.segments), 4)
-    rings = all_ring_positions(tubes, CURVE_TOLERANCE_M, probe_step_m=0.01)
+    rings = all_ring_positions(tubes, CURVE_TOLERANCE_M, probe_step_m=0.01,
+                               reach_m=CURVE_REACH_M)
     tube = np.concatenate([np.full(len(r) - 1, i) for i, r in enumerate(rings)])
     s_at = np.concatenate([r[:-1] for r in rings])  # a segment's first ring
-    assert np.allclose(tc.joints[:, :3], tubes.centre(tube, s_at))
+    assert np.all(tc.joints[:, :3] == tc.points[tc.segments, :3])  # the segments' first
     first = np.flatnonzero(np.r_[True, tube[1:] != tube[:-1]])
     last = np.r_[first[1:], len(tube)] - 1
     rng = np.random.default_rng(5)
-    pick = np.unique(np.r_[first + 1, last, rng.choice(len(tube), 400, replace=False)])
-    pick = pick[s_at[pick] > -tubes.below[tube[pick]]]
+    ground = np.flatnonzero(s_at >= 0)
+    butt = ground[np.r_[True, tube[ground][1:] != tube[ground][:-1]]]  # each at the ground
+    pick = np.unique(np.r_[butt, last, rng.choice(len(tube), 400, replace=False)])
+    pick = pick[s_at[pick] >= 0]
     v = rng.normal(size=(64, 3))
     v /= np.linalg.norm(v, axis=1)[:, None]
     for j in pick:
         i, c, r = tube[j], tc.joints[j, :3], float(tc.joints[j, 3])
-        s = np.arange(max(s_at[j] - 2 * r - 0.01, -tubes.below[i]),
-                      min(s_at[j] + 2 * r + 0.01, tubes.length[i]), 1e-4)
-        s = np.r_[s, min(s_at[j] + 2 * r + 0.01, tubes.length[i])]
+        s = np.arange(max(s_at[j] - 2 * r - 0.05, -tubes.below[i]),
+                      min(s_at[j] + 2 * r + 0.05, tubes.length[i]), 1e-4)
+        s = np.r_[s, min(s_at[j] + 2 * r + 0.05, tubes.length[i])]
         k = np.full(len(s), i)
-        cl, rad, tg = tubes.centre(k, s), tubes.radius(k, s), tubes.tangent(k, s)
+        cl, tg = tubes.centre(k, s), tubes.tangent(k, s)
         p = c + r * v  # (64, 3)
         h = np.einsum("pmk,mk->pm", p[:, None, :] - cl[None], tg)  # along the axis
         assert np.all(h[:, 0] >= 0) and np.all(h[:, -1] <= 0), (j, "beyond an end")
-        m = np.argmax(h <= 0, axis=1)  # the cross-section each point lies in
-        rho = np.linalg.norm(p - cl[m] - h[np.arange(64), m][:, None] * tg[m], axis=1)
-        assert np.all(rho <= rad[m] + 1e-6), (j, float((rho - rad[m]).max()))
+        m = np.maximum(np.argmax(h <= 0, axis=1), 1)  # the cross-section each point is in,
+        a, b = h[np.arange(64), m - 1], h[np.arange(64), m]  # between two samples
+        s0 = s[m - 1] + a / np.maximum(a - b, 1e-300) * (s[m] - s[m - 1])
+        k0 = np.full(64, i)
+        c0, r0, t0 = tubes.centre(k0, s0), tubes.radius(k0, s0), tubes.tangent(k0, s0)
+        h0 = np.einsum("pk,pk->p", p - c0, t0)
+        rho = np.linalg.norm(p - c0 - h0[:, None] * t0, axis=1)
+        assert np.all(rho <= r0 + 1e-6), (j, float((rho - r0).max()))
 
 
 def test_open3d_and_trimesh_cast_meshes_and_curves_there_are_a_one_line_error() -> None:
