@@ -413,8 +413,8 @@ def make_caster(name: str, vertices: FloatArray, faces: NDArray[np.int64],
 
 JOINT_SPHERES = True
 """Round curves' stems get a sphere inside the surface at each joint (:attr:`TubeCurves.joints
-<tcf_hil.forest.mesh.TubeCurves>`); False: without them, the benchmarks' side-by-side
-reference."""
+<tcf_hil.forest.mesh.TubeCurves>`); False: without them, the side-by-side reference of
+``benchmarks/bench_curve_joints.py``."""
 
 
 @dataclass

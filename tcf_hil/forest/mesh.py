@@ -258,7 +258,8 @@ def stem_curves(stems: StemSet, ids: NDArray[np.int32] | None = None,
     # of a tenth of a millimetre; one-sided at a broken top, where the radius stops)
     at = np.arange(len(s))
     h = 1e-4
-    hi = np.minimum(s + h, np.repeat(stems.length, counts))
+    length = np.repeat(stems.length, counts)  # each point's stem's
+    hi = np.minimum(s + h, length)
     lo = hi - 2.0 * h
     slope = (stems.radius(idx, hi) - stems.radius(idx, lo)) / (2.0 * h)
     # the sphere that touches the surface along the ring at s: centred where the surface's
@@ -290,7 +291,7 @@ def stem_curves(stems: StemSet, ids: NDArray[np.int32] | None = None,
     # at each segment's first point, its sphere drawn in by JOINT_INSET_M: it touches the
     # surface along the ring, where Embree's cut between two segments lies, and lies
     # inside the stem elsewhere (a test holds it); never past a flat top
-    top_gap = np.repeat(stems.length, counts) - (s + shift)
+    top_gap = length - (s + shift)
     joints = np.column_stack([pts[:, :3], np.maximum(np.minimum(pts[:, 3], top_gap)
                                                      - JOINT_INSET_M, 0.0)])[seg_mask]
     return TubeCurves(points, segments.astype(np.int64), flags, sid[seg_stem],
