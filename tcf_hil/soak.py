@@ -162,7 +162,7 @@ class SoakResult:
 
 
 def run_soak(scn: Scenario, out: Path, *, minutes: float = 10.0, mode: str = "2048x10",
-             preset: str = "tuned", sample_s: float = 2.0, seed: int | None = None,
+             preset: str = "field", sample_s: float = 2.0, seed: int | None = None,
              max_growth_percent: float = 5.0, announce: Callable[[str], None] = lambda s: None,
              progress: Callable[[int, int], None] | None = None,
              stop: threading.Event | None = None,

@@ -65,7 +65,7 @@ def announce_backend(name: str = "auto") -> None:
         err_console.print(f"[yellow]{note}[/]")
 
 
-SIC_PRESETS: tuple[str, ...] = tuple(sorted(PRESETS, key=lambda p: p != "tuned"))
+SIC_PRESETS: tuple[str, ...] = tuple(sorted(PRESETS, key=lambda p: (p != "field", p)))
 
 
 def mode_option(default: str = "1024x10", **kw: Any) -> Decorator:
@@ -84,7 +84,7 @@ def preset_option(help: str = "The reference SIC's parameters.", *, multiple: bo
     if multiple:
         return click.option("--preset", "presets", type=click.Choice(SIC_PRESETS),
                             multiple=True, help=help)
-    return click.option("--preset", type=click.Choice(SIC_PRESETS), default="tuned",
+    return click.option("--preset", type=click.Choice(SIC_PRESETS), default="field",
                         show_default=True, help=help)
 
 

@@ -194,7 +194,7 @@ def _sweep_options(f: Any) -> Any:
                      help="'reference' (the reference SIC, unpaced and in process on the "
                      "same packet and CAN bytes) or a command run by `tcf-hil run` for every "
                      "cell, live at --speed (see `tcf-hil run --help` for placeholders)."),
-        preset_option("Reference SIC preset(s) (default: tuned). Repeat for both.",
+        preset_option("Reference SIC preset(s) (default: field). Repeat for several.",
                       multiple=True),
         click.option("--executor", default="local", show_default=True,
                      help="local (a Dask LocalCluster on this machine), dask://HOST:PORT (a "
@@ -273,8 +273,8 @@ def paper_cmd(forests: str, modes: str, seeds: int, sic: str, presets: tuple[str
         for k in range(seeds):
             scn = with_sensor(load_scenario(name, seed=base.seed + k), sensor)
             for mode in mode_list:
-                for preset in (presets or ("tuned",)) if sic == "reference" else ("",):
-                    cells.append(make_cell(scn, mode, sic=sic, preset=preset or "tuned",
+                for preset in (presets or ("field",)) if sic == "reference" else ("",):
+                    cells.append(make_cell(scn, mode, sic=sic, preset=preset or "field",
                                            speed=speed, max_frames=frames,
                                            keep_pcap=keep_pcap))
     out.mkdir(parents=True, exist_ok=True)
@@ -329,7 +329,7 @@ def passes_cmd(forest_name: str, pass_list: str, offset: float | None, mode: str
         scn = with_sensor(load_scenario(name, seed=base.seed + k), sensor)
         for n in counts:
             multi = with_passes(scn, n, offset, counts[-1])
-            for preset in (presets or ("tuned",)) if sic == "reference" else ("tuned",):
+            for preset in (presets or ("field",)) if sic == "reference" else ("field",):
                 cells.append(make_cell(multi, mode, sic=sic, preset=preset, speed=speed,
                                        max_frames=frames, tag=f"p{n}", keep_pcap=keep_pcap))
     out.mkdir(parents=True, exist_ok=True)
@@ -398,7 +398,7 @@ def _floats_list(text: str, name: str) -> tuple[float, ...]:
               help="Stem tessellation tolerances in mm (default: 2,10).")
 @click.option("--backends", default=None,
               help="Ray backends (default: embree,open3d; also auto, trimesh).")
-@click.option("--presets", default=None, help="Reference SIC presets (default: tuned,paper).")
+@click.option("--presets", default=None, help="Reference SIC presets (default: field,paper).")
 @click.option("--frames", type=click.IntRange(min=1), default=None,
               help="Frames per combination (default: 300; 100 quick).")
 @click.option("--whole-track", is_flag=True, help="Every frame of the track (overrides --frames).")
@@ -459,11 +459,11 @@ def bench_cmd(quick: bool, forest_name: str | None, modes: str | None, tolerance
         presets=tuple(p.strip() for p in presets.split(",")) if presets else g.presets,
         frames=None if whole_track else (frames or g.frames), sensor=sensor, footprints=fps)
     bad = [b for b in grid.backends if b not in BACKEND_CHOICES]
-    bad += [p for p in grid.presets if p not in ("tuned", "paper")]
+    bad += [p for p in grid.presets if p not in ("field", "tuned", "paper")]
     if bad or "sampled" in grid.modes:
         raise click.BadParameter(f"{', '.join(bad) or 'sampled'}: backends are "
                                  f"{', '.join(BACKEND_CHOICES)}; "
-                                 "presets tuned, paper; modes lidar modes")
+                                 "presets field, tuned, paper; modes lidar modes")
     t0 = time.perf_counter()
     with Progress("bench", spinner=True) as prog:
         rows, notes = run_bench(grid, seed=seed, say=lambda s: prog.update(description=s))

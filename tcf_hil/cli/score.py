@@ -41,7 +41,8 @@ def read_cloud(path: Path) -> np.ndarray:
 @click.argument("cloud", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Observed-forest JSON to write.")
-@preset_option("paper: exactly the published algorithm; tuned: refined.")
+@preset_option("paper: exactly the published algorithm; tuned: refined; field: the field-grade "
+               "program (edge returns, stems by shape, stem curve).")
 @click.option("--curve-threshold", type=click.FloatRange(min=0, min_open=True), default=None,
               help="maxcurve (m) from which a stem is C (default 0.05, as the scenarios).")
 @click.option("--other-threshold", type=click.FloatRange(min=0, min_open=True), default=None,

@@ -39,9 +39,9 @@ class BenchGrid:
 
 
 QUICK = BenchGrid("forest-ii", ("512x10",), (2.0, 10.0), ("embree", "open3d"),
-                  ("tuned", "paper"), frames=100)
+                  ("field", "paper"), frames=100)
 FULL = BenchGrid("forest-v", ("512x10", "1024x10", "2048x10"), (2.0, 10.0),
-                 ("embree", "open3d"), ("tuned", "paper"), frames=300)
+                 ("embree", "open3d"), ("field", "paper"), frames=300)
 
 BENCH_COLUMNS = ("forest", "mode", "tolerance_mm", "backend", "preset", "sensor", "footprint",
                  "footprint_samples", "supersampled_pct", "triangles", "frames",
@@ -227,7 +227,7 @@ def pareto_png(rows: Sequence[dict[str, Any]], title: str) -> bytes:
     for ax, key, label, scale in ((axes[0], "wc_seen", "100 - wc against seen trees (%)", 1.0),
                                   (axes[1], "dbh_rmse_m", "DBH RMSE, seen trees (mm)", 1e3)):
         err = [(100.0 - r[key]) if key == "wc_seen" else r[key] * scale for r in rows]
-        markers = {"tuned": "o", "paper": "s"}
+        markers = {"field": "o", "tuned": "^", "paper": "s"}
         for i, r in enumerate(rows):
             ax.scatter(cost[i], err[i], marker=markers.get(r["preset"], "^"),
                        c="#1f5fbf" if r["backend"] == "embree" else "#d9822b", s=40)
@@ -240,7 +240,7 @@ def pareto_png(rows: Sequence[dict[str, Any]], title: str) -> bytes:
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
         ax.legend(loc="best", fontsize=8,
-                  title="blue: Embree, orange: open3d; o tuned, s paper", title_fontsize=7)
+                  title="blue: Embree, orange: open3d; o field, ^ tuned, s paper", title_fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
     return figure_png(fig)

@@ -62,7 +62,7 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("mode", "lidar mode (512x10, 1024x10, 2048x10, ...) or 'sampled' (no lidar, Table 9)"),
     ("seed", "scenario seed: forest layout, shapes and noise"),
     ("sic", "'reference' or the SIC command"),
-    ("preset", "reference SIC preset (tuned or paper); empty for another SIC"),
+    ("preset", "reference SIC preset (field, tuned or paper); empty for another SIC"),
     ("profile", "lidar packet profile"),
     ("backend", "ray backend: auto (Embree where it exists), embree, open3d or trimesh"),
     ("sensor", "sensor physics preset of the scenario's [sensor] (os0-64-rev7, ideal, ...)"),
@@ -98,7 +98,7 @@ class Cell:
     seed: int
     scenario_toml: str  # fully resolved, so a remote worker needs no files
     sic: str = "reference"
-    preset: str = "tuned"
+    preset: str = "field"
     profile: str = "RNG19_RFL8_SIG16_NIR16"
     backend: str = "auto"
     speed: float = 1.0  # another SIC runs live at this pace

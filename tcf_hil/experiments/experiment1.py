@@ -49,7 +49,7 @@ class Experiment1Row:
 
 
 def run_experiment1(out_dir: str | Path, *, forests: Sequence[str] = ("forest-v", "forest-vi"),
-                    presets: Sequence[str] = ("tuned", "paper"), seed: int | None = None,
+                    presets: Sequence[str] = ("field", "paper"), seed: int | None = None,
                     eval_config: EvalConfig | None = None, write_pcd: bool = True,
                     progress: Callable[[str], None] | None = None) -> list[Experiment1Row]:
     """Run Experiment 1 and write per-forest outputs plus ``experiment1.json`` into

@@ -71,6 +71,7 @@ class OfflineSic:
         self.meta = meta
         self.cfg = SicConfig(preset=preset, node_id=ncfg.node_id, voxel_m=voxel_m)
         self.sic = OnboardSic(self.cfg)
+        self.sic.meta = meta  # a live SIC reads it at start (the edge returns' geometry)
         self.track = PoseTrack()
         self.net = canopen.Network()
         can = CanPose(self.cfg, self.track, network=self.net)
@@ -146,7 +147,7 @@ def drive(run: LidarRun, model: HarvesterModel, sics: list[OfflineSic],
 
 def run_offline(scn: Scenario, *, mode: str = "1024x10",
                 profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
-                backend: str = "auto", preset: str = "tuned", max_frames: int | None = None,
+                backend: str = "auto", preset: str = "field", max_frames: int | None = None,
                 eval_cfg: EvalConfig | None = None, voxel_m: float | None = None,
                 progress: Callable[[int, int], None] | None = None,
                 forest: Forest | None = None, t0_ns: int = RUN_T0_NS,

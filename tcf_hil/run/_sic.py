@@ -86,7 +86,7 @@ def check_sic_command(command: str, shell: bool) -> None:
     sic_command(command, {k: "x" for k, _ in ENV_DOC}, shell)
 
 
-def sic_reference_command(preset: str = "tuned") -> str:
+def sic_reference_command(preset: str = "field") -> str:
     """The reference SIC as an external program."""
     return f"{{python}} -m tcf_hil.sic --preset {preset}"
 

@@ -34,8 +34,12 @@ _D = SicConfig.from_env()
               show_default="$TCF_PUBLISH_URL / file:$TCF_PUBLISH_FILE / stdout",
               help="Where forests go: stdout (NDJSON), file:PATH (rewritten atomically) or "
                    "an http:// URL (POST).")
-@click.option("--preset", type=click.Choice(sorted(PRESETS)), default="tuned",
-              show_default=True, help="Stem algorithm parameters: the paper's or tuned.")
+@click.option("--preset", type=click.Choice(sorted(PRESETS)), default="field",
+              show_default=True,
+              help="Stem algorithm: field (the default: mixed edge returns kept out of the "
+                   "diameters, stems found by their shape among branches and crowns and "
+                   "followed up the tree), tuned (the paper's clusters, refined) or paper "
+                   "(as published).")
 @click.option("--publish-every", "publish_s", type=click.FloatRange(min=0.1), default=2.0,
               show_default=True, help="Seconds between publications.")
 @click.option("--idle", "idle_s", type=click.FloatRange(min=0.1), default=3.0,

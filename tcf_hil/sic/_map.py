@@ -154,7 +154,8 @@ class MapStats:
 
 
 class StemMap:
-    """Points above the ground, one per ``voxel_m`` cube, in ``tile_m`` tiles.
+    """Points above the ground (x, y, z and the edge half width), one per ``voxel_m`` cube and
+    kind, in ``tile_m`` tiles.
 
     ``add`` takes a frame's points; ``update`` re-runs the stem algorithm on dirty tiles (each
     with a ``margin_m`` border from its neighbours, keeping the stems whose centre lies inside
@@ -181,22 +182,28 @@ class StemMap:
         self._last_xy = np.zeros(2)
 
     # -- input ------------------------------------------------------------------------------
-    def add(self, pts: FloatArray, sensor_xy: FloatArray | None = None) -> int:
-        """Add a frame's points (local metres, (n, 3)); returns how many were above ground."""
+    def add(self, pts: FloatArray, sensor_xy: FloatArray | None = None,
+            widths: NDArray[np.floating] | None = None) -> int:
+        """Add a frame's points (local metres, (n, 3)) and their edge half widths (n,: 0 for
+        a return whose footprint one surface filled; None: all 0); returns how many were
+        above ground. A voxel keeps its first return of each kind (edge or not), so an edge
+        return does not hide the clean returns that come later."""
+        w = np.zeros(len(pts)) if widths is None else np.asarray(widths, np.float64)
         fin = finite_rows(pts)
         if fin is not None:
-            pts = pts[fin]
+            pts, w = pts[fin], w[fin]
         if sensor_xy is not None:
             self._last_xy = np.asarray(sensor_xy, dtype=np.float64)
         if len(pts) == 0:
             return 0
         gz = self.ground.height(pts[:, :2], self.ground.add(pts))
-        keep = pts[pts[:, 2] > gz + self.params.ground_threshold_m]
+        above = pts[:, 2] > gz + self.params.ground_threshold_m
+        keep = np.column_stack([pts[above], w[above]])
         if len(keep) == 0:
             return 0
         # one point per voxel within the frame (the first), then per tile; the voxels keyed
         # from the frame's own corner, so that the packed sort has room for the index
-        sk, order = sorted_with_order(offset_key(np.floor(keep / self.voxel).astype(np.int64)))
+        sk, order = sorted_with_order(offset_key(self._voxels(keep)))
         keep = keep[np.sort(order[run_starts(sk)])]
         t = np.floor(keep[:, :2] / self.tile).astype(np.int64)
         t0 = column_min(t)
@@ -230,8 +237,11 @@ class StemMap:
         return len(keep)
 
     def _voxels(self, pts: NDArray[np.floating]) -> NDArray[np.int64]:
-        v = np.floor(np.asarray(pts, dtype=np.float64) / self.voxel).astype(np.int64)
-        v += 1 << 20  # 21 bits a coordinate: +-31 km at 3 cm
+        """Voxel indices of (n, 4) points (x, y, z, edge half width; (n, 3): no edge
+        returns); z doubled, plus 1 for an edge return."""
+        v = np.floor(np.asarray(pts[:, :3], dtype=np.float64) / self.voxel).astype(np.int64)
+        v[:, 2] = 2 * v[:, 2] + (pts[:, 3] > 0 if pts.shape[1] > 3 else 0)
+        v += 1 << 20  # 21 bits a coordinate: +-31 km at 3 cm (z: +-15 km)
         return v
 
     @staticmethod
@@ -243,7 +253,7 @@ class StemMap:
         they came. The compacted points' keys are kept sorted, so that only the new points
         are sorted and looked up in them, not all of the tile's points again."""
         if tile.pending == 0:
-            return tile.chunks[0] if tile.chunks else np.zeros((0, 3), np.float32)
+            return tile.chunks[0] if tile.chunks else np.zeros((0, 4), np.float32)
         base = tile.chunks[0] if tile.points else None
         new = np.concatenate(tile.chunks[1:] if base is not None else tile.chunks)
         v = self._voxels(new)
@@ -332,12 +342,13 @@ class StemMap:
         tile = self.tiles[tid]
         tile.dirty = tile.evicted = False
         tile.basis = tile.points  # compacted above
-        pts = np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 3))
+        pts = np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 4))
         stems: list[dict[str, Any]] = []
         if len(pts):
             gz = self.ground.height(pts[:, :2])
             ok = np.isfinite(gz)
-            doc = identify_stems(pts[ok], self.params, ground_z=gz[ok])
+            doc = identify_stems(pts[ok, :3], self.params, ground_z=gz[ok],
+                                 widths=pts[ok, 3])
             x0, y0 = i * self.tile, j * self.tile
             for o in doc["objects"]:
                 x, y = o["cp"][0], o["cp"][1]

@@ -49,6 +49,7 @@ from protocols.ouster import (
 )
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil.errors import SicError
+from tcf_hil.sic._field import divergence_of, edge_widths
 from tcf_hil.sic._map import StemMap
 from tcf_hil.sic._stems import StemParams, stem_params
 from tcf_hil.trajectory import rotation_ypr
@@ -79,7 +80,7 @@ class SicConfig:
     node_id: int = 10
     eds: str = ""
     publish: str = "stdout"  # stdout | file:PATH | http://...
-    preset: str = "tuned"
+    preset: str = "field"
     publish_s: float = 2.0
     idle_s: float = 3.0
     voxel_m: float | None = None  # None: 0.03 m for tuned, 0.1 m for paper (its density)
@@ -469,12 +470,12 @@ class OnboardSic:
         self.cfg = cfg
         cv = cfg.cluster_voxel_m
         if cv is None:
-            cv = 0.1 if cfg.preset == "tuned" else 0.0
+            cv = 0.0 if cfg.preset == "paper" else 0.1
         self.params = params or stem_params(cfg.preset, cluster_voxel_m=cv)
         # The paper ran its algorithm on about 1000 points per stem; its exact radius graph
         # on a 3 cm map of a whole pass (tens of thousands per stem) costs seconds per tile.
         # A 10 cm map gives it about the paper's density.
-        self.voxel_m = cfg.voxel_m or (0.03 if cfg.preset == "tuned" else 0.1)
+        self.voxel_m = cfg.voxel_m or (0.1 if cfg.preset == "paper" else 0.03)
         self.stop = threading.Event()
         self.cost = FrameCost()
         self.t_start = time.monotonic()
@@ -676,8 +677,19 @@ class OnboardSic:
             return False
         st.frames += 1
         pts = self.world_points(rng, cols, pose[0], pose[1], rays)
-        smap.add(pts, pose[0][-1, :2])
+        smap.add(pts, pose[0][-1, :2], self._widths(rng, cols))
         return True
+
+    def _widths(self, rng: NDArray[np.uint32], cols: NDArray[np.int64]) -> FloatArray | None:
+        """The edge half widths of a frame's returns (in :meth:`world_points`' order), where
+        the preset flags mixed edge returns."""
+        prm = self.params
+        if not prm.edge_filter or self.meta is None:
+            return None
+        div = prm.divergence_deg or divergence_of(self.meta.prod_line)
+        w = edge_widths(rng, cols, self.meta.columns, div, prm.edge_jump_m, prm.edge_reach_fwhm)
+        out: FloatArray = w[rng > 0].astype(np.float64)
+        return out
 
     def _frame(self, item: tuple[int, NDArray[np.uint8]], fmt: Any, meta: SensorMetadata,
                crc: Any, track: PoseTrack, rays: tuple[FloatArray, FloatArray],
@@ -692,7 +704,7 @@ class OnboardSic:
                 assert pose is not None
                 st.frames += 1
                 smap.add(self.world_points(rng, cols, pose[0], pose[1], rays),
-                         pose[0][-1, :2])
+                         pose[0][-1, :2], self._widths(rng, cols))
             else:
                 st.frames_without_pose += 1
 

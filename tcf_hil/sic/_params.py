@@ -33,6 +33,34 @@ class StemParams:
     curve_threshold_m: float = 0.05
     other_threshold_m: float = 0.25
     cluster_voxel_m: float = 0.0  # > 0: cluster one point per voxel of this size (faster)
+    # ``paper``: the paper's clusters of the radius graph (the paper and tuned presets);
+    # ``field``: stems found by their shape among branches, crowns and understory
+    # (tcf_hil/sic/_field.py)
+    algorithm: Literal["paper", "field"] = "paper"
+    # mixed edge returns flagged on the range image (a range jump or no return within one
+    # FWHM of the beam divergence in the row) and kept out of the stem fits
+    edge_filter: bool = False
+    edge_jump_m: float = 0.3  # a range step larger than this is another surface
+    divergence_deg: float = 0.0  # FWHM; 0: the datasheet's for the metadata's prod_line
+    edge_reach_fwhm: float = 1.0  # a return this many FWHM from a range jump is mixed
+    edge_correction: float = 0.75  # share of the footprint's half width taken off a radius
+    # that only edge returns give
+    band_m: tuple[float, float] = (0.5, 4.0)  # where stems are looked for, above ground
+    stem_voxel_m: float = 0.1  # the local PCA's voxels (3 x 3 x 3 of them a neighbourhood)
+    max_normal_z: float = 0.35  # a stem-like surface's normal: within ~20 deg of horizontal
+    min_z_share: float = 0.3  # ... and its points spread upwards, not only sideways
+    max_variation: float = 0.15  # ... and it is thin (smallest eigenvalue / sum)
+    min_votes: float = 30.0  # a stem candidate's votes (about a bark voxel each)
+    min_stem_extent_m: float = 1.0  # a stem component spans at least this much of the band
+    fit_tolerance_m: float = 0.02  # RANSAC inlier distance from a slice's circle
+    dbh_tolerance_m: float = 0.012  # ... and from the breast-height circle
+    dbh_window_m: tuple[float, float] = (0.8, 1.8)  # the breast-height circle's points
+    min_slices: int = 3  # a stem's circle is found in at least this many band slices
+    curve_step_m: float = 0.5  # the stem curve's slices (and the axis's, in the band)
+    follow_radius_m: float = 0.15  # a slice up the stem is searched this far off its axis
+    follow_misses: int = 5  # the stem is followed until this many slices in a row fail
+    crook_m: float = 0.04  # a sideways step of the centre line this large is a crook (X)
+    min_dbh_m: float = 0.03
     scene_centre: tuple[float, float] = (0.0, 0.0)
     timestamp: str = "20250213_035113"
 
@@ -57,11 +85,15 @@ PRESETS: dict[str, StemParams] = {
     # left over bridge neighbouring stems into one cluster), scipy's KD-tree (same graph,
     # faster), and a ground grid that follows hillsides (GroundGrid's ``slope``).
     "tuned": StemParams(ground_threshold_m=0.5),
+    # The field-grade program (the default): mixed edge returns kept out of the diameter,
+    # stems found by their local shape and followed up the tree (tcf_hil/sic/_field.py)
+    "field": StemParams(ground_threshold_m=0.3, algorithm="field", edge_filter=True,
+                        slice_thickness_m=0.25, max_dbh_m=1.0),
 }
 
 
-def stem_params(preset: str = "tuned", **overrides: Any) -> StemParams:
-    """A preset (``paper`` or ``tuned``) with keyword overrides."""
+def stem_params(preset: str = "field", **overrides: Any) -> StemParams:
+    """A preset (``field``, ``tuned`` or ``paper``) with keyword overrides."""
     if preset not in PRESETS:
         raise ValueError(f"unknown SIC preset {preset!r}; allowed: {', '.join(PRESETS)}")
     return replace(PRESETS[preset], **overrides)

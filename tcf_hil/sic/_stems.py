@@ -230,12 +230,14 @@ def _tree_properties(p: FloatArray, ground_z: float, prm: StemParams) -> dict[st
 
 
 def identify_stems(points: FloatArray, params: StemParams | None = None, *,
-                   ground_z: FloatArray | None = None) -> dict[str, Any]:
+                   ground_z: FloatArray | None = None,
+                   widths: FloatArray | None = None) -> dict[str, Any]:
     """Run the stem algorithm on an (n, 3) float64 cloud (world metres).
 
     ``ground_z`` (n,): the ground height under every point, when the caller keeps the ground
     grid itself (the onboard SIC keeps only the points above it); default: the paper's grid
-    filter on ``points``.
+    filter on ``points``. ``widths`` (n,): each point's edge half width (the field
+    algorithm's; None: no edge returns known).
 
     Returns:
         The observed-forest document (paper's Algorithm 1 fields), objects ordered by x, y.
@@ -254,6 +256,8 @@ def identify_stems(points: FloatArray, params: StemParams | None = None, *,
         zmin = np.asarray(ground_z, dtype=np.float64).reshape(-1)[finite] - ref[2]
         cell = np.arange(len(zmin))
         ground = local[:, 2] <= zmin + prm.ground_threshold_m
+    if prm.algorithm == "field":
+        return _field_document(local, ref, zmin[cell], widths, finite, prm)
     above = np.flatnonzero(~ground)
     labels = cluster_points(local[above], prm.cluster_radius_m, prm.neighbors,
                             prm.cluster_voxel_m)
@@ -294,3 +298,31 @@ def identify_stems(points: FloatArray, params: StemParams | None = None, *,
     return {"timestamp": prm.timestamp, "total_objects_count": len(objects),
             "algorithm": {"name": "tcf-hil reference stem algorithm", "params": asdict(prm)},
             "objects": objects}
+
+
+def _field_document(local: FloatArray, ref: FloatArray, ground: FloatArray,
+                    widths: FloatArray | None, finite: Any, prm: StemParams) -> dict[str, Any]:
+    """The field algorithm's stems (:func:`tcf_hil.sic._field.field_stems`) as the observed
+    document, each with its stem curve ([z, x, y, diameter] from the base up)."""
+    from tcf_hil.sic._field import field_stems
+
+    w = (np.zeros(len(local)) if widths is None
+         else np.asarray(widths, np.float64).reshape(-1)[finite])
+    trees = field_stems(local, w, ground, prm) if len(local) else []
+    trees.sort(key=lambda t: (round(t["x"], 6), round(t["y"], 6)))
+    cx0, cy0 = prm.scene_centre
+    objects: list[dict[str, Any]] = []
+    for k, t in enumerate(trees, 1):
+        mc = t["maxcurve"]
+        cls = t["class"]
+        x, y, z = t["x"] + ref[0], t["y"] + ref[1], t["ground"] + ref[2]
+        objects.append({
+            "id": k, "name": f"tree_{k}", "h": round(t["h"], 4), "dbh": round(t["dbh"], 4),
+            "maxcurve": round(mc, 4), "quality": QUALITY_BY_CLASS[cls], "class": cls,
+            "cp": [round(x, 4), round(y, 4), round(z, 4)],
+            "d": round(math.hypot(x - cx0, y - cy0), 4),
+            "stem_curve": [[round(zz + ref[2], 3), round(xx + ref[0], 4),
+                            round(yy + ref[1], 4), dd] for zz, xx, yy, dd in t["curve"]]})
+    return {"timestamp": prm.timestamp, "total_objects_count": len(objects),
+            "algorithm": {"name": "tcf-hil reference stem algorithm (field)",
+                          "params": asdict(prm)}, "objects": objects}

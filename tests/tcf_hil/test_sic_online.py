@@ -228,7 +228,8 @@ def test_an_evicted_tile_keeps_its_stems_until_it_holds_more_points_again() -> N
 def test_a_compacted_tile_holds_the_first_point_of_each_voxel_in_arrival_order(
         seed: int, sizes: list[int], when: list[bool]) -> None:
     """Compaction (against the sorted keys of what was compacted before, at any moment)
-    equals one pass over all the points: the first of each voxel, in the order they came."""
+    equals one pass over all the points: the first of each voxel and kind (edge return or
+    not), in the order they came."""
     from tcf_hil.sic._map import _Tile
 
     rng = np.random.default_rng(seed)
@@ -237,7 +238,8 @@ def test_a_compacted_tile_holds_the_first_point_of_each_voxel_in_arrival_order(
     for n, now in zip(sizes, when, strict=False):
         # a few voxels only, so that most points repeat one seen before
         pts = (rng.integers(0, 6, (n, 3)) * 0.1 + rng.uniform(0.01, 0.09, (n, 3)))
-        pts = pts.astype(np.float32)
+        # x, y, z and the edge half width: an edge return and a clean one share a voxel
+        pts = np.column_stack([pts, rng.integers(0, 2, n) * 0.01]).astype(np.float32)
         tile.chunks.append(pts)
         tile.pending += n
         smap.stats.points += n
@@ -287,7 +289,8 @@ def test_a_frame_goes_to_its_tiles_one_point_a_voxel_the_first_in_arrival_order(
     assert sorted(smap.tiles) == sorted(want)
     for tid, tile in smap.tiles.items():
         got = np.concatenate(tile.chunks)
-        np.testing.assert_array_equal(got, np.array(want[tid], dtype=np.float32))
+        np.testing.assert_array_equal(got[:, :3], np.array(want[tid], dtype=np.float32))
+        assert not got[:, 3].any()  # no edge widths given: none
 
 
 @settings(max_examples=40, deadline=None)
