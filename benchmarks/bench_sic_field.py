@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import hashlib
+import itertools
 import json
 import math
 import sys
@@ -110,9 +111,16 @@ def record(scene: str, mode: str, sensor: str, cache: Path, *, max_frames: int |
     return d
 
 
-def replay(d: Path, preset: str, **overrides: Any) -> dict[str, Any]:
+def replay(d: Path, preset: str, live: bool = False, **overrides: Any) -> dict[str, Any]:
     """The recorded bytes through the reference SIC (``preset``); returns its final forest
-    document and the per-frame costs."""
+    document and the per-frame costs.
+
+    ``live``: the live SIC's schedule, on the clock of the recording: after each frame the
+    stem algorithm runs dirty tiles for what is left of 60 % of the frame period (at least
+    one tile, as the live loop does when its queue is empty), and a queue of frames arriving
+    at the sensor's rate is simulated against the time each frame and its tile work took:
+    ``lag_s`` how far behind the sensor the SIC fell (the live SIC's receiver holds 5 s of
+    frames; beyond that it drops them)."""
     from types import SimpleNamespace
 
     from protocols.ouster import SensorMetadata
@@ -131,6 +139,10 @@ def replay(d: Path, preset: str, **overrides: Any) -> dict[str, Any]:
     k = 0
     before = can["before"]
     can = {name: can[name] for name in can.files}
+    period = 1.0 / meta.frequency_hz
+    tile_ms: list[float] = []
+    lags: list[float] = []
+    clock_done, clock_lag = 0.0, 0.0
     t0 = time.process_time()
     for f, fid in enumerate(info["frame_ids"]):
         while k < len(before) and before[k] <= f:
@@ -138,11 +150,25 @@ def replay(d: Path, preset: str, **overrides: Any) -> dict[str, Any]:
                           float(can["t"][k]))
             k += 1
         sic.lidar_frame(fid, np.asarray(lidar[f]))
+        if live:
+            spent = sic.frame_ms[-1] / 1000.0
+            t1 = time.perf_counter()
+            budget = 0.6 * period - spent
+            if budget > 0.005 and clock_lag <= 0.0:
+                sic.smap.update(budget)
+            tile_ms.append((time.perf_counter() - t1) * 1000.0)
+            # the frame arrived at f * period; it is done after the previous one was done
+            done = max(clock_done, f * period) + spent + tile_ms[-1] / 1000.0
+            clock_lag = done - (f + 1) * period
+            lags.append(clock_lag)
+            clock_done = done
     frames_cpu = time.process_time() - t0
-    t1 = time.process_time()
+    t_end = time.process_time()
     doc = sic.finish()
     return {"doc": doc, "frame_ms": sic.frame_ms, "frames_cpu_s": frames_cpu,
-            "finish_cpu_s": time.process_time() - t1, "frames": len(info["frame_ids"])}
+            "finish_cpu_s": time.process_time() - t_end, "frames": len(info["frame_ids"]),
+            "tile_ms": tile_ms, "lag_s": lags, "map_points_max": sic.smap.max_points,
+            "evicted_points": sic.smap.stats.evicted_points}
 
 
 def score(d: Path, doc: dict[str, Any], *, near_m: float = 15.0, match_m: float = 0.75
@@ -216,6 +242,9 @@ def main(argv: list[str] | None = None) -> int:
                     default=Path.home() / ".cache" / "tcf-hil" / "bench-sic")
     ap.add_argument("--out", type=Path, default=Path("sic-field"))
     ap.add_argument("--plot", action="store_true")
+    ap.add_argument("--live", action="store_true",
+                    help="the live SIC's schedule: tile runs between frames, the lag behind "
+                         "the sensor (run it with OMP_NUM_THREADS=1 for one core)")
     a = ap.parse_args(argv)
     rows = []
     a.out.mkdir(parents=True, exist_ok=True)
@@ -225,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
                 d = record(scene, mode, sensor, a.cache, max_frames=a.frames,
                            divergence_deg=a.divergence)
                 for preset in [x for x in a.presets.split(",") if x]:
-                    r = replay(d, preset)
+                    r = replay(d, preset, live=a.live)
                     s = score(d, r["doc"])
                     fm = np.asarray(r["frame_ms"])
                     row = {"scene": scene, "mode": mode, "sensor": sensor,
@@ -235,7 +264,21 @@ def main(argv: list[str] | None = None) -> int:
                            "frame_ms_p99": round(float(np.percentile(fm, 99)), 2),
                            "sic_cpu_ms_per_frame": round(
                                1000 * (r["frames_cpu_s"] + r["finish_cpu_s"]) / r["frames"], 2),
+                           "evicted_points": r["evicted_points"],
                            **s}
+                    if a.live:
+                        tm, lag = np.asarray(r["tile_ms"]), np.asarray(r["lag_s"])
+                        both = fm + tm
+                        row.update({"tile_ms_p50": round(float(np.median(tm)), 2),
+                                    "frame_and_tiles_ms_p50": round(float(np.median(both)), 2),
+                                    "frame_and_tiles_ms_p99": round(
+                                        float(np.percentile(both, 99)), 2),
+                                    "lag_s_max": round(float(lag.max()), 3),
+                                    "frames_beyond_5s_lag": int((lag > 5.0).sum())})
+                        print(f"   live schedule: frame p50/p99 {row['frame_ms_p50']}/"
+                              f"{row['frame_ms_p99']} ms, with tiles p50/p99 "
+                              f"{row['frame_and_tiles_ms_p50']}/{row['frame_and_tiles_ms_p99']}"
+                              f" ms, lag max {row['lag_s_max']} s", flush=True)
                     rows.append(row)
                     n = s["near"]
                     print(f"{scene:18s} {mode} {sensor:12s} {preset:6s} "
@@ -244,7 +287,76 @@ def main(argv: list[str] | None = None) -> int:
                           f" dbh {n['dbh_bias_m']}/{n['dbh_rmse_m']} cls {n['class_correct']} "
                           f"cpu {row['sic_cpu_ms_per_frame']} ms/frame", flush=True)
                     (a.out / "results.json").write_text(json.dumps(rows, indent=1))
+    (a.out / "results.md").write_text(markdown(rows), encoding="utf-8")
+    if a.plot:
+        plot(rows, a.out / "dbh_error_by_range.png")
     return 0
+
+
+def markdown(rows: list[dict[str, Any]]) -> str:
+    """A table per scene: the presets side by side, within 15 m of the track, then by band."""
+    def pct(v: float | None) -> str:
+        return "–" if v is None else f"{100 * v:.0f} %"
+
+    def cm(v: float | None, sign: bool = False) -> str:
+        return "–" if v is None else (f"{100 * v:+.1f}" if sign else f"{100 * v:.1f}")
+
+    out = []
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        out += [f"### {scene}", "",
+                "| mode | sensor | preset | band, m | found | false pos. | position RMSE cm "
+                "| DBH bias / RMSE cm | class correct | SIC CPU ms/frame |",
+                "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in (x for x in rows if x["scene"] == scene):
+            for band, b in [("0-15", r["near"]), *r["bands"].items()]:
+                if not b["true"] and not b["sic_stems"]:
+                    continue
+                out.append(
+                    f"| {r['mode']} | {r['sensor']} | {r['preset']} | {band} | "
+                    f"{b['found']}/{b['true']} ({pct(b['detection'])}) | "
+                    f"{b['false_positives']}/{b['sic_stems']} ({pct(b['fp_share'])}) | "
+                    f"{cm(b['position_rmse_m'])} | {cm(b['dbh_bias_m'], True)} / "
+                    f"{cm(b['dbh_rmse_m'])} | {pct(b['class_correct'])} | "
+                    f"{r['sic_cpu_ms_per_frame'] if band == '0-15' else ''} |")
+        out.append("")
+    return "\n".join(out)
+
+
+def plot(rows: list[dict[str, Any]], path: Path) -> None:
+    """DBH error (SIC - true) against the true stem's distance from the track: the median
+    and the RMSE in 2.5 m bins, a line per scene x mode x preset."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharex=True)
+    edges = np.arange(0.0, 27.5, 2.5)
+    for r in rows:
+        e = np.asarray(r["dbh_error"]).reshape(-1, 2)
+        if not len(e):
+            continue
+        mid, med, rms = [], [], []
+        for lo, hi in itertools.pairwise(edges):
+            v = e[(e[:, 0] >= lo) & (e[:, 0] < hi), 1]
+            if len(v) >= 3:
+                mid.append((lo + hi) / 2)
+                med.append(100 * float(np.median(v)))
+                rms.append(100 * float(np.sqrt(np.mean(v * v))))
+        style = "-" if r["preset"] != "paper" else ":"
+        label = f"{r['scene']} {r['mode']} {r['sensor']} {r['preset']}"
+        axes[0].plot(mid, med, style, marker="o", ms=3, label=label)
+        axes[1].plot(mid, rms, style, marker="o", ms=3, label=label)
+    axes[0].axhline(0.0, color="grey", lw=0.8)
+    axes[0].set_ylabel("DBH error, median (cm)")
+    axes[1].set_ylabel("DBH error, RMSE (cm)")
+    axes[1].set_yscale("log")
+    for ax in axes:
+        ax.set_xlabel("distance of the true stem from the track (m)")
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=6, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 if __name__ == "__main__":

@@ -647,6 +647,17 @@ def _track_xy(run: Path, step: int = 64) -> NDArray[np.float64]:
     return np.array(xy).reshape(-1, 2)
 
 
+def track_xy(run: Path, step: int = 64) -> NDArray[np.float64]:
+    """The recorded sensor track of a run directory (see :func:`_track_xy`)."""
+    return _track_xy(run, step)
+
+
+def distance_to_track(xy: NDArray[np.float64], track: NDArray[np.float64]
+                      ) -> NDArray[np.float64]:
+    """Horizontal distance of points from the track polyline (see :func:`_distance_to_track`)."""
+    return _distance_to_track(xy, track)
+
+
 def _distance_to_track(xy: NDArray[np.float64], track: NDArray[np.float64]
                        ) -> NDArray[np.float64]:
     """Horizontal distance of each point from the polyline ``track`` (exact: only segments

@@ -5,6 +5,7 @@ scoring of a forest against all ground-truth trees and the trees the sensor saw.
 from __future__ import annotations
 
 import json
+import math
 import os
 import threading
 import time
@@ -12,6 +13,9 @@ from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import IO, Any
+
+import numpy as np
+from numpy.typing import NDArray
 
 from tcf_hil._io import ensure_dir, loads_json, write_bytes_atomic
 from tcf_hil.errors import InputError
@@ -214,6 +218,46 @@ class Scores:
 
     def summary(self) -> dict[str, Any]:
         return {"all_trees": self.all.metrics, "seen_trees": self.seen.metrics}
+
+
+DISTANCE_BANDS_M = ((0.0, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 25.0), (25.0, math.inf))
+
+
+def by_distance(ev: Evaluation, gt: StemTable, obs: StemTable, gt_d: NDArray[np.float64],
+                obs_d: NDArray[np.float64],
+                bands: tuple[tuple[float, float], ...] = DISTANCE_BANDS_M
+                ) -> list[dict[str, Any]]:
+    """The scoring per band of horizontal distance from the track (the report's "Errors by
+    distance", for scripts): a true stem counts in the band of its own distance, a SIC stem
+    in its own (an unmatched one is a false positive there). Per band: trees, found,
+    detection, SIC stems, false positives and their share, position RMSE, DBH bias and
+    RMSE, class correct (of the found)."""
+    g2o = {int(g): int(o) for g, o in ev.pairs}
+    matched = set(g2o.values())
+    out = []
+    for lo, hi in bands:
+        gi = np.flatnonzero((gt_d >= lo) & (gt_d < hi))
+        oi = np.flatnonzero((obs_d >= lo) & (obs_d < hi))
+        m = [(g, g2o[g]) for g in gi.tolist() if g in g2o]
+        fp = sum(1 for o in oi.tolist() if o not in matched)
+        pos = [math.dist(gt.xyz[g, :2], obs.xyz[o, :2]) for g, o in m]
+        dbh = [float(obs.dbh[o] - gt.dbh[g]) for g, o in m
+               if math.isfinite(obs.dbh[o]) and math.isfinite(gt.dbh[g])]
+        cls = [obs.classes[o] == gt.classes[g] for g, o in m]
+
+        def rms(v: list[float]) -> float | None:
+            return round(math.sqrt(sum(e * e for e in v) / len(v)), 4) if v else None
+
+        out.append({
+            "from_m": lo, "to_m": None if math.isinf(hi) else hi, "trees": len(gi),
+            "found": len(m), "detection": round(len(m) / len(gi), 4) if len(gi) else None,
+            "sic_stems": len(oi), "false_positives": fp,
+            "false_positive_share": round(fp / len(oi), 4) if len(oi) else None,
+            "position_rmse_m": rms(pos),
+            "dbh_bias_m": round(sum(dbh) / len(dbh), 4) if dbh else None,
+            "dbh_rmse_m": rms(dbh),
+            "class_correct": round(sum(cls) / len(cls), 4) if cls else None})
+    return out
 
 
 def score_forest(gt_doc: dict[str, Any], obs: StemTable, cfg: EvalConfig | None = None,

@@ -47,16 +47,19 @@ def _recording_options(f: Any) -> Any:
                              "finds it].")(f)
 
 
-def _session(start: Any, out: Path, what: str = "building the scene") -> int:
+def _session(start: Any, out: Path, what: str = "building the scene",
+             keep: list[Any] | None = None) -> int:
     """Drive a run session (``start(stop, announce, live)`` returns its result; ``live``:
     the :class:`LiveRun` display) with the graceful stop (the partial recording is kept and
-    scored); prints the score table. Returns the exit status."""
+    scored); prints the score table. Returns the exit status (``keep``: gets the result)."""
     from tcf_hil._logs import library_logs
     from tcf_hil.run import RunStatus
 
     with graceful_stop(_STOP_RUN) as stop, library_logs(out / "bench.log"), \
             LiveRun(what) as live:
         r = start(stop, err_console.print, live)
+    if keep is not None:
+        keep.append(r)
     if r.status == RunStatus.CAN_CONFLICT:  # nothing was scored: its poses were not the run's
         click.echo(f"Error: {r.message}; nothing scored (run directory {r.out}/)", err=True)
         return ExitStatus.BAD_INPUT
@@ -96,25 +99,72 @@ def _print_run(r: Any) -> None:
 @run_dir_option()
 @seed_option()
 @preset_option()
-def demo(out: Path | None, seed: int | None, preset: str) -> None:
+@click.option("--compare/--no-compare", default=True, show_default=True,
+              help="Then replay the recording to the paper's algorithm (--preset paper) and "
+                   "print both scores side by side.")
+def demo(out: Path | None, seed: int | None, preset: str, compare: bool) -> None:
     """The main job end to end, on loopback: Forest V at 1024x10.
 
     \b
     The emulated OS0-64 streams over UDP (with its HTTP API), the harvester publishes its
     pose as a CANopen node on the embedded CAN server, the reference onboard SIC
-    (`python -m tcf_hil.sic`) runs as a separate program on that wire, and the recorder
-    scores its forest. Writes ./runs/<UTC time stamp>/ (or --out): lidar.pcap, can.log,
-    metadata.json, ground_truth.json, visibility.json, sic/, manifest.json, score.json and
-    report.html. About two minutes.
+    (`python -m tcf_hil.sic`, the field-grade preset) runs as a separate program on that
+    wire, and the recorder scores its forest. Then the same recording is replayed (at twice
+    real time) to the paper's published algorithm (`--preset paper`) and both scores are
+    printed side by side: what the bench is for. Writes ./runs/<UTC time stamp>/ (or --out):
+    lidar.pcap, can.log, metadata.json, ground_truth.json, visibility.json, sic/,
+    manifest.json, score.json, report.html, and the replay's run directory compare-paper/.
+    About three minutes.
     """
-    from tcf_hil.run import run_bridge, sic_reference_command
+    from tcf_hil.run import replay_run, run_bridge, sic_reference_command
     from tcf_hil.scenario import load_scenario
 
     scn, out = load_scenario("forest-v"), run_dir(out)
     announce_backend()
-    finish(_session(lambda stop, say, live: run_bridge(
+    results: list[Any] = []
+    code = _session(lambda stop, say, live: run_bridge(
         scn, sic_reference_command(preset), out, mode="1024x10", seed=seed, stop=stop,
-        announce=say, watch=live.watch), out))
+        announce=say, watch=live.watch), out, keep=results)
+    if code == 0 and compare and preset != "paper":
+        other = out / "compare-paper"
+        err_console.print("the same recording, replayed to the paper's algorithm "
+                          f"(--preset paper) at twice real time: {other}/")
+        if _session(lambda stop, say, live: replay_run(
+                out, sic_reference_command("paper"), other, speed=2.0, stop=stop,
+                announce=say, watch=live.watch), other, "replaying", keep=results) == 0:
+            _print_side_by_side(results[0], results[1], preset)
+    finish(code)
+
+
+def _print_side_by_side(a: Any, b: Any, preset: str) -> None:
+    """The two presets' scores on the same recording, and per band of distance from the
+    track (score.json's ``by_distance``)."""
+    import json
+
+    from tcf_hil.evaluation import ROWS, show_metric
+
+    if a.scores is None or b.scores is None:
+        return
+    t = Table(title=f"{a.manifest.scenario} {a.manifest.mode}, the same recording: the "
+                    f"reference SIC ({preset}) and the paper's algorithm", header_style="bold")
+    t.add_column("all trees")
+    t.add_column(preset, justify="right")
+    t.add_column("paper", justify="right")
+    ma, mb = a.scores.all.metrics, b.scores.all.metrics
+    for key, label, fmt in ROWS[:1] + ROWS[7:9] + ROWS[11:13] + ROWS[14:15]:
+        t.add_row(label, show_metric(fmt, ma[key]), show_metric(fmt, mb[key]))
+    t.add_row("DBH bias", show_metric("{:+.4f} m", ma.get("dbh_bias_m")),
+              show_metric("{:+.4f} m", mb.get("dbh_bias_m")))
+    bands = [json.loads((r.out / "score.json").read_text(encoding="utf-8"))
+             .get("by_distance") or {} for r in (a, b)]
+    for ba, bb in zip(*(x.get("bands", []) for x in bands), strict=False):
+        if not ba["trees"] or ba["to_m"] is None or ba["from_m"] >= 15:
+            continue
+        span = f"{ba['from_m']:g}-{ba['to_m']:g} m from the track"
+        t.add_row(f"{span}: found, DBH RMSE",
+                  f"{ba['found']}/{ba['trees']}, {show_metric('{:.3f} m', ba['dbh_rmse_m'])}",
+                  f"{bb['found']}/{bb['trees']}, {show_metric('{:.3f} m', bb['dbh_rmse_m'])}")
+    console.print(t)
 
 
 @click.command("run")

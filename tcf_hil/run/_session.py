@@ -468,6 +468,7 @@ class RunSession:
         }
         if scores is not None:
             score_doc.update(scores.summary())
+            score_doc["by_distance"] = _bands(out, scores, latest)
         if manifest.faults is not None:  # the score next to what was done to the SIC
             score_doc["faults"] = manifest.faults.get("injected", {})
         write_json_atomic(out / "score.json", score_doc)
@@ -476,3 +477,19 @@ class RunSession:
         if scores is not None:
             write_report(out / "report.html", result)
         return result
+
+
+def _bands(out: Path, scores: Scores, latest: Any) -> dict[str, Any] | None:
+    """score.json's ``by_distance``: the scoring of all trees per band of distance from the
+    recorded track (none where the run has no sensor_poses.csv)."""
+    from tcf_hil.export import distance_to_track, track_xy
+    from tcf_hil.recorder import by_distance
+
+    track = track_xy(out)
+    if not len(track):
+        return None
+    gt = scores.gt_all
+    return {"bands": by_distance(scores.all, gt, latest,
+                                 distance_to_track(gt.xyz[:, :2], track),
+                                 distance_to_track(latest.xyz[:, :2], track)),
+            "note": "horizontal distance from the sensor's track; each stem in its own band"}

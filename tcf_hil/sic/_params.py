@@ -59,7 +59,7 @@ class StemParams:
     curve_step_m: float = 0.5  # the stem curve's slices (and the axis's, in the band)
     follow_radius_m: float = 0.15  # a slice up the stem is searched this far off its axis
     follow_misses: int = 5  # the stem is followed until this many slices in a row fail
-    crook_m: float = 0.04  # a sideways step of the centre line this large is a crook (X)
+    crook_m: float = 0.06  # a sideways step of the centre line this large is a crook (X)
     min_dbh_m: float = 0.03
     scene_centre: tuple[float, float] = (0.0, 0.0)
     timestamp: str = "20250213_035113"

@@ -213,6 +213,17 @@ def test_export_of_a_live_run(reference_run: Path, tmp_path: Path) -> None:
         score["total_matches"]
     assert sum(o["outcome"] == "false_positive" for o in sic) == score["false_positives"]
     assert all(t["distance_to_track_m"] < 11.0 for t in truth)  # all within 10 m of it
+    # score.json's bands (the report's "Errors by distance") agree with the stems' outcomes
+    bands = json.loads((reference_run / "score.json").read_text())["by_distance"]["bands"]
+    assert [(b["from_m"], b["to_m"]) for b in bands] == [(0, 5), (5, 10), (10, 15), (15, 25),
+                                                         (25, None)]
+    assert sum(b["trees"] for b in bands) == 24
+    assert sum(b["found"] for b in bands) == score["total_matches"]
+    assert sum(b["false_positives"] for b in bands) == score["false_positives"]
+    for b in bands:
+        near = [t for t in truth if b["from_m"] <= t["distance_to_track_m"]
+                < (b["to_m"] or 1e9)]
+        assert b["trees"] == len(near)
 
 
 def test_replay_reproduces_the_score(reference_run: Path, tmp_path: Path) -> None:

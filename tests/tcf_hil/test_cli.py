@@ -128,6 +128,8 @@ def test_demo_through_the_console_script(tmp_path: Path) -> None:
                           timeout=600, env=dict(os.environ, COLUMNS="160"))
     assert proc.returncode == 0, proc.stderr
     assert "Evaluation score (wc)" in proc.stdout and "report.html" in proc.stdout
+    # the paper's algorithm on the same recording, side by side with the field preset
+    assert "the paper's algorithm" in proc.stdout and "0-5 m from the track" in proc.stdout
     runs = list((tmp_path / "runs").iterdir())
     assert len(runs) == 1
     man = json.loads((runs[0] / "manifest.json").read_text())
@@ -138,8 +140,12 @@ def test_demo_through_the_console_script(tmp_path: Path) -> None:
     # the realistic default sensor (os0-64-rev7): 60.9 % measured (the ideal sensor ~96 %)
     assert score["all_trees"]["evaluation_score_percent"] > 40.0
     for name in ("lidar.pcap", "can.log", "report.html", "ground_truth.json",
-                 "visibility.json", "sic/index.ndjson"):
+                 "visibility.json", "sic/index.ndjson", "compare-paper/score.json"):
         assert (runs[0] / name).stat().st_size > 0
+    paper = json.loads((runs[0] / "compare-paper" / "score.json").read_text())
+    # the field preset's DBH beats the paper's on the same bytes (README: ~1 cm against
+    # ~12 cm within 15 m of the track)
+    assert score["all_trees"]["dbh_rmse_m"] < paper["all_trees"]["dbh_rmse_m"]
 
 
 def test_an_output_that_cannot_be_written_is_exit_1(tmp_path: Path,
