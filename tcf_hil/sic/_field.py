@@ -101,9 +101,10 @@ def ransac_circle(xy: FloatArray, *, r_max: float, tol: float, tries: int = 256,
                   rng: np.random.Generator | None = None, near: FloatArray | None = None,
                   near_m: float = 0.1
                   ) -> tuple[float, float, float, NDArray[np.bool_]] | None:
-    """The circle through three of the points that most points lie on (within ``tol``),
-    radius at most ``r_max`` (and its centre within ``near_m`` of ``near`` where given);
-    returns (cx, cy, r, inliers) or None."""
+    """The circle through three of the points that the points lie on best (MSAC: the least
+    sum of squared residuals truncated at ``tol``), radius at most ``r_max`` (and its centre
+    within ``near_m`` of ``near`` where given); returns (cx, cy, r, inliers within ``tol``)
+    or None."""
     n = len(xy)
     if n < 3:
         return None
@@ -129,13 +130,16 @@ def ransac_circle(xy: FloatArray, *, r_max: float, tol: float, tries: int = 256,
     if len(c) == 0:
         return None
     d = np.hypot(xy[None, :, 0] - cx[c, None], xy[None, :, 1] - cy[c, None])
-    inl = np.abs(d - r[c, None]) <= tol
-    best = int(np.argmax(inl.sum(axis=1)))
+    res = np.abs(d - r[c, None])
+    inl = res <= tol
+    # MSAC (Torr & Zisserman 2000): the least truncated squared residual, not the most
+    # inliers alone (a short arc lies within the tolerance of many larger circles)
+    best = int(np.argmin(np.minimum(res, tol).__pow__(2).sum(axis=1)))
     j = c[best]
     return float(cx[j]), float(cy[j]), float(r[j]), inl[best]
 
 
-def trimmed_circle(q: FloatArray, c: Circle, *, tol: float, rounds: int = 3) -> Circle | None:
+def trimmed_circle(q: FloatArray, c: Circle, *, tol: float, rounds: int = 3) -> Circle:
     """The circle refitted on the bark's own shell: nothing of a stem lies inside its bark,
     while branch stubs, needles and mixed returns lie outside it. Each round takes the noise
     from the points inside the circle (their residuals are noise alone), drops the points
@@ -277,25 +281,25 @@ def _circle_on(q: FloatArray, every: FloatArray, *, r_max: float, tol: float,
     if rs is None or int(rs[3].sum()) < min_points:
         return None
     cx, cy, r, inl = rs
-    c = refine_circle(q[inl], cx, cy, r, huber_m=tol / 2)
+    c = refine_circle(q[inl], cx, cy, r, huber_m=tol / 2) or hyper_circle(q[inl])
     if c is None or c.r > r_max or math.hypot(c.cx - cx, c.cy - cy) > max(r, 0.05):
         return None
-    c = trimmed_circle(q, c, tol=tol)
-    if c.r > r_max or c.r <= 0:
+    t = trimmed_circle(q, c, tol=tol)
+    if t.r > r_max or t.r <= 0:
         return None
-    d = np.hypot(q[:, 0] - c.cx, q[:, 1] - c.cy)
-    keep = np.abs(d - c.r) <= tol
+    d = np.hypot(q[:, 0] - t.cx, q[:, 1] - t.cy)
+    keep = np.abs(d - t.r) <= tol
     if int(keep.sum()) < min_points:
         return None
-    de = np.hypot(every[:, 0] - c.cx, every[:, 1] - c.cy)
+    de = np.hypot(every[:, 0] - t.cx, every[:, 1] - t.cy)
     # bark is a thin shell: of the points near the circle, most lie on it
-    if int(keep.sum()) < 0.6 * int((np.abs(d - c.r) <= 5.0 * tol).sum()):
+    if int(keep.sum()) < 0.6 * int((np.abs(d - t.r) <= 5.0 * tol).sum()):
         return None
-    within = int((de <= c.r + tol).sum())
-    inside = int((de < c.r - max(2.0 * tol, 0.2 * c.r)).sum())
+    within = int((de <= t.r + tol).sum())
+    inside = int((de < t.r - max(2.0 * tol, 0.2 * t.r)).sum())
     if inside > max_inside * within:
         return None
-    return c.cx, c.cy, c.r, arc_deg(q[keep], c.cx, c.cy), int(keep.sum())
+    return t.cx, t.cy, t.r, arc_deg(q[keep], t.cx, t.cy), int(keep.sum())
 
 
 # --------------------------------------------------------------------------- stem finding
@@ -386,7 +390,8 @@ def _peaks(xy: FloatArray, weight: FloatArray, layer: NDArray[np.int64], layers:
     size = ni * nj
 
     def grid(w: FloatArray, idx: NDArray[np.int64] = flat, n: int = size) -> FloatArray:
-        return np.bincount(idx, weights=w, minlength=n)
+        out: FloatArray = np.bincount(idx, weights=w, minlength=n).astype(np.float64)
+        return out
 
     def box(a: FloatArray) -> FloatArray:
         """3 x 3 sums over the first two axes."""
@@ -502,7 +507,11 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
     rz = rel[idx]
     step = prm.curve_step_m
     half = prm.slice_thickness_m / 2.0
-    zs, cs, rs, arcs, tried = [], [], [], [], 0
+    zs: list[float] = []
+    cs: list[tuple[float, float]] = []
+    rs: list[float] = []
+    arcs: list[float] = []
+    tried = 0
     levels = np.arange(max(prm.band_m[0], float(rz.min())) + half, float(rz.max()), step)
     order = np.argsort(rz, kind="stable")
     srz = rz[order]
@@ -619,9 +628,8 @@ def stem_form(z: FloatArray, c: FloatArray, h: float, prm: StemParams
     The bow: a quadratic centre line (robust: slices more than 3 MADs, at least 2 cm, off it
     left out) through the centres, taken from the ground to the top; its largest distance
     from its chord is the maxcurve (the stem is seen only up to the crown, so the bow of
-    the whole stem comes from its lower part's curvature). A crook: a sideways step in the
-    centre line's residuals from that bow, the median of up to three slices above a height
-    against the three below it, each side tight within ``crook_m / 2``."""
+    the whole stem comes from its lower part's curvature). A crook: a sideways step in an
+    otherwise straight centre line (a line with a step fitted at each height)."""
     if len(z) < 4:
         return 0.0, 0.0
     keep = np.ones(len(z), bool)
@@ -659,20 +667,25 @@ def stem_form(z: FloatArray, c: FloatArray, h: float, prm: StemParams
     chord = f[-1] - f[0]
     u = chord / float(np.linalg.norm(chord))
     bow = float(np.linalg.norm(np.cross(f - f[0], u), axis=1).max())
-    # crook: a step in the straight centre line (a line, so that the step is not fitted
-    # away as a bow)
-    axis = _line(z, c)
+    # crook: a sideways step in an otherwise straight centre line: for each height between
+    # slices, a line with a step there fitted to the centres (three slices at least on
+    # either side, the step's own slices adjacent); the largest step whose fit leaves the
+    # centres tight (RMS within a quarter of ``crook_m``) and beats the plain line
     crook = 0.0
-    if axis is not None and len(z) >= 6:
-        r = c - (axis[0] + np.outer(z, axis[1]))
-        for i in range(3, len(z) - 2):
-            lo, hi = r[max(0, i - 3):i], r[i:i + 3]
-            if len(hi) < 2 or z[i] - z[i - 1] > 1.01 * prm.curve_step_m + 1e-6:
+    k = len(z)
+    if k >= 6:
+        ones = np.ones(k)
+        plain = np.linalg.lstsq(np.column_stack([ones, z]), c, rcond=None)[0]
+        base_rms = float(np.sqrt(np.mean(np.sum((c - np.column_stack([ones, z]) @ plain) ** 2,
+                                                axis=1))))
+        for i in range(3, k - 2):
+            if z[i] - z[i - 1] > 1.01 * prm.curve_step_m + 1e-6:
                 continue
-            a, b = np.median(lo, axis=0), np.median(hi, axis=0)
-            tight = max(float(np.hypot(*(lo - a).T).max()), float(np.hypot(*(hi - b).T).max()))
-            if tight <= prm.crook_m / 2.0:
-                crook = max(crook, float(np.hypot(*(b - a))))
+            A = np.column_stack([ones, z, (np.arange(k) >= i).astype(float)])
+            sol = np.linalg.lstsq(A, c, rcond=None)[0]
+            rms = float(np.sqrt(np.mean(np.sum((c - A @ sol) ** 2, axis=1))))
+            if rms <= prm.crook_m / 4.0 and rms < 0.7 * base_rms:
+                crook = max(crook, float(np.hypot(*sol[2])))
     return bow, crook
 
 
