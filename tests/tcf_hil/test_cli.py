@@ -137,8 +137,14 @@ def test_demo_through_the_console_script(tmp_path: Path) -> None:
     assert man["lidar"]["frames_sent"] == 1000
     score = json.loads((runs[0] / "score.json").read_text())
     assert score["all_trees"]["n_ground_truth"] == 550
-    # the realistic default sensor (os0-64-rev7): 60.9 % measured (the ideal sensor ~96 %)
-    assert score["all_trees"]["evaluation_score_percent"] > 40.0
+    # the realistic default sensor (os0-64-rev7), the field preset: 40.7 % over all 550
+    # trees measured (it reports the stems within about 15 m of the track, 168 of 168
+    # there; the tuned preset's 60.9 % came from finding far stems with DBH errors of
+    # decimetres). Within 15 m: every stem, DBH RMSE under 2 cm (README)
+    assert score["all_trees"]["evaluation_score_percent"] > 30.0
+    near = [b for b in score["by_distance"]["bands"] if b["to_m"] and b["to_m"] <= 15]
+    assert sum(b["found"] for b in near) >= 0.95 * sum(b["trees"] for b in near)
+    assert all(b["dbh_rmse_m"] < 0.03 for b in near)
     for name in ("lidar.pcap", "can.log", "report.html", "ground_truth.json",
                  "visibility.json", "sic/index.ndjson", "compare-paper/score.json"):
         assert (runs[0] / name).stat().st_size > 0

@@ -247,6 +247,7 @@ def test_the_class_from_the_stem_curve(shape: str, cls: str) -> None:
 
 
 # ------------------------------------------------------------- a live natural stand
+@pytest.mark.slow  # about 3 minutes: .ci/run's second lane
 def test_a_live_run_of_a_natural_stand_scores_above_the_floor(tmp_path: Path) -> None:
     """A regression guard, not the aim: a 0.16 ha corner of ``pine-thinning`` (2,200 stems/ha,
     branches, crowns, understory) driven 24 m at 1024x10 on the wire, the field SIC as its
