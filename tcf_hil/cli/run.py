@@ -155,15 +155,20 @@ def _print_side_by_side(a: Any, b: Any, preset: str) -> None:
         t.add_row(label, show_metric(fmt, ma[key]), show_metric(fmt, mb[key]))
     t.add_row("DBH bias", show_metric("{:+.4f} m", ma.get("dbh_bias_m")),
               show_metric("{:+.4f} m", mb.get("dbh_bias_m")))
-    bands = [json.loads((r.out / "score.json").read_text(encoding="utf-8"))
-             .get("by_distance") or {} for r in (a, b)]
-    for ba, bb in zip(*(x.get("bands", []) for x in bands), strict=False):
-        if not ba["trees"] or ba["to_m"] is None or ba["from_m"] >= 15:
+    bands = [{x["from_m"]: x for x in (json.loads((r.out / "score.json").read_text(
+        encoding="utf-8")).get("by_distance") or {}).get("bands", [])} for r in (a, b)]
+
+    def cell(x: dict[str, Any] | None) -> str:
+        if x is None:
+            return "absent"
+        return f"{x['found']}/{x['trees']}, {show_metric('{:.3f} m', x['dbh_rmse_m'])}"
+
+    for lo in sorted(set(bands[0]) | set(bands[1])):
+        ba = bands[0].get(lo) or bands[1][lo]
+        if not ba["trees"] or ba["to_m"] is None or lo >= 15:
             continue
-        span = f"{ba['from_m']:g}-{ba['to_m']:g} m from the track"
-        t.add_row(f"{span}: found, DBH RMSE",
-                  f"{ba['found']}/{ba['trees']}, {show_metric('{:.3f} m', ba['dbh_rmse_m'])}",
-                  f"{bb['found']}/{bb['trees']}, {show_metric('{:.3f} m', bb['dbh_rmse_m'])}")
+        t.add_row(f"{lo:g}-{ba['to_m']:g} m from the track: found, DBH RMSE",
+                  cell(bands[0].get(lo)), cell(bands[1].get(lo)))
     console.print(t)
 
 

@@ -24,7 +24,8 @@ points of a band above the ground are binned in 10 cm voxels; each voxel's neigh
 features): a stem's bark is a surface whose normal is horizontal, a thin stem a vertical
 line; needles scatter in every direction and branches run sideways. The stem-like voxels
 are joined into vertical components (bridging the band at the sensor's height that a level
-OS0-64 never samples), and each component that stands tall enough is fitted with circles:
+OS0-64 never samples): each bark patch votes along its normal for where the stem's axis
+can be, and each place that gathers votes through the band is verified with circles:
 RANSAC on slices for the axis (Olofsson, Holmgren & Olsson 2014, Remote Sens. 6(5):4323,
 "Tree stem and height measurements using terrestrial laser scanning and the RANSAC
 algorithm"), then one robust circle at breast height on the returns brought onto that axis.
@@ -42,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tcf_hil.sic._circle import Circle
-from tcf_hil.sic._fast import column_min, offset_key, unique_first
+from tcf_hil.sic._fast import column_max, column_min, unique_first
 from tcf_hil.sic._params import StemParams
 
 FloatArray = NDArray[np.float64]
@@ -80,7 +81,14 @@ def edge_widths(range_mm: NDArray[np.integer], cols: NDArray[np.int64], columns:
     edge = np.zeros((h, k), dtype=bool)
     spacing = 360.0 / columns
     reach = max(1, math.ceil(reach_fwhm * divergence_deg / spacing - 1e-6))
+    whole = k == columns and k > 2 * reach and bool((cols == np.arange(columns)).all())
     for s in range(1, reach + 1):
+        if whole:  # a whole frame: the last column is the first one's neighbour
+            b = np.roll(r, -s, axis=1)
+            jump = (r == 0) | (b == 0) | (np.abs(r - b) > jump_m)
+            edge |= jump
+            edge |= np.roll(jump, s, axis=1)
+            continue
         if k <= s:
             edge[:] = True
             break
@@ -89,8 +97,8 @@ def edge_widths(range_mm: NDArray[np.integer], cols: NDArray[np.int64], columns:
         jump = (a == 0) | (b == 0) | (np.abs(a - b) > jump_m) | ~adjacent[None, :]
         edge[:, :-s] |= jump
         edge[:, s:] |= jump
-        edge[:, :s] = True  # the frame's first and last columns: no neighbour here
-        edge[:, -s:] = True
+        edge[:, :s] = True  # a part of a frame: its first and last columns' neighbours
+        edge[:, -s:] = True  # are not known
     half = 0.5 * math.radians(divergence_deg)
     out: NDArray[np.float32] = np.where(edge & (r > 0), half * r, 0.0).astype(np.float32)
     return out
@@ -254,7 +262,9 @@ def stem_circle(xy: FloatArray, width: FloatArray, *, r_max: float, tol: float,
     where at least ``min_points`` of them cover ``min_arc``; else all, less the edge returns'
     median half width. A stem is hollow to the sensor: a circle with more than
     ``max_inside`` of the points within it well inside is no stem (a clump of needles, a
-    shrub). Returns (cx, cy, r, arc, inliers) or None."""
+    shrub). ``edge_share``: the share of the edge returns' half width taken off a radius
+    that only they give. Returns (cx, cy, r, arc, inliers, 0 where the clean returns gave
+    it, 1 where the edge returns did) or None."""
     inner = width <= 0
     if int(inner.sum()) >= min_points:
         f = _circle_on(xy[inner], xy, r_max=r_max, tol=tol, min_points=min_points, near=near,
@@ -330,10 +340,11 @@ class Voxels:
     def __init__(self, p: FloatArray, rel: FloatArray, voxel: float, prm: StemParams) -> None:
         corner = column_min(p)
         v = np.floor((p - corner) / voxel).astype(np.int64) + 1
-        key = offset_key(v)
+        # keyed with a border of one empty voxel on every side, so that a neighbour's key
+        # (+-1 along an axis) never wraps onto a voxel of the next row
+        span = column_max(v) + 2
+        key = (v[:, 0] * span[1] + v[:, 1]) * span[2] + v[:, 2]
         uk, _first, inv = unique_first(key)
-        lo = column_min(v)
-        span = np.array([int(v[:, a].max()) - int(lo[a]) + 1 for a in range(3)], np.int64)
         m = len(uk)
         q = p - corner  # small numbers: no cancellation worth the name at 10 cm
         mom = np.zeros((m, 10))
@@ -408,7 +419,7 @@ def _peaks(xy: FloatArray, weight: FloatArray, layer: NDArray[np.int64], layers:
     bx = box(grid(weight * xy[:, 0]).reshape(ni, nj))
     by = box(grid(weight * xy[:, 1]).reshape(ni, nj))
     pad = np.pad(s, 1, constant_values=-1.0)
-    is_max = (s >= min_votes) & persistent
+    is_max = (s >= min_votes) & (s > 0) & persistent
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
             if di or dj:
@@ -423,8 +434,8 @@ def _peaks(xy: FloatArray, weight: FloatArray, layer: NDArray[np.int64], layers:
 
 def stem_candidates(vx: Voxels, prm: StemParams) -> FloatArray:
     """Where stems stand: every bark patch votes for the points along its normal (both ways:
-    the side the stem lies on is not known) from 1 to ``max_dbh_m / 2`` away, a thin stem's
-    line votes where it is; the stem axes are where the votes pile up in enough height
+    the side the stem lies on is not known) from 1 cm to ``max_dbh_m / 2`` (at most 0.5 m)
+    away, a thin stem's line votes where it is; the stem axes are where the votes pile up in enough height
     layers (``curve_step_m`` thick). (k, 2), the most voted first."""
     step = 0.02
     ts = np.arange(0.01, min(prm.max_dbh_m / 2.0, 0.5) + 1e-9, step)
@@ -437,9 +448,9 @@ def stem_candidates(vx: Voxels, prm: StemParams) -> FloatArray:
     layers = max(1, math.ceil((prm.band_m[1] - prm.band_m[0]) / prm.curve_step_m))
     lay = np.clip(np.floor((vx.rel - prm.band_m[0]) / prm.curve_step_m).astype(np.int64),
                   0, layers - 1)
-    # a patch's votes are spread over a line: each patch weighs 1 in all (about 6 of its
-    # 1/len(ts) votes fall into one 3 x 3 box), a line voxel (a thin stem's whole
-    # cross-section) 1 at its mean
+    # a patch's votes are spread over a line both ways, each 4/len(ts): about 1 of them
+    # falls into the 3 x 3 box at the stem's axis (the 12 cm box holds ~6 of the 2 cm steps
+    # of the right side); a line voxel (a thin stem's whole cross-section) votes 1 at its mean
     xy = np.concatenate([*votes, vx.mean[lv, :2]])
     wt = np.concatenate([np.full(len(sv) * len(ts) * 2, 4.0 / len(ts)), np.ones(len(lv))])
     layer = np.concatenate([np.repeat(lay[sv], len(ts)), np.repeat(lay[sv], len(ts)),
@@ -472,10 +483,9 @@ def field_stems(p: FloatArray, width: FloatArray, ground: FloatArray, prm: StemP
         return []
     # the fits take every band point near a candidate: a stem inside a crown that reaches
     # down to the band has bark whose neighbourhood is mostly needles (not stem-like)
-    stemlike = band
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(p[stemlike, :2])
+    tree = cKDTree(p[band, :2])
     above = np.flatnonzero(rel > prm.band_m[1] - 1.0)  # where stems are followed up
     up_tree = cKDTree(p[above, :2]) if len(above) else None
     reach = min(prm.max_dbh_m / 2.0, 0.5) + 0.1
@@ -484,7 +494,7 @@ def field_stems(p: FloatArray, width: FloatArray, ground: FloatArray, prm: StemP
     for c in cands:
         if any(math.hypot(c[0] - fx, c[1] - fy) < fr + 0.05 for fx, fy, fr in found):
             continue
-        idx = stemlike[np.asarray(tree.query_ball_point(c, reach), np.int64)]
+        idx = band[np.asarray(tree.query_ball_point(c, reach), np.int64)]
         if len(idx) < prm.min_points:
             continue
         t = _stem_from(p, width, rel, idx, prm, c, above, up_tree)
@@ -501,7 +511,7 @@ def field_stems(p: FloatArray, width: FloatArray, ground: FloatArray, prm: StemP
 def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[np.int64],
                prm: StemParams, centre: FloatArray, above: NDArray[np.int64],
                up_tree: Any) -> dict[str, Any] | None:
-    """Fit a stem to the stem-like band points ``idx`` around a candidate ``centre``: the
+    """Fit a stem to the band points ``idx`` around a candidate ``centre``: the
     axis from slice circles (each centred within 10 cm of the candidate), the DBH from the
     breast-height window brought onto the axis, then the stem followed up."""
     rz = rel[idx]
@@ -604,7 +614,8 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
     zc = np.sort(relall[col]) if len(col) else np.array([top_z])
     # walk up while the column has no vertical gap larger than 1.5 m
     gaps = np.flatnonzero(np.diff(zc) > 1.5)
-    zc_top = zc[gaps[0]] if len(gaps) and zc[gaps[0]] >= curve[-1][0] else zc[-1]
+    gaps = gaps[zc[gaps] >= curve[-1][0]]  # gaps below the followed stem's top: occlusion
+    zc_top = zc[gaps[0]] if len(gaps) else zc[-1]
     h = max(float(zc_top), curve[-1][0])
     cz = np.array([c[0] for c in curve])
     cxy = np.array([[c[1], c[2]] for c in curve])
@@ -645,6 +656,8 @@ def stem_form(z: FloatArray, c: FloatArray, h: float, prm: StemParams
         if (new == keep).all():
             break
         keep = new
+    if co is not None and keep.sum() >= 4:  # the fit of the final set (its error below)
+        co = [np.polyfit(z[keep], c[keep, k], 2) for k in (0, 1)]
     if co is None:
         return 0.0, 0.0
     # the curvature as far as the slices show it: shrunk by twice its standard error (a

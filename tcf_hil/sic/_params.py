@@ -51,7 +51,7 @@ class StemParams:
     min_z_share: float = 0.3  # ... and its points spread upwards, not only sideways
     max_variation: float = 0.15  # ... and it is thin (smallest eigenvalue / sum)
     min_votes: float = 30.0  # a stem candidate's votes (about a bark voxel each)
-    min_stem_extent_m: float = 1.0  # a stem component spans at least this much of the band
+    min_stem_extent_m: float = 1.0  # a stem's circles span at least this much of the band
     fit_tolerance_m: float = 0.02  # RANSAC inlier distance from a slice's circle
     dbh_tolerance_m: float = 0.012  # ... and from the breast-height circle
     dbh_window_m: tuple[float, float] = (0.8, 1.8)  # the breast-height circle's points
