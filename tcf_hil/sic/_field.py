@@ -435,8 +435,8 @@ def _peaks(xy: FloatArray, weight: FloatArray, layer: NDArray[np.int64], layers:
 def stem_candidates(vx: Voxels, prm: StemParams) -> FloatArray:
     """Where stems stand: every bark patch votes for the points along its normal (both ways:
     the side the stem lies on is not known) from 1 cm to ``max_dbh_m / 2`` (at most 0.5 m)
-    away, a thin stem's line votes where it is; the stem axes are where the votes pile up in enough height
-    layers (``curve_step_m`` thick). (k, 2), the most voted first."""
+    away, a thin stem's line votes where it is; the stem axes are where the votes pile up
+    in enough height layers (``curve_step_m`` thick). (k, 2), the most voted first."""
     step = 0.02
     ts = np.arange(0.01, min(prm.max_dbh_m / 2.0, 0.5) + 1e-9, step)
     sv = np.flatnonzero(vx.surface)
