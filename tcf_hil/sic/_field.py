@@ -495,6 +495,11 @@ def field_stems(p: FloatArray, width: FloatArray, ground: FloatArray, prm: StemP
         if any(math.hypot(c[0] - fx, c[1] - fy) < fr + 0.05 for fx, fy, fr in found):
             continue
         idx = band[np.asarray(tree.query_ball_point(c, reach), np.int64)]
+        # a return belongs to one stem: those on a stem found already (stronger candidates
+        # come first) are not another's (a circle through two close stems' facing sides)
+        for fx, fy, fr in found:
+            if math.hypot(c[0] - fx, c[1] - fy) < reach + fr + 0.05:
+                idx = idx[np.hypot(p[idx, 0] - fx, p[idx, 1] - fy) > fr + 0.03]
         if len(idx) < prm.min_points:
             continue
         t = _stem_from(p, width, rel, idx, prm, c, above, up_tree)
