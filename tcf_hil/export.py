@@ -625,7 +625,7 @@ def _write_headed(path: Path, frames: Iterator[NDArray[np.void]],
 # ---------------------------------------------------------------- stems
 
 
-def _track_xy(run: Path, step: int = 64) -> NDArray[np.float64]:
+def track_xy(run: Path, step: int = 64) -> NDArray[np.float64]:
     """The sensor's horizontal track (every ``step``-th column pose, and the last)."""
     path = run / "sensor_poses.csv"
     if not path.exists():
@@ -647,18 +647,7 @@ def _track_xy(run: Path, step: int = 64) -> NDArray[np.float64]:
     return np.array(xy).reshape(-1, 2)
 
 
-def track_xy(run: Path, step: int = 64) -> NDArray[np.float64]:
-    """The recorded sensor track of a run directory (see :func:`_track_xy`)."""
-    return _track_xy(run, step)
-
-
 def distance_to_track(xy: NDArray[np.float64], track: NDArray[np.float64]
-                      ) -> NDArray[np.float64]:
-    """Horizontal distance of points from the track polyline (see :func:`_distance_to_track`)."""
-    return _distance_to_track(xy, track)
-
-
-def _distance_to_track(xy: NDArray[np.float64], track: NDArray[np.float64]
                        ) -> NDArray[np.float64]:
     """Horizontal distance of each point from the polyline ``track`` (exact: only segments
     with an end within the nearest vertex's distance plus the longest segment can be
@@ -700,7 +689,7 @@ def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
     than the 10th percentile of the returns of the stems the SIC found: the run's own
     yardstick, not a fixed count) or ``seen, not found``. The truth is the run's
     ``ground_truth.json`` or, for a field recording, its ``inventory.csv`` (``gt_doc``,
-    ``track``: the truth and :func:`_track_xy` when the caller has read them already)."""
+    ``track``: the truth and :func:`track_xy` when the caller has read them already)."""
     from tcf_hil.evaluation import EvalConfig
     from tcf_hil.recorder import empty_forest, score_forest
     from tcf_hil.stems_json import stem_table
@@ -746,11 +735,11 @@ def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
     match_of_gt = dict(zip(ev.pairs[:, 0].tolist(), ev.pairs[:, 1].tolist(), strict=True))
     match_of_obs = {o: g for g, o in match_of_gt.items()}
     if track is None:
-        track = _track_xy(run)
+        track = track_xy(run)
     g_objs = gt_doc.get("objects", [])
     o_objs = obs_doc.get("objects", [])
-    gd = _distance_to_track(gt.xyz[:, :2], track)
-    od = _distance_to_track(obs.xyz[:, :2], track)
+    gd = distance_to_track(gt.xyz[:, :2], track)
+    od = distance_to_track(obs.xyz[:, :2], track)
     found = [g_objs[i].get("returns") for i in match_of_gt]
     found = [r for r in found if isinstance(r, int)]
     few = float(np.percentile(found, 10)) if found else 0.0

@@ -86,11 +86,11 @@ def build_report(run_dir: str | Path, manifest: dict[str, Any] | None = None,
     score = read_json(score_path)
     if manifest is None:
         manifest = read_json(run / "manifest.json") if (run / "manifest.json").exists() else {}
-    from tcf_hil.export import STEM_COLUMNS, _track_xy, stem_outcomes
+    from tcf_hil.export import STEM_COLUMNS, stem_outcomes, track_xy
 
     gt_doc = read_json(run / "ground_truth.json") if (run / "ground_truth.json").exists() \
         else None
-    track = _track_xy(run)  # (every 64th column: millimetres apart, fine for drawing too)
+    track = track_xy(run)  # (every 64th column: millimetres apart, fine for drawing too)
     gts, obs = stem_outcomes(run, gt_doc, track)
     frame = _Frame.around(gts, obs, track)
     cloud = _cloud(run, frame, manifest, say)

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from tcf_hil.sic._circle import Circle
+from tcf_hil.sic._circle import Circle, _arc_coverage
 from tcf_hil.sic._fast import column_max, column_min, unique_first
 from tcf_hil.sic._params import StemParams
 
@@ -246,11 +246,7 @@ def refine_circle(q: FloatArray, cx: float, cy: float, r: float, *, huber_m: flo
 
 def arc_deg(xy: FloatArray, cx: float, cy: float) -> float:
     """The angle around (cx, cy) that the points cover (360 less the largest gap)."""
-    if len(xy) < 2:
-        return 0.0
-    a = np.sort(np.arctan2(xy[:, 1] - cy, xy[:, 0] - cx))
-    gaps = np.diff(np.concatenate([a, [a[0] + 2.0 * math.pi]]))
-    return math.degrees(2.0 * math.pi - float(gaps.max()))
+    return _arc_coverage(np.arctan2(xy[:, 1] - cy, xy[:, 0] - cx))
 
 
 def stem_circle(xy: FloatArray, width: FloatArray, *, r_max: float, tol: float,

@@ -32,8 +32,8 @@ from tcf_hil.cli import main
 from tcf_hil.export import (
     GPS_MINUS_UNIX_S,
     PCD_DTYPE,
-    _distance_to_track,
     _rotations,
+    distance_to_track,
     export,
 )
 from tcf_hil.lidar import record_pcap
@@ -349,7 +349,7 @@ def test_rotations_are_scipys(q: np.ndarray) -> None:
        arrays(np.float64, (7, 2), elements=st.floats(-60, 60)))
 def test_distance_to_track_is_the_nearest_segments(track: np.ndarray, xy: np.ndarray) -> None:
     """Against brute force over every segment, for tracks with segments of any length."""
-    got = _distance_to_track(xy, track)
+    got = distance_to_track(xy, track)
     a, b = track[:-1], track[1:]
     ab = b - a
     ap = xy[:, None, :] - a[None]
