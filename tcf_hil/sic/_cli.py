@@ -47,8 +47,14 @@ _D = SicConfig.from_env()
 @click.option("--voxel", "voxel_m", type=click.FloatRange(min=0.001), default=None,
               help="Voxel map resolution, m (default 0.03 for tuned, 0.1 for paper: about "
                    "the paper's point density).")
-@click.option("--max-points", type=click.IntRange(min=10_000), default=6_000_000,
-              show_default=True, help="Voxel map cap (farthest tiles dropped beyond it).")
+@click.option("--max-points", type=click.IntRange(min=10_000), default=_D.max_points,
+              show_default=True,
+              help="Voxel map cap, points (24 bytes each; the farthest tiles dropped beyond "
+                   "it, a tile due for its last run held up to 1.5 times it).")
+@click.option("--stem-worker/--inline-stems", "stem_worker", default=_D.stem_worker,
+              show_default="$TCF_SIC_STEM_WORKER, else a worker",
+              help="Run the stem algorithm in a process of its own at a lower priority (so "
+                   "that no tile run holds up a frame), or inline between frames.")
 def sic_command(**kw: object) -> None:
     """The reference onboard stem identification and classification program.
 

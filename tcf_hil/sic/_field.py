@@ -105,19 +105,46 @@ def edge_widths(range_mm: NDArray[np.integer], cols: NDArray[np.int64], columns:
 
 
 # ------------------------------------------------------------------------------ circle fits
+_LOCAL_FROM = 200  # a slice with more points than this samples locally too
+_LOCAL_K = 48
+
+
 def ransac_circle(xy: FloatArray, *, r_max: float, tol: float, tries: int = 256,
                   rng: np.random.Generator | None = None, near: FloatArray | None = None,
-                  near_m: float = 0.1
+                  near_m: float = 0.1, local_m: float = 0.1, hollow: bool = True
                   ) -> tuple[float, float, float, NDArray[np.bool_]] | None:
     """The circle through three of the points that the points lie on best (MSAC: the least
-    sum of squared residuals truncated at ``tol``), radius at most ``r_max`` (and its centre
-    within ``near_m`` of ``near`` where given); returns (cx, cy, r, inliers within ``tol``)
-    or None."""
+    sum of squared residuals truncated at ``tol``, or half the radius where that is less),
+    radius at most ``r_max`` (and its centre within ``near_m`` of ``near`` where given);
+    returns (cx, cy, r, inliers) or None. ``local_m``: in a slice of many points, half the
+    tries take their second and third point within this of the first (0: all drawn from
+    the whole slice). ``hollow``: a point well inside a circle costs twice an outlier."""
     n = len(xy)
     if n < 3:
         return None
     g = rng or np.random.default_rng(n)
     idx = g.integers(0, n, size=(tries, 3))
+    if local_m and n > _LOCAL_FROM:
+        # in clutter (a stem inside a crown: a tenth of a slice's points on the bark) three
+        # points drawn from the whole slice all lie on the bark once in a thousand tries;
+        # half the tries draw the second and third point among the first's neighbours
+        # (within ``local_m``), as NAPSAC does (Torr et al. 2002, "NAPSAC: high noise, high
+        # dimensional robust estimation"), so that a third of them come from one surface
+        from scipy.spatial import cKDTree
+
+        h = tries // 2
+        _d, nb = cKDTree(xy).query(xy[idx[h:, 0]], k=_LOCAL_K, distance_upper_bound=local_m)
+        cnt = (nb < n).sum(axis=1)  # the first is the point itself
+        m = len(cnt)
+        # from the farther half of the neighbours: three points a few millimetres apart
+        # give a circle the noise decides
+        lo = np.maximum(cnt // 2, 1)
+        j2 = lo + (g.random(m) * np.maximum(cnt - lo, 1)).astype(np.int64)
+        j3 = lo + (g.random(m) * np.maximum(cnt - lo, 1)).astype(np.int64)
+        has = cnt >= 3
+        rows = np.arange(m)
+        idx[h:, 1] = np.where(has, nb[rows, np.minimum(j2, _LOCAL_K - 1)], idx[h:, 1])
+        idx[h:, 2] = np.where(has, nb[rows, np.minimum(j3, _LOCAL_K - 1)], idx[h:, 2])
     p1, p2, p3 = xy[idx[:, 0]], xy[idx[:, 1]], xy[idx[:, 2]]
     ax, ay = p2[:, 0] - p1[:, 0], p2[:, 1] - p1[:, 1]
     bx, by = p3[:, 0] - p1[:, 0], p3[:, 1] - p1[:, 1]
@@ -138,11 +165,21 @@ def ransac_circle(xy: FloatArray, *, r_max: float, tol: float, tries: int = 256,
     if len(c) == 0:
         return None
     d = np.hypot(xy[None, :, 0] - cx[c, None], xy[None, :, 1] - cy[c, None])
-    res = np.abs(d - r[c, None])
-    inl = res <= tol
-    # MSAC (Torr & Zisserman 2000): the least truncated squared residual, not the most
-    # inliers alone (a short arc lies within the tolerance of many larger circles)
-    best = int(np.argmin(np.minimum(res, tol).__pow__(2).sum(axis=1)))
+    sres = d - r[c, None]
+    res = np.abs(sres)
+    # a circle's band is no wider than half its radius: with a wider one, a small circle
+    # centred on a thick stem's bark holds the bark around its centre as inliers
+    tc = np.minimum(tol, np.maximum(0.5 * r[c], 0.005))[:, None]
+    inl = res <= tc
+    # MSAC (Torr & Zisserman 2000): the least truncated squared residual (in units of the
+    # band), not the most inliers alone (a short arc lies within the band of many larger
+    # circles). A stem hides what lies behind its bark: a point well inside a circle costs
+    # twice an outlier, so that among needles a circle through the crown (more points near
+    # it than the bark has, and the crown inside it) loses to the bark's (nothing inside)
+    cost = np.minimum(res / tc, 1.0) ** 2
+    if hollow:
+        cost += sres < -2.0 * tc
+    best = int(np.argmin(cost.sum(axis=1)))
     j = c[best]
     return float(cx[j]), float(cy[j]), float(r[j]), inl[best]
 
@@ -251,42 +288,46 @@ def arc_deg(xy: FloatArray, cx: float, cy: float) -> float:
 
 def stem_circle(xy: FloatArray, width: FloatArray, *, r_max: float, tol: float,
                 min_points: int, min_arc: float = 60.0, near: FloatArray | None = None,
-                max_inside: float = 0.1, edge_share: float = 1.0
-                ) -> tuple[float, float, float, float, int, int] | None:
+                max_inside: float = 0.1, edge_share: float = 1.0, outside: float = 5.0
+                ) -> tuple[float, float, float, float, int, int, bool] | None:
     """A stem's circle from a slice's points (x, y) and their edge half widths: RANSAC, then
     the robust geometric fit on the inliers. The returns without a mixed footprint are fitted
     where at least ``min_points`` of them cover ``min_arc``; else all, less the edge returns'
     median half width. A stem is hollow to the sensor: a circle with more than
     ``max_inside`` of the points within it well inside is no stem (a clump of needles, a
-    shrub). ``edge_share``: the share of the edge returns' half width taken off a radius
-    that only they give. Returns (cx, cy, r, arc, inliers, 0 where the clean returns gave
-    it, 1 where the edge returns did) or None."""
+    shrub); nor one with fewer than 60 % of the points from 5 tolerances inside it to
+    ``outside`` tolerances outside it on it (bark is a thin shell). ``edge_share``: the
+    share of the edge returns' half width taken off a radius that only they give. Returns
+    (cx, cy, r, arc, inliers, 0 where the clean returns gave it, 1 where the edge returns
+    did, whether the shell holds against 5 tolerances outside it too) or None."""
     inner = width <= 0
     if int(inner.sum()) >= min_points:
         f = _circle_on(xy[inner], xy, r_max=r_max, tol=tol, min_points=min_points, near=near,
-                       max_inside=max_inside)
+                       max_inside=max_inside, outside=outside)
         if f is not None and f[3] >= min_arc:
-            return (*f, 0)
+            return (*f[:5], 0, f[5])
     # the edge returns are weaker, so noisier (and mixed): a wider tolerance
     f = _circle_on(xy, xy, r_max=r_max, tol=2.0 * tol, min_points=min_points, near=near,
-                   max_inside=max_inside)
+                   max_inside=max_inside, outside=outside)
     if f is None:
         return None
     d = np.hypot(xy[:, 0] - f[0], xy[:, 1] - f[1])
     w = width[(np.abs(d - f[2]) <= 2.0 * tol) & (width > 0)]
     r_fit = max(0.01, f[2] - edge_share * (float(np.median(w)) if len(w) else 0.0))
-    return f[0], f[1], r_fit, f[3], f[4], 1
+    return f[0], f[1], r_fit, f[3], f[4], 1, f[5]
 
 
 def _circle_on(q: FloatArray, every: FloatArray, *, r_max: float, tol: float,
-               min_points: int, near: FloatArray | None, max_inside: float
-               ) -> tuple[float, float, float, float, int] | None:
+               min_points: int, near: FloatArray | None, max_inside: float,
+               outside: float = 5.0
+               ) -> tuple[float, float, float, float, int, bool] | None:
     if len(q) < min_points:
         return None
     rs = ransac_circle(q, r_max=r_max, tol=tol, near=near)
     if rs is None or int(rs[3].sum()) < min_points:
         return None
     cx, cy, r, inl = rs
+    tol = min(tol, max(0.5 * r, 0.005))  # as RANSAC's band
     c = refine_circle(q[inl], cx, cy, r, huber_m=tol / 2) or hyper_circle(q[inl])
     if c is None or c.r > r_max or math.hypot(c.cx - cx, c.cy - cy) > max(r, 0.05):
         return None
@@ -298,14 +339,45 @@ def _circle_on(q: FloatArray, every: FloatArray, *, r_max: float, tol: float,
     if int(keep.sum()) < min_points:
         return None
     de = np.hypot(every[:, 0] - t.cx, every[:, 1] - t.cy)
-    # bark is a thin shell: of the points near the circle, most lie on it
-    if int(keep.sum()) < 0.6 * int((np.abs(d - t.r) <= 5.0 * tol).sum()):
+    # bark is a thin shell that hides what lies behind it: of the points near the circle
+    # (from 5 tolerances inside to ``outside`` tolerances outside it: needles may crowd the
+    # bark's outside), most lie on it
+    inner_band = (t.r - d) <= 5.0 * tol
+    if int(keep.sum()) < 0.6 * int((inner_band & (d - t.r <= outside * tol)).sum()):
         return None
+    # ... and whether it is so on the outside too (no crown crowds it)
+    clean = int(keep.sum()) >= 0.6 * int((inner_band & (d - t.r <= 5.0 * tol)).sum())
     within = int((de <= t.r + tol).sum())
     inside = int((de < t.r - max(2.0 * tol, 0.2 * t.r)).sum())
     if inside > max_inside * within:
         return None
-    return t.cx, t.cy, t.r, arc_deg(q[keep], t.cx, t.cy), int(keep.sum())
+    # one stem's bark is one arc: a circle whose points lie in separate short arcs (through
+    # the facing sides of two or three neighbouring stems) is none
+    if arc_fill(q[keep], t.cx, t.cy, t.r) < _MIN_ARC_FILL:
+        return None
+    return t.cx, t.cy, t.r, arc_deg(q[keep], t.cx, t.cy), int(keep.sum()), clean
+
+
+_MIN_ARC_FILL = 0.5
+
+
+def arc_fill(xy: FloatArray, cx: float, cy: float, r: float, hole_m: float = 0.05) -> float:
+    """The share of the arc the points cover (360 less the largest gap) that holds points:
+    gaps between neighbouring points longer than ``hole_m``, at least 10 degrees and three
+    times their median gap, count as holes. 1 for a continuous arc."""
+    if len(xy) < 2:
+        return 0.0
+    a = np.sort(np.mod(np.arctan2(xy[:, 1] - cy, xy[:, 0] - cx), 2.0 * math.pi))
+    gaps = np.diff(np.concatenate([a, [a[0] + 2.0 * math.pi]]))
+    big = int(np.argmax(gaps))
+    span = 2.0 * math.pi - float(gaps[big])
+    if span <= 0.0:
+        return 0.0
+    rest = np.delete(gaps, big)
+    # a hole is a gap well beyond the points' own spacing (a sparse arc is no two arcs)
+    h = max(hole_m / max(r, 1e-6), math.radians(10.0),
+            3.0 * float(np.median(rest)) if len(rest) else 0.0)
+    return 1.0 - float(rest[rest > h].sum()) / span
 
 
 # --------------------------------------------------------------------------- stem finding
@@ -456,12 +528,14 @@ def stem_candidates(vx: Voxels, prm: StemParams) -> FloatArray:
 
 
 def _fit_window(xy: FloatArray, width: FloatArray, prm: StemParams,
-                near: FloatArray | None = None, tol: float | None = None
-                ) -> tuple[float, float, float, float, int, int] | None:
+                near: FloatArray | None = None, tol: float | None = None,
+                outside: float | None = None
+                ) -> tuple[float, float, float, float, int, int, bool] | None:
     return stem_circle(xy, width, r_max=prm.max_dbh_m / 2.0,
                        tol=prm.fit_tolerance_m if tol is None else tol,
                        min_points=prm.min_slice_points, near=near,
-                       edge_share=prm.edge_correction)
+                       edge_share=prm.edge_correction,
+                       outside=prm.shell_outside if outside is None else outside)
 
 
 def field_stems(p: FloatArray, width: FloatArray, ground: FloatArray, prm: StemParams
@@ -498,7 +572,9 @@ def field_stems(p: FloatArray, width: FloatArray, ground: FloatArray, prm: StemP
                 idx = idx[np.hypot(p[idx, 0] - fx, p[idx, 1] - fy) > fr + 0.03]
         if len(idx) < prm.min_points:
             continue
-        t = _stem_from(p, width, rel, idx, prm, c, above, up_tree)
+        crowded = any(math.hypot(c[0] - fx, c[1] - fy) < prm.crowd_m for fx, fy, _ in found)
+        t = _stem_from(p, width, rel, idx, prm, c, above, up_tree,
+                       outside=5.0 if crowded else prm.shell_outside)
         if t is None:
             continue
         if any(math.hypot(t["x"] - fx, t["y"] - fy) < max(fr, t["dbh"] / 2.0) + 0.02
@@ -511,7 +587,7 @@ def field_stems(p: FloatArray, width: FloatArray, ground: FloatArray, prm: StemP
 
 def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[np.int64],
                prm: StemParams, centre: FloatArray, above: NDArray[np.int64],
-               up_tree: Any) -> dict[str, Any] | None:
+               up_tree: Any, outside: float | None = None) -> dict[str, Any] | None:
     """Fit a stem to the band points ``idx`` around a candidate ``centre``: the
     axis from slice circles (each centred within 10 cm of the candidate), the DBH from the
     breast-height window brought onto the axis, then the stem followed up."""
@@ -522,6 +598,7 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
     cs: list[tuple[float, float]] = []
     rs: list[float] = []
     arcs: list[float] = []
+    clean: list[bool] = []
     tried = 0
     levels = np.arange(max(prm.band_m[0], float(rz.min())) + half, float(rz.max()), step)
     order = np.argsort(rz, kind="stable")
@@ -536,20 +613,25 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
             return None  # too few slices left to make a stem
         tried += 1
         s = idx[order[a:b]]
-        f = _fit_window(p[s, :2], width[s], prm, centre)
+        f = _fit_window(p[s, :2], width[s], prm, centre, outside=outside)
         if f is None or math.hypot(f[0] - centre[0], f[1] - centre[1]) > 0.1:
             continue
         arcs.append(f[3])
         zs.append(zc)
         cs.append((f[0], f[1]))
         rs.append(f[2])
+        clean.append(f[6])
     if len(zs) < 2 or zs[-1] - zs[0] < prm.min_stem_extent_m - prm.slice_thickness_m:
         return None
     zs_a, cs_a, rs_a = np.array(zs), np.array(cs), np.array(rs)
     # the slices' radii agree on one stem: drop those far off their median
     rmed = float(np.median(rs_a))
     ok = np.abs(rs_a - rmed) <= max(0.3 * rmed, 0.02)
-    if ok.sum() < prm.min_slices:
+    # a stem whose bark stands clear of needles in min_slices slices; one crowded by them
+    # (a weaker shell: a gap in a crown or a sapling's crown pass it too) in one more
+    if ok.sum() < prm.min_slices or (
+            int(np.asarray(clean)[ok].sum()) < prm.min_slices
+            and ok.sum() < prm.min_slices + 1):
         return None
     zs_a, cs_a, rs_a = zs_a[ok], cs_a[ok], rs_a[ok]
     # the axis: a robust line through the slice centres (median-based outlier rejection)
@@ -559,6 +641,7 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
     c13 = axis[0] + axis[1] * BREAST_HEIGHT_M
     # breast height: the window's points brought onto the axis, one circle
     lo, hi = prm.dbh_window_m
+    r_near = float(np.median(rs_a[np.argsort(np.abs(zs_a - BREAST_HEIGHT_M))[:3]]))
     w = idx[(rz >= lo) & (rz <= hi)]
     dbh = math.nan
     dbh_path = 2
@@ -568,12 +651,15 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
         f = _fit_window(p[w, :2] - shift, width[w], prm, c13, prm.dbh_tolerance_m)
         if f is None:
             f = _fit_window(p[w, :2] - shift, width[w], prm, c13)
-        if f is not None and math.hypot(f[0] - cx, f[1] - cy) < 0.1 + f[2]:
+        # the circle must be the stem the slices found: centred on their axis, its radius
+        # that of the slices nearest breast height (as the slices' radii agree with each
+        # other); a circle through a crown or a neighbour beside the stem is not its DBH
+        if (f is not None and math.hypot(f[0] - cx, f[1] - cy) < 0.1
+                and abs(f[2] - r_near) <= max(0.3 * r_near, 0.02)):
             cx, cy, dbh = f[0], f[1], 2.0 * f[2]
             dbh_path = f[5]
     if not math.isfinite(dbh):
-        near = np.argsort(np.abs(zs_a - BREAST_HEIGHT_M))[:3]
-        dbh = 2.0 * float(np.median(rs_a[near]))
+        dbh = 2.0 * r_near
     if not (prm.min_dbh_m <= dbh <= prm.max_dbh_m):
         return None
     lean = axis[1]
@@ -661,8 +747,8 @@ def stem_form(z: FloatArray, c: FloatArray, h: float, prm: StemParams
         co = [np.polyfit(z[keep], c[keep, k], 2) for k in (0, 1)]
     if co is None:
         return 0.0, 0.0
-    # the curvature as far as the slices show it: shrunk by twice its standard error (a
-    # short, noisy centre line extrapolated to the top would make every stem a bow)
+    # the curvature as far as the slices show it: shrunk by bow_shrink_se standard errors
+    # (a short, noisy centre line extrapolated to the top would make every stem a bow)
     q = np.array([co[0][0], co[1][0]])
     qn = float(np.hypot(*q))
     if keep.sum() >= 5 and qn > 0:
@@ -674,8 +760,10 @@ def stem_form(z: FloatArray, c: FloatArray, h: float, prm: StemParams
         except np.linalg.LinAlgError:
             inv = math.inf
         se = math.sqrt(max(0.0, 0.5 * sum(res2) / max(1, len(zk) - 3) * inv))
-        shrink = max(0.0, qn - 2.0 * se) / qn
+        shrink = max(0.0, qn - prm.bow_shrink_se * se) / qn
         co = [np.array([co[k][0] * shrink, co[k][1], co[k][2]]) for k in (0, 1)]
+    elif qn > 0:  # four slices or fewer: no error to judge a curvature by, so none
+        co = [np.array([0.0, co[k][1], co[k][2]]) for k in (0, 1)]
     zz = np.linspace(0.0, max(h, float(z.max())), 60)
     f = np.column_stack([np.polyval(co[0], zz), np.polyval(co[1], zz), zz])
     chord = f[-1] - f[0]

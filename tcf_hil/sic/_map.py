@@ -8,6 +8,7 @@ float32 storage loses nothing (micrometres over kilometres).
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from dataclasses import dataclass, field
@@ -132,6 +133,31 @@ class GroundGrid:
 
 
 @dataclass
+class TileJob:
+    """One run of the stem algorithm on a tile: its points and its border's (x, y, z, edge
+    half width; float32, local metres), the ground height under each, and the tile's id and
+    size (its stems are those whose centre lies inside it). Pickles small (two arrays), for a
+    worker process."""
+
+    tid: tuple[int, int]
+    points: NDArray[np.float32]
+    ground_z: FloatArray
+    tile_m: float
+
+
+def tile_stems(job: TileJob, params: StemParams) -> list[dict[str, Any]]:
+    """The stems of a tile run: the stem algorithm on the job's points, those whose centre
+    lies inside the tile."""
+    if len(job.points) == 0:
+        return []
+    pts = job.points.astype(np.float64)
+    doc = identify_stems(pts[:, :3], params, ground_z=job.ground_z, widths=pts[:, 3])
+    x0, y0 = job.tid[0] * job.tile_m, job.tid[1] * job.tile_m
+    return [o for o in doc["objects"]
+            if x0 <= o["cp"][0] < x0 + job.tile_m and y0 <= o["cp"][1] < y0 + job.tile_m]
+
+
+@dataclass
 class _Tile:
     chunks: list[NDArray[np.float32]] = field(default_factory=list)
     points: int = 0  # after the last compaction
@@ -140,8 +166,13 @@ class _Tile:
     stems: list[dict[str, Any]] = field(default_factory=list)
     basis: int = 0  # the tile's own points its stems were found on
     evicted: bool = False  # lost its points since its stems were found
+    run_distance: float = 0.0  # from the machine, when it last ran
     keys: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    # ^ the voxel keys of the compacted points (chunks[0] where points > 0), sorted
+    runs: list[NDArray[np.int64]] = field(default_factory=list)
+    # ^ the voxel keys of the compacted points (chunks[:ncompact]): sorted runs, the big one
+    # and the recent ones' (merged as they grow)
+    ncompact: int = 0  # chunks[:ncompact] are compacted, the rest pending
+    vox: list[NDArray[np.int64]] = field(default_factory=list)  # the pending chunks' voxels
 
 
 @dataclass
@@ -151,18 +182,22 @@ class MapStats:
     evicted_points: int = 0
     tile_runs: int = 0
     tile_seconds: float = 0.0
+    held_runs: int = 0  # dirty tiles evicted over the hard cap, their last run held
 
 
 class StemMap:
     """Points above the ground (x, y, z and the edge half width), one per ``voxel_m`` cube and
     kind, in ``tile_m`` tiles.
 
-    ``add`` takes a frame's points; ``update`` re-runs the stem algorithm on dirty tiles (each
-    with a ``margin_m`` border from its neighbours, keeping the stems whose centre lies inside
-    it) for at most ``budget_s``; ``forest`` assembles the observed document. The map holds
-    at most ``max_points``: beyond that the tiles farthest from the machine lose their
-    points (their stems stay: the sensor hardly reaches them now). Such a tile runs again
-    only once it holds more points than its stems were found on.
+    ``add`` takes a frame's points (each tile keeps the new voxels' points at once, against
+    its sorted keys: a frame's cost follows the frame, not the tile); ``update`` re-runs the
+    stem algorithm on dirty tiles (each with a ``margin_m`` border from its neighbours,
+    keeping the stems whose centre lies inside it) for at most ``budget_s``; or a worker
+    process takes them (``defer_runs``, :meth:`next_job`, :meth:`accept`); ``forest``
+    assembles the observed document. The map holds at most ``max_points``: beyond that the
+    tiles farthest from the machine lose their points (their stems stay: the sensor hardly
+    reaches them now). Such a tile runs again only once it holds more points than its stems
+    were found on.
     """
 
     def __init__(self, params: StemParams, *, voxel_m: float = 0.03, tile_m: float = 10.0,
@@ -180,6 +215,14 @@ class StemMap:
         self.tiles: dict[tuple[int, int], _Tile] = {}
         self.stats = MapStats()
         self._last_xy = np.zeros(2)
+        # tile runs done elsewhere (a worker process, :mod:`tcf_hil.sic._worker`): a dirty
+        # tile due for eviction keeps its points until the worker ran it (up to hard_cap
+        # times max_points), instead of running inside add()
+        self.defer_runs = False
+        self.hard_cap = 1.5
+        self.backlog: collections.deque[TileJob] = collections.deque()
+        self.rerun_growth = 0.25  # next_job: a tile runs again once it grew by this share
+        self.settle_m = 5.0  # ... or the machine moved this far away from it
 
     # -- input ------------------------------------------------------------------------------
     def add(self, pts: FloatArray, sensor_xy: FloatArray | None = None,
@@ -203,13 +246,15 @@ class StemMap:
             return 0
         # one point per voxel within the frame (the first), then per tile; the voxels keyed
         # from the frame's own corner, so that the packed sort has room for the index
-        sk, order = sorted_with_order(offset_key(self._voxels(keep)))
-        keep = keep[np.sort(order[run_starts(sk)])]
+        vox = self._voxels(keep)
+        sk, order = sorted_with_order(offset_key(vox))
+        sel = np.sort(order[run_starts(sk)])
+        keep, vox = keep[sel], vox[sel]
         t = np.floor(keep[:, :2] / self.tile).astype(np.int64)
         t0 = column_min(t)
         nj = int(t[:, 1].max() - t0[1]) + 1
         _, order = sorted_with_order((t[:, 0] - t0[0]) * nj + (t[:, 1] - t0[1]))  # by tile
-        keep, t = keep[order], t[order]
+        keep, t, vox = keep[order], t[order], vox[order]
         starts = np.flatnonzero(np.r_[True, (t[1:, 0] != t[:-1, 0]) | (t[1:, 1] != t[:-1, 1])])
         ends = np.r_[starts[1:], len(keep)]
         f32 = keep.astype(np.float32)
@@ -219,19 +264,17 @@ class StemMap:
             if tile is None:
                 tile = self.tiles[tid] = _Tile()
             tile.chunks.append(f32[a:b])
+            # the voxels of the points as they came (float64), not of their float32 copies
+            tile.vox.append(vox[a:b])
             tile.pending += b - a
+            self.stats.points += b - a
+            fresh = self._absorb(tile)
             if not tile.evicted:
-                tile.dirty = True
-            elif (not tile.dirty and tile.points + tile.pending > tile.basis
-                  and 4 * tile.pending >= tile.points):
+                tile.dirty = tile.dirty or fresh > 0
+            elif not tile.dirty and tile.points > tile.basis:
                 # a tile that lost its points runs again once it holds more than its stems
-                # were found on (a few far returns must not replace them): its points
-                # counted without repeats, after a quarter as many new ones (amortised)
-                self._compact(tile)
-                tile.dirty = tile.points > tile.basis
-            if tile.pending > max(tile.points, 50_000):
-                self._compact(tile)
-        self.stats.points += len(keep)
+                # were found on (a few far returns must not replace them)
+                tile.dirty = True
         if self.stats.points > self.max_points:
             self._evict()
         return len(keep)
@@ -248,15 +291,21 @@ class StemMap:
     def _keys_of(v: NDArray[np.int64]) -> NDArray[np.int64]:
         return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
 
-    def _compact(self, tile: _Tile) -> NDArray[np.float32]:
-        """The tile's points without repeats (one per voxel, the first seen), in the order
-        they came. The compacted points' keys are kept sorted, so that only the new points
-        are sorted and looked up in them, not all of the tile's points again."""
+    def _absorb(self, tile: _Tile) -> int:
+        """Take the tile's pending chunks in: the points of voxels it does not hold yet (the
+        first of each), in the order they came, appended as one compacted chunk; returns how
+        many. Their keys go into sorted runs of decreasing size (``keys``, then ``runs``),
+        merged as they grow: a frame's cost grows with the frame's points, not with the
+        tile's (a tile beside the track holds millions)."""
         if tile.pending == 0:
-            return tile.chunks[0] if tile.chunks else np.zeros((0, 4), np.float32)
-        base = tile.chunks[0] if tile.points else None
-        new = np.concatenate(tile.chunks[1:] if base is not None else tile.chunks)
-        v = self._voxels(new)
+            return 0
+        rest = tile.chunks[tile.ncompact:]
+        new = rest[0] if len(rest) == 1 else np.concatenate(rest)
+        if len(tile.vox) == len(rest):
+            v = tile.vox[0] if len(rest) == 1 else np.concatenate(tile.vox)
+        else:  # chunks that came without their voxels
+            v = self._voxels(new)
+        tile.vox = []
         nk = self._keys_of(v)
         # stable: the first of equal keys first; sorted by the voxels' offsets from the
         # chunk's corner (the same order as the keys'), which leave the packed sort room
@@ -264,23 +313,54 @@ class StemMap:
         sk = nk[order]
         first = run_starts(sk)
         uk, ui = sk[first], order[first]
-        if base is not None:
-            bk = tile.keys
-            fresh = bk[np.minimum(np.searchsorted(bk, uk), len(bk) - 1)] != uk
-            uk, ui = uk[fresh], ui[fresh]
-            # two sorted runs: the stable sort (timsort) merges them in one pass
-            tile.keys = np.sort(np.concatenate([bk, uk]), kind="stable")
-            pts = np.concatenate([base, new[np.sort(ui)]])
-        else:
-            tile.keys = uk
-            pts = new[np.sort(ui)]
-        self.stats.points -= tile.points + tile.pending - len(pts)
-        tile.chunks = [pts]
-        tile.points, tile.pending = len(pts), 0
-        return pts
+        for run in (tile.keys, *tile.runs):
+            if len(run) and len(uk):
+                fresh = run[np.minimum(np.searchsorted(run, uk), len(run) - 1)] != uk
+                uk, ui = uk[fresh], ui[fresh]
+        if len(uk):
+            # a new run; runs merge while the newer is a quarter of the older or more (a
+            # log-structured merge: a frame's merges are small, the big ones rare), the
+            # stable sort (timsort) merging two sorted runs in one pass
+            tile.runs.append(uk)
+            while len(tile.runs) >= 2 and 4 * len(tile.runs[-1]) >= len(tile.runs[-2]):
+                b = tile.runs.pop()
+                tile.runs[-1] = np.sort(np.concatenate([tile.runs[-1], b]), kind="stable")
+            if 4 * len(tile.runs[0]) >= len(tile.keys):
+                tile.keys = np.sort(np.concatenate([tile.keys, tile.runs.pop(0)]),
+                                    kind="stable")
+        pts = new[np.sort(ui)]
+        self.stats.points -= tile.pending - len(pts)
+        tile.chunks = tile.chunks[:tile.ncompact] + ([pts] if len(pts) else [])
+        tile.ncompact = len(tile.chunks)
+        tile.points += len(pts)
+        tile.pending = 0
+        return len(pts)
+
+    @staticmethod
+    def _merge_keys(tile: _Tile) -> None:
+        if tile.runs:
+            tile.keys = np.sort(np.concatenate([tile.keys, *tile.runs]), kind="stable")
+            tile.runs = []
+
+    def _compact(self, tile: _Tile) -> NDArray[np.float32]:
+        """The tile's points without repeats (one per voxel, the first seen), in the order
+        they came, as one array (kept so: a tile's chunks are joined once per run, not per
+        frame); its keys in one sorted run."""
+        self._absorb(tile)
+        self._merge_keys(tile)
+        if len(tile.chunks) > 1:
+            tile.chunks = [np.concatenate(tile.chunks)]
+            tile.ncompact = 1
+        return tile.chunks[0] if tile.chunks else np.zeros((0, 4), np.float32)
 
     def _evict(self) -> None:
-        """Drop the points of the tiles farthest from the machine until 80 % of the cap."""
+        """Drop the points of the tiles farthest from the machine until 80 % of the cap.
+
+        A dirty tile gets its last run first: at once, inline; with ``defer_runs`` it and the
+        tiles nearer than it keep their points until the worker has run it (the worker takes
+        the farthest dirty tiles first), unless the map holds more than ``hard_cap`` times
+        the cap: then its job (its last run's points) is made now and waits in ``backlog``
+        for the worker (counted in ``held_runs``)."""
         ids = list(self.tiles)
         centres = (np.array(ids, dtype=np.float64) + 0.5) * self.tile
         far = np.argsort(-np.hypot(*(centres - self._last_xy).T))
@@ -291,11 +371,21 @@ class StemMap:
             if tile.points + tile.pending == 0:
                 continue
             if tile.dirty:
-                self._run_tile(ids[k])  # compacts: duplicates leave the count here
+                if not self.defer_runs:
+                    self._run_tile(ids[k])  # compacts: duplicates leave the count here
+                elif self.stats.points <= self.hard_cap * self.max_points:
+                    break  # not the nearer tiles instead: it goes once it ran
+                else:
+                    # its last run's points go with the job, which waits for the worker
+                    self.backlog.append(self.job(ids[k]))
+                    self.stats.held_runs += 1
             n = tile.points + tile.pending
-            tile.chunks, tile.points, tile.pending = [], 0, 0
+            tile.chunks, tile.points, tile.pending, tile.ncompact = [], 0, 0, 0
+            tile.vox = []
             tile.keys = np.zeros(0, np.int64)  # not a view: the keys' memory goes too
+            tile.runs = []
             tile.evicted = True  # its stems stay (it ran above if it was dirty)
+            tile.dirty = False
             self.stats.points -= n
             self.stats.evicted_points += n
 
@@ -308,9 +398,15 @@ class StemMap:
         return [ids[i] for i in np.argsort(-d)]
 
     def update(self, budget_s: float = math.inf) -> int:
-        """Re-run dirty tiles until ``budget_s`` is spent; returns how many ran."""
+        """Re-run dirty tiles (and the held jobs) until ``budget_s`` is spent; returns how
+        many ran."""
         t0 = time.perf_counter()
         n = 0
+        while self.backlog:
+            job = self.backlog.popleft()
+            t1 = time.perf_counter()
+            self.accept(job.tid, tile_stems(job, self.params), time.perf_counter() - t1)
+            n += 1
         for tid in self.dirty_tiles():
             if n and time.perf_counter() - t0 >= budget_s:
                 break
@@ -318,8 +414,11 @@ class StemMap:
             n += 1
         return n
 
-    def _run_tile(self, tid: tuple[int, int]) -> None:
-        t0 = time.perf_counter()
+    def job(self, tid: tuple[int, int]) -> TileJob:
+        """What a run of tile ``tid`` needs, taken from the map now: its points and its
+        border's (float32, the map's own), and the ground height under each. The tile counts
+        as run from here (new points make it dirty again); :meth:`accept` takes the stems
+        :func:`tile_stems` finds in the job, wherever that ran."""
         i, j = tid
         lo = np.array([i, j], dtype=np.float64) * self.tile - self.margin
         hi = lo + self.tile + 2 * self.margin
@@ -342,21 +441,54 @@ class StemMap:
         tile = self.tiles[tid]
         tile.dirty = tile.evicted = False
         tile.basis = tile.points  # compacted above
-        pts = np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 4))
-        stems: list[dict[str, Any]] = []
-        if len(pts):
-            gz = self.ground.height(pts[:, :2])
-            ok = np.isfinite(gz)
-            doc = identify_stems(pts[ok, :3], self.params, ground_z=gz[ok],
-                                 widths=pts[ok, 3])
-            x0, y0 = i * self.tile, j * self.tile
-            for o in doc["objects"]:
-                x, y = o["cp"][0], o["cp"][1]
-                if x0 <= x < x0 + self.tile and y0 <= y < y0 + self.tile:
-                    stems.append(o)
-        tile.stems = stems
+        tile.run_distance = self._distance(tid)
+        pts = np.concatenate(parts) if parts else np.zeros((0, 4), np.float32)
+        gz = self.ground.height(pts[:, :2].astype(np.float64))
+        ok = np.isfinite(gz)
+        if not ok.all():
+            pts, gz = pts[ok], gz[ok]
+        return TileJob(tid, pts, gz, self.tile)
+
+    def accept(self, tid: tuple[int, int], stems: list[dict[str, Any]],
+               seconds: float = 0.0) -> None:
+        """A tile's stems, from a run of its :meth:`job`."""
+        tile = self.tiles.get(tid)
+        if tile is not None:
+            tile.stems = stems
         self.stats.tile_runs += 1
-        self.stats.tile_seconds += time.perf_counter() - t0
+        self.stats.tile_seconds += seconds
+        if self.stats.points > self.max_points:
+            self._evict()  # the tiles held for their last run can go now
+
+    def _run_tile(self, tid: tuple[int, int]) -> None:
+        t0 = time.perf_counter()
+        stems = tile_stems(self.job(tid), self.params)
+        self.accept(tid, stems, time.perf_counter() - t0)
+
+    def next_job(self, *, final: bool = False) -> TileJob | None:
+        """The next tile run a worker should do: a job held by an eviction first, else the
+        dirty tile farthest from the machine that is worth a run now; None when there is
+        none.
+
+        Worth a run (unless ``final``: the stream has ended, every dirty tile): a tile never
+        run, one that grew by ``rerun_growth`` since its last run, or one the machine has
+        moved ``settle_m`` away from since then (its view is settling). A tile near the
+        machine gains points every frame; run on each, it would take the worker's whole time
+        for stems that the next frames change again."""
+        if self.backlog:
+            return self.backlog.popleft()
+        over = self.stats.points > self.max_points
+        for tid in self.dirty_tiles():
+            tile = self.tiles[tid]
+            if (final or over or tile.basis == 0
+                    or tile.points + tile.pending >= (1.0 + self.rerun_growth) * tile.basis
+                    or self._distance(tid) >= tile.run_distance + self.settle_m):
+                return self.job(tid)
+        return None
+
+    def _distance(self, tid: tuple[int, int]) -> float:
+        cx, cy = (tid[0] + 0.5) * self.tile, (tid[1] + 0.5) * self.tile
+        return math.hypot(cx - float(self._last_xy[0]), cy - float(self._last_xy[1]))
 
     def forest(self, timestamp: str) -> dict[str, Any]:
         """The observed-forest document of every tile's latest stems, in world coordinates,

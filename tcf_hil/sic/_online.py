@@ -6,8 +6,9 @@
   lidar mount by SDO);
 - every column is put into the world with the pose interpolated at its own time stamp; the
   points above the ground go into a bounded voxel map (:class:`~tcf_hil.sic._map.StemMap`)
-  whose tiles re-run the stem algorithm when they get new points, between frames, within a
-  time budget;
+  whose tiles re-run the stem algorithm when they got enough new points: in a process of its
+  own at a lower priority (:mod:`tcf_hil.sic._worker`), so a tile run never holds up a frame
+  (``TCF_SIC_STEM_WORKER=0``: inline, between frames, within a time budget);
 - the forest is published every ``publish_s`` and at the end of the stream (no packet for
   ``idle_s``, or SIGTERM/SIGINT): NDJSON on stdout, a file rewritten atomically, or an HTTP
   POST.
@@ -84,11 +85,15 @@ class SicConfig:
     publish_s: float = 2.0
     idle_s: float = 3.0
     voxel_m: float | None = None  # None: 0.03 m for tuned, 0.1 m for paper (its density)
-    max_points: int = 6_000_000
+    max_points: int = 12_000_000  # about 300 MB (x, y, z, width float32 and a key)
     max_seconds: float = 0.0  # stop after this long (0: no limit)
     pose_hold_s: float = 1.0  # a frame waits this long for the poses of its columns
     nmt_start_after_s: float = 2.0  # start a node left in PRE-OPERATIONAL (0: never)
     cluster_voxel_m: float | None = None  # None: 0.1 for the tuned preset, exact for paper
+    # the stem algorithm in a process of its own at a lower priority (nice), so that frames
+    # are never held up by a tile run (TCF_SIC_STEM_WORKER=0: inline, between frames)
+    stem_worker: bool = True
+    stem_worker_nice: int = 10
 
     @classmethod
     def from_env(cls, env: dict[str, str] | None = None) -> SicConfig:
@@ -107,6 +112,8 @@ class SicConfig:
         c.node_id = int(e.get("TCF_CAN_NODE_ID", str(c.node_id)))
         c.eds = e.get("TCF_EDS", "")
         c.publish = e.get("TCF_PUBLISH", pub)
+        c.stem_worker = e.get("TCF_SIC_STEM_WORKER", "1").strip().lower() not in (
+            "0", "false", "no", "off")
         return c
 
     def can_kwargs(self) -> dict[str, Any]:
@@ -480,6 +487,7 @@ class OnboardSic:
         self.cost = FrameCost()
         self.t_start = time.monotonic()
         self.stem_cost = FrameCost()
+        self.worker: Any = None  # the stem worker while a run has one
         self.meta: SensorMetadata | None = None
         self._last_reload = -1e9
 
@@ -527,6 +535,7 @@ class OnboardSic:
         can: CanPose | None = CanPose(cfg, track)
         assert can is not None
         rx: LidarReceiver | None = None
+        worker: Any = None  # the stem algorithm's process (cfg.stem_worker)
         pub = Publisher(cfg.publish)
         t_start = self.t_start = time.monotonic()
         try:
@@ -535,6 +544,11 @@ class OnboardSic:
             can.read_constants()
             smap = StemMap(self.params, voxel_m=self.voxel_m, max_points=cfg.max_points,
                            datum=can.datum)
+            if cfg.stem_worker:
+                from tcf_hil.sic._worker import TileWorker
+
+                worker = self.worker = TileWorker(self.params, nice=cfg.stem_worker_nice)
+                smap.defer_runs = True
             _log(f"listening for {meta.mode} {meta.profile} on {cfg.lidar_bind}:{port}; "
                  f"pose from node {cfg.node_id} on {cfg.can_interface}:{cfg.can_channel}; "
                  f"preset {cfg.preset}; publishing to {cfg.publish}")
@@ -576,17 +590,25 @@ class OnboardSic:
                     else:
                         break
                 if item is not ... or mapped:
+                    if worker is not None:
+                        # the stem worker's finished tiles in, the next out (the job's points
+                        # gathered here count as the frame's cost)
+                        worker.pump(smap)
                     spent = time.perf_counter() - t0
                     self.cost.ms.append(spent * 1000.0)
-                    # the rest of this frame's time goes to the stem algorithm (within 60 %)
+                    # inline: the rest of this frame's time goes to the stem algorithm
+                    # (within 60 %)
                     budget = 0.6 * frame_budget - spent
-                    if budget > 0.005 and rx.frames.empty() and not waiting:
+                    if (worker is None and budget > 0.005 and rx.frames.empty()
+                            and not waiting):
                         t1 = time.perf_counter()
                         if smap.update(budget):
                             self.stem_cost.ms.append((time.perf_counter() - t1) * 1000.0)
                 elif seen_data and now - rx.stats.last_packet > cfg.idle_s:
                     _log(f"no lidar packet for {cfg.idle_s:g} s: end of stream")
                     break
+                elif worker is not None:
+                    worker.pump(smap)
                 elif not seen_data:
                     smap.update(0.05)
                 if now >= next_pub and seen_data:
@@ -597,12 +619,26 @@ class OnboardSic:
                     rx.stats.frames_without_pose += 1
             # end: every dirty tile, publishing as it goes (a bench that cannot wait still
             # gets the most complete forest), then the final forest
-            while smap.dirty_tiles():
+            if worker is not None:
+                next_pub = time.monotonic() + cfg.publish_s
+                while not worker.idle(smap):
+                    worker.pump(smap, final=True)
+                    if worker.in_flight and not worker.collect(smap, 0.1):
+                        if not worker.proc.is_alive():
+                            raise RuntimeError("the stem worker process ended")
+                    if time.monotonic() >= next_pub and not worker.idle(smap):
+                        pub.publish(self._document(smap, rx.stats, track, final=False))
+                        next_pub = time.monotonic() + cfg.publish_s
+            while smap.dirty_tiles() or smap.backlog:
                 smap.update(cfg.publish_s)
                 if smap.dirty_tiles():
                     pub.publish(self._document(smap, rx.stats, track, final=False))
             pub.publish(self._document(smap, rx.stats, track, final=True))
         finally:
+            if worker is not None:
+                for e in worker.errors:
+                    _log(f"stem worker: {e}")
+                worker.close()
             if rx is not None:
                 rx.close()
             if can is not None:
@@ -719,6 +755,7 @@ class OnboardSic:
                       "sensor_reinits": st.reinits, "bad_packets": st.bad_packets,
                       "poses": track.received, "map_points": smap.stats.points,
                       "frame_cost": self.cost.summary(), "stem_cost": self.stem_cost.summary(),
+                      "stem_worker": self._worker_summary(),
                       "cpu_s": round(time.process_time(), 3),
                       "wall_s": round(time.monotonic() - self.t_start, 3)}
         return doc
@@ -731,7 +768,14 @@ class OnboardSic:
                 "incomplete_frames": st.incomplete, "duplicate_packets": st.duplicates,
                 "poses": track.received,
                 "publications": pub.count, "frame_cost": self.cost.summary(),
-                "stem_cost": self.stem_cost.summary()}
+                "stem_cost": self.stem_cost.summary(), "stem_worker": self._worker_summary()}
+
+    def _worker_summary(self) -> dict[str, Any] | None:
+        w = self.worker
+        if w is None:
+            return None
+        return {"runs": w.runs, "cpu_s": round(w.cpu_s, 3), "in_flight": len(w.in_flight),
+                "errors": len(w.errors)}
 
 
 def main_with(cfg: SicConfig) -> int:

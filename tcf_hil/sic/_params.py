@@ -56,10 +56,18 @@ class StemParams:
     dbh_tolerance_m: float = 0.012  # ... and from the breast-height circle
     dbh_window_m: tuple[float, float] = (0.8, 1.8)  # the breast-height circle's points
     min_slices: int = 3  # a stem's circle is found in at least this many band slices
+    # bark is a thin shell: of the points from 5 tolerances inside a slice's circle to
+    # ``shell_outside`` tolerances outside it, 60 % lie on it (needles may crowd the bark's
+    # outside; nothing of a stem lies inside it). Within ``crowd_m`` of a stem found
+    # already, in its crown, a candidate's circles must hold against 5 tolerances outside
+    # too (a gap among the crown's needles is no stem)
+    shell_outside: float = 2.0
+    crowd_m: float = 1.0
     curve_step_m: float = 0.5  # the stem curve's slices (and the axis's, in the band)
     follow_radius_m: float = 0.15  # a slice up the stem is searched this far off its axis
     follow_misses: int = 5  # the stem is followed until this many slices in a row fail
     crook_m: float = 0.06  # a sideways step of the centre line this large is a crook (X)
+    bow_shrink_se: float = 3.0  # the bow's curvature is shrunk by this many standard errors
     min_dbh_m: float = 0.03
     scene_centre: tuple[float, float] = (0.0, 0.0)
     timestamp: str = "20250213_035113"

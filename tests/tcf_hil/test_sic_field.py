@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from tcf_hil.sic import fit_circle, stem_params
 from tcf_hil.sic._field import (
+    arc_fill,
     divergence_of,
     edge_widths,
     field_stems,
@@ -105,6 +106,56 @@ def test_the_bark_shell_is_kept_and_the_clutter_outside_it_dropped(r: float, see
     assert abs(f[2] - r) < 0.006
     c = trimmed_circle(bark, hyper_circle(bark), tol=0.012)  # type: ignore[arg-type]
     assert abs(c.r - r) < 0.004
+
+
+def _stem_in_a_crown(seed: int) -> tuple[np.ndarray, float]:
+    """A slice of a stem inside its live crown: its bark (220 degrees of it) gives a tenth
+    of the points, needles fill the rest up to 40 cm outside it (never inside)."""
+    g = np.random.default_rng(seed)
+    r = float(g.uniform(0.04, 0.12))
+    bark = _arc(g, 1.0, 1.0, r, 220.0, 150, 0.003)
+    n = 1350
+    a = g.uniform(0, 2 * math.pi, n)
+    d = r + 0.02 + 0.38 * np.sqrt(g.uniform(0, 1, n))
+    needles = np.column_stack([1.0 + d * np.cos(a), 1.0 + d * np.sin(a)])
+    return g.permutation(np.vstack([bark, needles])), r
+
+
+def test_a_stem_inside_a_crown_is_found_among_ten_times_as_many_needles() -> None:
+    """Drawn from the whole slice, three points all lie on the bark once in a thousand
+    tries; with local sampling and the hollow-aware score the stem is found (centre within
+    2 cm, radius within 1 cm) in at least 9 slices of 10, where uniform sampling alone and
+    the plain MSAC score find it in fewer than half."""
+    ok_field = ok_plain = 0
+    for seed in range(30):
+        xy, r = _stem_in_a_crown(seed)
+        f = stem_circle(xy, np.zeros(len(xy)), r_max=0.5, tol=0.02, min_points=6,
+                        near=np.array([1.0, 1.0]), outside=2.0)
+        ok_field += f is not None and math.hypot(f[0] - 1.0, f[1] - 1.0) < 0.02 and abs(
+            f[2] - r) < 0.01
+        rs = ransac_circle(xy, r_max=0.5, tol=0.02, near=np.array([1.0, 1.0]), local_m=0.0,
+                           hollow=False)
+        ok_plain += rs is not None and math.hypot(rs[0] - 1.0, rs[1] - 1.0) < 0.02 and abs(
+            rs[2] - r) < 0.01
+    assert ok_field >= 27, ok_field
+    assert ok_plain < 15, ok_plain
+
+
+def test_a_circle_through_two_neighbouring_stems_is_no_stem() -> None:
+    """Two thin stems 80 cm apart, each seen on its facing side: a 40 cm circle passes
+    through both arcs with nothing inside it, but one stem's bark is one arc."""
+    g = np.random.default_rng(5)
+    a1 = np.radians(g.uniform(-40, 40, 60))
+    left = np.column_stack([-0.40 + 0.03 * np.cos(a1), 0.03 * np.sin(a1)]) + [-0.03, 0.0]
+    a2 = np.radians(g.uniform(140, 220, 60))
+    right = np.column_stack([0.40 + 0.03 * np.cos(a2), 0.03 * np.sin(a2)]) + [0.03, 0.0]
+    xy = np.vstack([left, right]) + g.normal(0, 0.002, (120, 2))
+    assert arc_fill(xy, 0.0, 0.0, 0.4) < 0.5
+    f = stem_circle(xy, np.zeros(len(xy)), r_max=0.5, tol=0.02, min_points=6,
+                    near=np.array([0.0, 0.0]))
+    assert f is None or f[2] < 0.1  # one of the stems, not the circle through both
+    bark = _arc(g, 0.0, 0.0, 0.2, 200.0, 100, 0.002)
+    assert arc_fill(bark, 0.0, 0.0, 0.2) > 0.9
 
 
 def test_a_clump_of_needles_is_no_stem() -> None:

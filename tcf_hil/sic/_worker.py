@@ -1,0 +1,198 @@
+"""The stem algorithm in a process of its own, at a lower priority than the frames.
+
+A live SIC must take every frame at the sensor's rate (10 or 20 Hz) however long the stem
+algorithm takes on a tile (a second or more on a dense natural stand): run inline, one long
+tile run holds up the frames behind it until the receiver's queue overflows. Here the frame
+loop hands tile runs (:class:`~tcf_hil.sic._map.TileJob`: a tile's points and the ground
+under them) to a child process and takes their stems back when they are done. The arrays go
+in a file on the RAM disk, not through the pipe: a pipe holds 64 KiB and would block the
+frame loop until the busy child read them. The child runs at a lower scheduling priority
+(``nice``), so on one core the kernel gives the frames the CPU when they need it and the
+tile runs the rest.
+
+The child is started with ``spawn`` (the SIC has threads, the receiver's and canopen's, which
+``fork`` would copy half-way), with one BLAS/OpenMP thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+import os
+import shutil
+import signal
+import tempfile
+import time
+from collections import deque
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from tcf_hil.sic._map import StemMap, TileJob, tile_stems
+from tcf_hil.sic._params import StemParams
+
+# one thread for numpy's BLAS/LAPACK and OpenMP in the child: the point is one core's share
+_ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+               "NUMBA_NUM_THREADS": "1"}
+
+
+def _write_job(job: TileJob, folder: str) -> str:
+    """The job's arrays in a file of their own in ``folder`` (a RAM disk where there is one):
+    a pipe holds 64 KiB, and a tile's points (megabytes) sent through it would hold the frame
+    loop until the busy child reads them."""
+    fd, path = tempfile.mkstemp(prefix="tcf-sic-tile-", suffix=".f32", dir=folder)
+    with os.fdopen(fd, "wb") as f:
+        f.write(np.ascontiguousarray(job.points, dtype=np.float32).tobytes())
+        f.write(np.ascontiguousarray(job.ground_z, dtype=np.float64).tobytes())
+    return path
+
+
+def _read_job(path: str, tid: tuple[int, int], n: int, tile_m: float) -> TileJob:
+    raw = np.fromfile(path, dtype=np.uint8)
+    pts = raw[:n * 16].view(np.float32).reshape(n, 4)
+    gz = raw[n * 16:].view(np.float64)
+    return TileJob(tid, pts, gz, tile_m)
+
+
+def _serve(conn: Connection, params: StemParams, nice: int) -> None:
+    """The child: tile jobs in (a file, read and removed), (tile id, stems, CPU seconds)
+    out, until None or EOF."""
+    # the SIC's own SIGTERM/SIGINT (a bench ending the run signals the process group) is
+    # the parent's to handle: it drains this worker, then closes it; a parent that dies
+    # closes the pipe, which ends this loop
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if nice:
+        with contextlib.suppress(OSError):
+            os.nice(nice)
+    while True:
+        try:
+            msg = conn.recv()
+        except EOFError:
+            return
+        if msg is None:
+            return
+        path, tid, n, tile_m = msg
+        t0 = time.process_time()
+        try:
+            job = _read_job(path, tid, n, tile_m)
+            with contextlib.suppress(OSError):
+                os.unlink(path)
+            stems = tile_stems(job, params)
+        except Exception as e:  # one bad tile must not end the SIC
+            conn.send((tid, None, f"{type(e).__name__}: {e}"))
+            continue
+        conn.send((tid, stems, time.process_time() - t0))
+
+
+class TileWorker:
+    """A child process that runs a :class:`StemMap`'s tile jobs; at most ``depth`` in flight
+    (two: the child starts the next as soon as it sends a result, without waiting for the
+    frame loop to notice).
+
+    ``pump(smap)`` (after each frame): takes finished runs into the map and hands it the
+    next jobs. ``drain(smap, timeout)``: the end of the stream, every dirty tile run."""
+
+    def __init__(self, params: StemParams, *, nice: int = 10, depth: int = 2) -> None:
+        ctx = mp.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        saved = {k: os.environ.get(k) for k in _ONE_THREAD}
+        os.environ.update(_ONE_THREAD)  # the child's environment is the parent's at start
+        try:
+            self.proc = ctx.Process(target=_serve, args=(child, params, nice), daemon=True,
+                                    name="tcf-sic-stems")
+            self.proc.start()
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+        child.close()
+        # the job files: a folder of this worker's own, on the RAM disk where there is one
+        ram = "/dev/shm" if os.access("/dev/shm", os.W_OK) else None
+        self.folder = tempfile.mkdtemp(prefix="tcf-sic-stems-", dir=ram)
+        self.depth = depth
+        self.in_flight: deque[tuple[int, int]] = deque()
+        self._paths: deque[str] = deque()  # the job files in flight (the child removes them)
+        self.errors: list[str] = []
+        self.cpu_s = 0.0
+        self.runs = 0
+
+    @property
+    def busy(self) -> bool:
+        return len(self.in_flight) >= self.depth
+
+    def collect(self, smap: StemMap, timeout: float = 0.0) -> int:
+        """Take the finished runs into ``smap`` (waiting up to ``timeout`` for the first);
+        returns how many."""
+        n = 0
+        while self.in_flight and self._conn.poll(timeout if n == 0 else 0.0):
+            try:
+                tid, stems, cost = self._conn.recv()
+            except EOFError:
+                raise RuntimeError("the stem worker process ended") from None
+            self.in_flight.popleft()
+            self._paths.popleft()
+            n += 1
+            if stems is None:
+                self.errors.append(f"tile {tid}: {cost}")
+                continue
+            self.cpu_s += cost
+            self.runs += 1
+            smap.accept(tid, stems, cost)
+        return n
+
+    def pump(self, smap: StemMap, *, final: bool = False) -> int:
+        """Take finished runs, then hand out jobs up to the depth (``final``: every dirty
+        tile, the stream has ended); returns runs taken."""
+        n = self.collect(smap)
+        while not self.busy:
+            job = smap.next_job(final=final)
+            if job is None:
+                break
+            self.submit(job)
+        return n
+
+    def submit(self, job: TileJob) -> None:
+        if not self.proc.is_alive():
+            raise RuntimeError(f"the stem worker process ended (exit {self.proc.exitcode})")
+        path = _write_job(job, self.folder)
+        self._paths.append(path)
+        self._conn.send((path, job.tid, len(job.points), job.tile_m))
+        self.in_flight.append(job.tid)
+
+    def idle(self, smap: StemMap) -> bool:
+        """Nothing in flight and nothing left to run."""
+        return not self.in_flight and not smap.backlog and not smap.dirty_tiles()
+
+    def drain(self, smap: StemMap, timeout: float) -> int:
+        """Run until nothing is dirty or in flight, waiting at most ``timeout`` for each
+        result; returns runs taken."""
+        n = 0
+        while True:
+            n += self.pump(smap, final=True)
+            if not self.in_flight:
+                return n
+            got = self.collect(smap, timeout)
+            if not got:
+                raise RuntimeError(f"the stem worker gave no result in {timeout:g} s")
+            n += got
+
+    def close(self, timeout: float = 2.0) -> None:
+        with contextlib.suppress(OSError, BrokenPipeError):
+            self._conn.send(None)
+        self.proc.join(timeout)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join(timeout)
+        self._conn.close()
+        self._paths.clear()
+        shutil.rmtree(self.folder, ignore_errors=True)  # with jobs the child never read
+
+    def __enter__(self) -> TileWorker:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
