@@ -620,15 +620,8 @@ class OnboardSic:
             # end: every dirty tile, publishing as it goes (a bench that cannot wait still
             # gets the most complete forest), then the final forest
             if worker is not None:
-                next_pub = time.monotonic() + cfg.publish_s
-                while not worker.idle(smap):
-                    worker.pump(smap, final=True)
-                    if worker.in_flight and not worker.collect(smap, 0.1):
-                        if not worker.proc.is_alive():
-                            raise RuntimeError("the stem worker process ended")
-                    if time.monotonic() >= next_pub and not worker.idle(smap):
-                        pub.publish(self._document(smap, rx.stats, track, final=False))
-                        next_pub = time.monotonic() + cfg.publish_s
+                worker.drain(smap, progress=lambda: pub.publish(
+                    self._document(smap, rx.stats, track, final=False)), every_s=cfg.publish_s)
             while smap.dirty_tiles() or smap.backlog:
                 smap.update(cfg.publish_s)
                 if smap.dirty_tiles():

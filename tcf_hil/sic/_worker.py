@@ -17,6 +17,7 @@ The child is started with ``spawn`` (the SIC has threads, the receiver's and can
 from __future__ import annotations
 
 import contextlib
+import math
 import multiprocessing as mp
 import os
 import shutil
@@ -24,6 +25,7 @@ import signal
 import tempfile
 import time
 from collections import deque
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -167,18 +169,30 @@ class TileWorker:
         """Nothing in flight and nothing left to run."""
         return not self.in_flight and not smap.backlog and not smap.dirty_tiles()
 
-    def drain(self, smap: StemMap, timeout: float) -> int:
+    def drain(self, smap: StemMap, timeout: float = math.inf,
+              progress: Callable[[], None] | None = None, every_s: float = 2.0) -> int:
         """Run until nothing is dirty or in flight, waiting at most ``timeout`` for each
-        result; returns runs taken."""
+        result, calling ``progress`` every ``every_s`` while runs are left (a SIC publishes
+        its forest so far); returns runs taken."""
         n = 0
+        waited = 0.0
+        next_call = time.monotonic() + every_s
         while True:
             n += self.pump(smap, final=True)
             if not self.in_flight:
                 return n
-            got = self.collect(smap, timeout)
-            if not got:
-                raise RuntimeError(f"the stem worker gave no result in {timeout:g} s")
-            n += got
+            got = self.collect(smap, 0.1)
+            if got:
+                n, waited = n + got, 0.0
+            elif not self.proc.is_alive():
+                raise RuntimeError("the stem worker process ended")
+            else:
+                waited += 0.1
+                if waited >= timeout:
+                    raise RuntimeError(f"the stem worker gave no result in {timeout:g} s")
+            if progress is not None and time.monotonic() >= next_call and not self.idle(smap):
+                progress()
+                next_call = time.monotonic() + every_s
 
     def close(self, timeout: float = 2.0) -> None:
         with contextlib.suppress(OSError, BrokenPipeError):
