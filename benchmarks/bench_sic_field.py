@@ -145,6 +145,7 @@ def replay(d: Path, preset: str, live: bool = False, **overrides: Any) -> dict[s
     period = 1.0 / meta.frequency_hz
     lags: list[float] = []
     pump_ms: list[float] = []
+    map_bytes = 0
     worker = None
     saved_cpus = os.sched_getaffinity(0) if live else None
     if live:
@@ -173,6 +174,8 @@ def replay(d: Path, preset: str, live: bool = False, **overrides: Any) -> dict[s
                 pump_ms.append((time.perf_counter() - t2) * 1000.0)
                 sic.frame_ms[-1] = (time.perf_counter() - t1) * 1000.0
                 lags.append(time.perf_counter() - (start + f * period))
+                if f % 20 == 0:  # off the frame's clock
+                    map_bytes = max(map_bytes, sic.smap.nbytes())
         frames_cpu = time.process_time() - t0
         t_end = time.process_time()
         if worker is not None:
@@ -189,7 +192,7 @@ def replay(d: Path, preset: str, live: bool = False, **overrides: Any) -> dict[s
             "finish_cpu_s": finish_cpu, "frames": len(info["frame_ids"]),
             "worker_cpu_s": worker_cpu, "wall_s": time.perf_counter() - start,
             "lag_s": lags, "pump_ms": pump_ms, "tile_runs": sic.smap.stats.tile_runs,
-            "map_points_max": sic.smap.max_points,
+            "map_points_max": sic.smap.max_points, "map_mb_peak": map_bytes / 2**20,
             "evicted_points": sic.smap.stats.evicted_points}
 
 
@@ -296,6 +299,7 @@ def main(argv: list[str] | None = None) -> int:
                                     "frames_beyond_5s_lag": int((lag > 5.0).sum()),
                                     "worker_cpu_s": round(r["worker_cpu_s"], 1),
                                     "tile_runs": r["tile_runs"],
+                                    "map_mb_peak": round(r["map_mb_peak"]),
                                     "pump_ms_p99": round(float(np.percentile(r["pump_ms"], 99)),
                                                          2),
                                     "wall_s": round(r["wall_s"], 1)})
@@ -303,8 +307,9 @@ def main(argv: list[str] | None = None) -> int:
                               f"{row['frame_ms_p99']} ms, lag p99/max {row['lag_s_p99']}/"
                               f"{row['lag_s_max']} s, {row['frames_beyond_5s_lag']} frames "
                               f"beyond 5 s, pump p99 {row['pump_ms_p99']} ms, stem worker "
-                              f"{row['worker_cpu_s']} s CPU in {row['tile_runs']} tile runs, wall "
-                              f"{row['wall_s']} s", flush=True)
+                              f"{row['worker_cpu_s']} s CPU in {row['tile_runs']} tile runs, map "
+                              f"{row['map_mb_peak']} MB at most, wall {row['wall_s']} s",
+                              flush=True)
                     rows.append(row)
                     n = s["near"]
                     print(f"{scene:18s} {mode} {sensor:12s} {preset:6s} "

@@ -9,8 +9,10 @@ float32 storage loses nothing (micrometres over kilometres).
 from __future__ import annotations
 
 import collections
+import functools
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,8 +20,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from protocols.stems import QUALITY_BY_CLASS
-from tcf_hil.sic._fast import column_min, finite_rows, offset_key, run_starts, sorted_with_order
+from tcf_hil.sic._fast import column_min, finite_rows, sorted_with_order
 from tcf_hil.sic._stems import StemParams, identify_stems
+from tcf_hil.sic._voxelset import VoxelSet
 
 FloatArray = NDArray[np.float64]
 
@@ -72,6 +75,21 @@ class GroundGrid:
         z = np.full((hi_i - lo_i, hi_j - lo_j), np.inf)
         z[self.i0 - lo_i:self.i0 - lo_i + ni, self.j0 - lo_j:self.j0 - lo_j + nj] = self.z
         self.z, self.i0, self.j0 = z, lo_i, lo_j
+
+    def snapshot(self, lo: FloatArray, hi: FloatArray) -> GroundGrid:
+        """A copy of the cells under the area ``lo`` .. ``hi`` (x, y) and two around them:
+        the same heights under any point of the area as this grid gives now (a cell's
+        gradient looks one cell away)."""
+        out = GroundGrid(self.cell, slope=self.slope, max_gradient=self.max_gradient)
+        ni, nj = self.z.shape
+        a0 = max(math.floor(lo[0] / self.cell) - 2 - self.i0, 0)
+        b0 = max(math.floor(lo[1] / self.cell) - 2 - self.j0, 0)
+        a1 = min(math.floor(hi[0] / self.cell) + 3 - self.i0, ni)
+        b1 = min(math.floor(hi[1] / self.cell) + 3 - self.j0, nj)
+        if a1 > a0 and b1 > b0:
+            out.z = self.z[a0:a1, b0:b1].copy()
+            out.i0, out.j0 = self.i0 + a0, self.j0 + b0
+        return out
 
     def add(self, pts: FloatArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """Take the points' z into their cells' minima; returns their cells (i, j), which
@@ -132,47 +150,116 @@ class GroundGrid:
         return out
 
 
+Crop = tuple[tuple[int, float, float], ...]  # (axis, lo, hi): rows with lo <= v < hi
+
+
 @dataclass
 class TileJob:
     """One run of the stem algorithm on a tile: its points and its border's (x, y, z, edge
-    half width; float32, local metres), the ground height under each, and the tile's id and
-    size (its stems are those whose centre lies inside it). Pickles small (two arrays), for a
-    worker process."""
+    half width; float32, local metres), the ground grid under them as it was when the job was
+    made (:meth:`GroundGrid.snapshot`: a few cells), and the tile's id and size (its stems
+    are those whose centre lies inside it).
+
+    The points are ``parts``: views of the map's blocks as they were when the job was made,
+    each with the crop that keeps a neighbour's border (the map's rows never change once
+    written). Making a job copies nothing; whoever runs it takes :meth:`pieces` (a worker's
+    feeder, a block at a time) or :attr:`points` (one array). The heights under the points
+    are the run's work too."""
 
     tid: tuple[int, int]
-    points: NDArray[np.float32]
-    ground_z: FloatArray
+    parts: list[tuple[NDArray[np.float32], Crop]]
+    ground: GroundGrid
     tile_m: float
+
+    @classmethod
+    def of(cls, tid: tuple[int, int], points: NDArray[np.float32], ground: GroundGrid,
+           tile_m: float) -> TileJob:
+        """A job of one array of points."""
+        return cls(tid, [(points, ())], ground, tile_m)
+
+    def pieces(self) -> Iterator[NDArray[np.float32]]:
+        """The points, part by part, cropped (compared in float64)."""
+        for rows, crop in self.parts:
+            keep = None
+            for a, lo, hi in crop:
+                q = rows[:, a]
+                m = (q >= np.float64(lo)) & (q < np.float64(hi))
+                keep = m if keep is None else keep & m
+            yield rows if keep is None else rows[keep]
+
+    @functools.cached_property
+    def points(self) -> NDArray[np.float32]:
+        p = list(self.pieces())
+        return np.concatenate(p) if p else np.zeros((0, 4), np.float32)
 
 
 def tile_stems(job: TileJob, params: StemParams) -> list[dict[str, Any]]:
-    """The stems of a tile run: the stem algorithm on the job's points, those whose centre
-    lies inside the tile."""
+    """The stems of a tile run: the stem algorithm on the job's points above seen ground,
+    those whose centre lies inside the tile."""
     if len(job.points) == 0:
         return []
     pts = job.points.astype(np.float64)
-    doc = identify_stems(pts[:, :3], params, ground_z=job.ground_z, widths=pts[:, 3])
+    gz = job.ground.height(pts[:, :2])
+    ok = np.isfinite(gz)
+    if not ok.all():
+        pts, gz = pts[ok], gz[ok]
+    doc = identify_stems(pts[:, :3], params, ground_z=gz, widths=pts[:, 3])
     x0, y0 = job.tid[0] * job.tile_m, job.tid[1] * job.tile_m
     return [o for o in doc["objects"]
             if x0 <= o["cp"][0] < x0 + job.tile_m and y0 <= o["cp"][1] < y0 + job.tile_m]
 
 
+_BLOCK_MIN, _BLOCK_MAX = 4096, 65536  # rows of a tile's storage blocks (64 KiB .. 1 MiB)
+
+
 @dataclass
 class _Tile:
-    chunks: list[NDArray[np.float32]] = field(default_factory=list)
-    points: int = 0  # after the last compaction
-    pending: int = 0  # in chunks not yet compacted
+    blocks: list[NDArray[np.float32]] = field(default_factory=list)
+    # ^ its points (x, y, z, edge half width), one a voxel and kind, the first seen, in the
+    # order they came: in blocks that double up to 1 MiB, the last one filled to ``fill``.
+    # Rows once written never change (a job may hold views of them), and a tile that grows
+    # never copies what it holds (a copy of a big tile held up a frame by 65 ms)
+    fill: int = 0
+    points: int = 0
     dirty: bool = False
     stems: list[dict[str, Any]] = field(default_factory=list)
     basis: int = 0  # the tile's own points its stems were found on
     evicted: bool = False  # lost its points since its stems were found
     run_distance: float = 0.0  # from the machine, when it last ran
-    keys: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    runs: list[NDArray[np.int64]] = field(default_factory=list)
-    # ^ the voxel keys of the compacted points (chunks[:ncompact]): sorted runs, the big one
-    # and the recent ones' (merged as they grow)
-    ncompact: int = 0  # chunks[:ncompact] are compacted, the rest pending
-    vox: list[NDArray[np.int64]] = field(default_factory=list)  # the pending chunks' voxels
+    voxels: VoxelSet = field(default_factory=VoxelSet)  # the voxel keys of its points
+
+    def views(self) -> list[NDArray[np.float32]]:
+        """Its points, block by block (views: later rows do not show in them)."""
+        if not self.blocks:
+            return []
+        return [*self.blocks[:-1], self.blocks[-1][:self.fill]]
+
+    @property
+    def held(self) -> NDArray[np.float32]:
+        """Its points, as one array."""
+        v = self.views()
+        return np.concatenate(v) if v else np.zeros((0, 4), np.float32)
+
+    def append(self, pts: NDArray[np.float32]) -> None:
+        i = 0
+        while i < len(pts):
+            if not self.blocks or self.fill == len(self.blocks[-1]):
+                rows = min(_BLOCK_MAX, _BLOCK_MIN << len(self.blocks))
+                self.blocks.append(np.empty((rows, 4), np.float32))
+                self.fill = 0
+            last = self.blocks[-1]
+            k = min(len(pts) - i, len(last) - self.fill)
+            last[self.fill:self.fill + k] = pts[i:i + k]
+            self.fill += k
+            i += k
+        self.points += len(pts)
+
+    def drop(self) -> int:
+        """Lets its points and voxels go; returns how many points."""
+        n = self.points
+        self.blocks, self.fill, self.points = [], 0, 0
+        self.voxels = VoxelSet(compiled=self.voxels.compiled)
+        return n
 
 
 @dataclass
@@ -202,7 +289,8 @@ class StemMap:
 
     def __init__(self, params: StemParams, *, voxel_m: float = 0.03, tile_m: float = 10.0,
                  margin_m: float = 1.5, max_points: int = 6_000_000,
-                 datum: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+                 datum: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 compiled_sets: bool = True) -> None:
         if not (voxel_m > 0 and tile_m > 2 * margin_m > 0):
             raise ValueError("voxel_m > 0 and tile_m > 2 * margin_m > 0 required")
         self.params = params
@@ -210,6 +298,7 @@ class StemMap:
         self.tile = tile_m
         self.margin = margin_m
         self.max_points = max_points
+        self.compiled_sets = compiled_sets  # False: numpy's sorted runs (a benchmark's side)
         self.datum = np.asarray(datum, dtype=np.float64)
         self.ground = GroundGrid(params.ground_cell_m, slope=params.ground_slope)
         self.tiles: dict[tuple[int, int], _Tile] = {}
@@ -244,17 +333,14 @@ class StemMap:
         keep = np.column_stack([pts[above], w[above]])
         if len(keep) == 0:
             return 0
-        # one point per voxel within the frame (the first), then per tile; the voxels keyed
-        # from the frame's own corner, so that the packed sort has room for the index
-        vox = self._voxels(keep)
-        sk, order = sorted_with_order(offset_key(vox))
-        sel = np.sort(order[run_starts(sk)])
-        keep, vox = keep[sel], vox[sel]
+        # by tile (stable: in the order they came), each tile keeping those of voxels it
+        # does not hold yet (the first of each)
+        keys = self._keys_of(self._voxels(keep))
         t = np.floor(keep[:, :2] / self.tile).astype(np.int64)
         t0 = column_min(t)
         nj = int(t[:, 1].max() - t0[1]) + 1
-        _, order = sorted_with_order((t[:, 0] - t0[0]) * nj + (t[:, 1] - t0[1]))  # by tile
-        keep, t, vox = keep[order], t[order], vox[order]
+        _, order = sorted_with_order((t[:, 0] - t0[0]) * nj + (t[:, 1] - t0[1]))
+        keep, t, keys = keep[order], t[order], keys[order]
         starts = np.flatnonzero(np.r_[True, (t[1:, 0] != t[:-1, 0]) | (t[1:, 1] != t[:-1, 1])])
         ends = np.r_[starts[1:], len(keep)]
         f32 = keep.astype(np.float32)
@@ -262,13 +348,13 @@ class StemMap:
             tid = (int(t[a, 0]), int(t[a, 1]))
             tile = self.tiles.get(tid)
             if tile is None:
-                tile = self.tiles[tid] = _Tile()
-            tile.chunks.append(f32[a:b])
-            # the voxels of the points as they came (float64), not of their float32 copies
-            tile.vox.append(vox[a:b])
-            tile.pending += b - a
-            self.stats.points += b - a
-            fresh = self._absorb(tile)
+                tile = _Tile(voxels=VoxelSet(compiled=self.compiled_sets))
+                self.tiles[tid] = tile
+            new = tile.voxels.add(keys[a:b])
+            fresh = int(np.count_nonzero(new))
+            if fresh:
+                tile.append(f32[a:b][new])
+                self.stats.points += fresh
             if not tile.evicted:
                 tile.dirty = tile.dirty or fresh > 0
             elif not tile.dirty and tile.points > tile.basis:
@@ -291,68 +377,6 @@ class StemMap:
     def _keys_of(v: NDArray[np.int64]) -> NDArray[np.int64]:
         return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
 
-    def _absorb(self, tile: _Tile) -> int:
-        """Take the tile's pending chunks in: the points of voxels it does not hold yet (the
-        first of each), in the order they came, appended as one compacted chunk; returns how
-        many. Their keys go into sorted runs of decreasing size (``keys``, then ``runs``),
-        merged as they grow: a frame's cost grows with the frame's points, not with the
-        tile's (a tile beside the track holds millions)."""
-        if tile.pending == 0:
-            return 0
-        rest = tile.chunks[tile.ncompact:]
-        new = rest[0] if len(rest) == 1 else np.concatenate(rest)
-        if len(tile.vox) == len(rest):
-            v = tile.vox[0] if len(rest) == 1 else np.concatenate(tile.vox)
-        else:  # chunks that came without their voxels
-            v = self._voxels(new)
-        tile.vox = []
-        nk = self._keys_of(v)
-        # stable: the first of equal keys first; sorted by the voxels' offsets from the
-        # chunk's corner (the same order as the keys'), which leave the packed sort room
-        _, order = sorted_with_order(offset_key(v))
-        sk = nk[order]
-        first = run_starts(sk)
-        uk, ui = sk[first], order[first]
-        for run in (tile.keys, *tile.runs):
-            if len(run) and len(uk):
-                fresh = run[np.minimum(np.searchsorted(run, uk), len(run) - 1)] != uk
-                uk, ui = uk[fresh], ui[fresh]
-        if len(uk):
-            # a new run; runs merge while the newer is a quarter of the older or more (a
-            # log-structured merge: a frame's merges are small, the big ones rare), the
-            # stable sort (timsort) merging two sorted runs in one pass
-            tile.runs.append(uk)
-            while len(tile.runs) >= 2 and 4 * len(tile.runs[-1]) >= len(tile.runs[-2]):
-                b = tile.runs.pop()
-                tile.runs[-1] = np.sort(np.concatenate([tile.runs[-1], b]), kind="stable")
-            if 4 * len(tile.runs[0]) >= len(tile.keys):
-                tile.keys = np.sort(np.concatenate([tile.keys, tile.runs.pop(0)]),
-                                    kind="stable")
-        pts = new[np.sort(ui)]
-        self.stats.points -= tile.pending - len(pts)
-        tile.chunks = tile.chunks[:tile.ncompact] + ([pts] if len(pts) else [])
-        tile.ncompact = len(tile.chunks)
-        tile.points += len(pts)
-        tile.pending = 0
-        return len(pts)
-
-    @staticmethod
-    def _merge_keys(tile: _Tile) -> None:
-        if tile.runs:
-            tile.keys = np.sort(np.concatenate([tile.keys, *tile.runs]), kind="stable")
-            tile.runs = []
-
-    def _compact(self, tile: _Tile) -> NDArray[np.float32]:
-        """The tile's points without repeats (one per voxel, the first seen), in the order
-        they came, as one array (kept so: a tile's chunks are joined once per run, not per
-        frame); its keys in one sorted run."""
-        self._absorb(tile)
-        self._merge_keys(tile)
-        if len(tile.chunks) > 1:
-            tile.chunks = [np.concatenate(tile.chunks)]
-            tile.ncompact = 1
-        return tile.chunks[0] if tile.chunks else np.zeros((0, 4), np.float32)
-
     def _evict(self) -> None:
         """Drop the points of the tiles farthest from the machine until 80 % of the cap.
 
@@ -368,7 +392,7 @@ class StemMap:
             if self.stats.points <= 0.8 * self.max_points:
                 break
             tile = self.tiles[ids[k]]
-            if tile.points + tile.pending == 0:
+            if tile.points == 0:
                 continue
             if tile.dirty:
                 if not self.defer_runs:
@@ -379,11 +403,7 @@ class StemMap:
                     # its last run's points go with the job, which waits for the worker
                     self.backlog.append(self.job(ids[k]))
                     self.stats.held_runs += 1
-            n = tile.points + tile.pending
-            tile.chunks, tile.points, tile.pending, tile.ncompact = [], 0, 0, 0
-            tile.vox = []
-            tile.keys = np.zeros(0, np.int64)  # not a view: the keys' memory goes too
-            tile.runs = []
+            n = tile.drop()
             tile.evicted = True  # its stems stay (it ran above if it was dirty)
             tile.dirty = False
             self.stats.points -= n
@@ -416,38 +436,30 @@ class StemMap:
 
     def job(self, tid: tuple[int, int]) -> TileJob:
         """What a run of tile ``tid`` needs, taken from the map now: its points and its
-        border's (float32, the map's own), and the ground height under each. The tile counts
-        as run from here (new points make it dirty again); :meth:`accept` takes the stems
+        border's (views of the map's own float32 blocks) and the ground grid under them; it
+        copies no points (:class:`TileJob`). The tile counts as run from here (new points
+        make it dirty again); :meth:`accept` takes the stems
         :func:`tile_stems` finds in the job, wherever that ran."""
         i, j = tid
         lo = np.array([i, j], dtype=np.float64) * self.tile - self.margin
         hi = lo + self.tile + 2 * self.margin
-        parts = []
+        parts: list[tuple[NDArray[np.float32], Crop]] = []
         for di in (-1, 0, 1):
             for dj in (-1, 0, 1):
                 nb = self.tiles.get((i + di, j + dj))
-                if nb is not None and (nb.points or nb.pending):
-                    p = self._compact(nb)  # the border's points only (compared in float64)
+                if nb is not None and nb.points:
                     # a tile's points lie within it (up to float32's rounding, far inside
                     # the margin): only the axes along which the neighbour is offset can
                     # leave points outside the border, and the tile itself keeps them all
-                    keep = None
-                    for a, dv in ((0, di), (1, dj)):
-                        if dv:
-                            q = p[:, a]
-                            m = (q >= lo[a]) & (q < hi[a])
-                            keep = m if keep is None else keep & m
-                    parts.append(p if keep is None else p[keep])
+                    crop = tuple((a, float(lo[a]), float(hi[a]))
+                                 for a, dv in ((0, di), (1, dj)) if dv)
+                    parts.extend((v, crop) for v in nb.views())
         tile = self.tiles[tid]
         tile.dirty = tile.evicted = False
-        tile.basis = tile.points  # compacted above
+        tile.basis = tile.points
         tile.run_distance = self._distance(tid)
-        pts = np.concatenate(parts) if parts else np.zeros((0, 4), np.float32)
-        gz = self.ground.height(pts[:, :2].astype(np.float64))
-        ok = np.isfinite(gz)
-        if not ok.all():
-            pts, gz = pts[ok], gz[ok]
-        return TileJob(tid, pts, gz, self.tile)
+        # the ground under the job's area as it is now: the heights are the run's to take
+        return TileJob(tid, parts, self.ground.snapshot(lo, hi), self.tile)
 
     def accept(self, tid: tuple[int, int], stems: list[dict[str, Any]],
                seconds: float = 0.0) -> None:
@@ -481,10 +493,15 @@ class StemMap:
         for tid in self.dirty_tiles():
             tile = self.tiles[tid]
             if (final or over or tile.basis == 0
-                    or tile.points + tile.pending >= (1.0 + self.rerun_growth) * tile.basis
+                    or tile.points >= (1.0 + self.rerun_growth) * tile.basis
                     or self._distance(tid) >= tile.run_distance + self.settle_m):
                 return self.job(tid)
         return None
+
+    def nbytes(self) -> int:
+        """The memory the map's points and voxel sets take (their arrays)."""
+        return sum(sum(b.nbytes for b in t.blocks) + t.voxels.nbytes
+                   for t in self.tiles.values())
 
     def _distance(self, tid: tuple[int, int]) -> float:
         cx, cy = (tid[0] + 0.5) * self.tile, (tid[1] + 0.5) * self.tile

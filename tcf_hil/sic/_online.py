@@ -53,6 +53,7 @@ from tcf_hil.errors import SicError
 from tcf_hil.sic._field import divergence_of, edge_widths
 from tcf_hil.sic._map import StemMap
 from tcf_hil.sic._stems import StemParams, stem_params
+from tcf_hil.sic._voxelset import warm as warm_voxel_sets
 from tcf_hil.trajectory import rotation_ypr
 
 FloatArray = NDArray[np.float64]
@@ -85,7 +86,7 @@ class SicConfig:
     publish_s: float = 2.0
     idle_s: float = 3.0
     voxel_m: float | None = None  # None: 0.03 m for tuned, 0.1 m for paper (its density)
-    max_points: int = 12_000_000  # about 300 MB (x, y, z, width float32 and a key)
+    max_points: int = 12_000_000  # about 400 MB (x, y, z and width float32, and the voxel keys)
     max_seconds: float = 0.0  # stop after this long (0: no limit)
     pose_hold_s: float = 1.0  # a frame waits this long for the poses of its columns
     nmt_start_after_s: float = 2.0  # start a node left in PRE-OPERATIONAL (0: never)
@@ -527,6 +528,9 @@ class OnboardSic:
 
     def run(self) -> dict[str, Any]:
         cfg = self.cfg
+        # the map's compiled voxel sets, before the port is bound: compiled on a first
+        # frame (a second or two where numba's cache is cold), they would hold it up
+        warm_voxel_sets()
         meta = self.meta = load_metadata(cfg)
         port = cfg.lidar_port or meta.udp_port_lidar
         track = PoseTrack()

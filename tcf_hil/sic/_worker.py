@@ -4,8 +4,8 @@ A live SIC must take every frame at the sensor's rate (10 or 20 Hz) however long
 algorithm takes on a tile (a second or more on a dense natural stand): run inline, one long
 tile run holds up the frames behind it until the receiver's queue overflows. Here the frame
 loop hands tile runs (:class:`~tcf_hil.sic._map.TileJob`: a tile's points and the ground
-under them) to a child process and takes their stems back when they are done. The arrays go
-in a file on the RAM disk, not through the pipe: a pipe holds 64 KiB and would block the
+grid under them) to a child process and takes their stems back when they are done. The points
+go in a file on the RAM disk, not through the pipe: a pipe holds 64 KiB and would block the
 frame loop until the busy child read them. The child runs at a lower scheduling priority
 (``nice``), so on one core the kernel gives the frames the CPU when they need it and the
 tile runs the rest.
@@ -20,9 +20,11 @@ import contextlib
 import math
 import multiprocessing as mp
 import os
+import queue
 import shutil
 import signal
 import tempfile
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -31,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from tcf_hil.sic._map import StemMap, TileJob, tile_stems
+from tcf_hil.sic._map import GroundGrid, StemMap, TileJob, tile_stems
 from tcf_hil.sic._params import StemParams
 
 # one thread for numpy's BLAS/LAPACK and OpenMP in the child: the point is one core's share
@@ -39,22 +41,29 @@ _ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THR
                "NUMBA_NUM_THREADS": "1"}
 
 
-def _write_job(job: TileJob, folder: str) -> str:
-    """The job's arrays in a file of their own in ``folder`` (a RAM disk where there is one):
-    a pipe holds 64 KiB, and a tile's points (megabytes) sent through it would hold the frame
-    loop until the busy child reads them."""
+def _write_job(job: TileJob, folder: str) -> tuple[str, int]:
+    """The job's points in a file of their own in ``folder`` (a RAM disk where there is one),
+    a block at a time; returns the path and how many points. A pipe holds 64 KiB, and a
+    tile's points (megabytes) sent through it would hold the frame loop until the busy child
+    reads them."""
     fd, path = tempfile.mkstemp(prefix="tcf-sic-tile-", suffix=".f32", dir=folder)
-    with os.fdopen(fd, "wb") as f:
-        f.write(np.ascontiguousarray(job.points, dtype=np.float32).tobytes())
-        f.write(np.ascontiguousarray(job.ground_z, dtype=np.float64).tobytes())
-    return path
+    n = 0
+    try:
+        with os.fdopen(fd, "wb") as f:
+            for piece in job.pieces():
+                np.ascontiguousarray(piece, dtype=np.float32).tofile(f)
+                n += len(piece)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+        raise
+    return path, n
 
 
-def _read_job(path: str, tid: tuple[int, int], n: int, tile_m: float) -> TileJob:
-    raw = np.fromfile(path, dtype=np.uint8)
-    pts = raw[:n * 16].view(np.float32).reshape(n, 4)
-    gz = raw[n * 16:].view(np.float64)
-    return TileJob(tid, pts, gz, tile_m)
+def _read_job(path: str, tid: tuple[int, int], n: int, ground: GroundGrid,
+              tile_m: float) -> TileJob:
+    pts = np.fromfile(path, dtype=np.float32, count=4 * n).reshape(n, 4)
+    return TileJob.of(tid, pts, ground, tile_m)
 
 
 def _serve(conn: Connection, params: StemParams, nice: int) -> None:
@@ -75,10 +84,10 @@ def _serve(conn: Connection, params: StemParams, nice: int) -> None:
             return
         if msg is None:
             return
-        path, tid, n, tile_m = msg
+        path, tid, n, ground, tile_m = msg
         t0 = time.process_time()
         try:
-            job = _read_job(path, tid, n, tile_m)
+            job = _read_job(path, tid, n, ground, tile_m)
             with contextlib.suppress(OSError):
                 os.unlink(path)
             stems = tile_stems(job, params)
@@ -117,8 +126,14 @@ class TileWorker:
         self.folder = tempfile.mkdtemp(prefix="tcf-sic-stems-", dir=ram)
         self.depth = depth
         self.in_flight: deque[tuple[int, int]] = deque()
-        self._paths: deque[str] = deque()  # the job files in flight (the child removes them)
         self.errors: list[str] = []
+        # the feeder thread writes the jobs' files and sends them: the frame loop only
+        # hands it a job (views of the map's blocks), and a big tile's megabytes are copied
+        # a block at a time beside the frames, not in one of them
+        self._jobs: queue.SimpleQueue[TileJob | None] = queue.SimpleQueue()
+        self._failed: deque[tuple[Any, Any, Any]] = deque()  # (tile, None, why)
+        self._feeder = threading.Thread(target=self._feed, name="tcf-sic-feeder", daemon=True)
+        self._feeder.start()
         self.cpu_s = 0.0
         self.runs = 0
 
@@ -126,17 +141,35 @@ class TileWorker:
     def busy(self) -> bool:
         return len(self.in_flight) >= self.depth
 
+    def _feed(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            try:
+                path, n = _write_job(job, self.folder)
+                # the ground grid (a few cells) goes through the pipe
+                self._conn.send((path, job.tid, n, job.ground, job.tile_m))
+            except Exception as e:  # a full RAM disk, a closed pipe: that tile fails
+                self._failed.append((job.tid, None, f"{type(e).__name__}: {e}"))
+
     def collect(self, smap: StemMap, timeout: float = 0.0) -> int:
         """Take the finished runs into ``smap`` (waiting up to ``timeout`` for the first);
         returns how many."""
         n = 0
-        while self.in_flight and self._conn.poll(timeout if n == 0 else 0.0):
-            try:
-                tid, stems, cost = self._conn.recv()
-            except EOFError:
-                raise RuntimeError("the stem worker process ended") from None
-            self.in_flight.popleft()
-            self._paths.popleft()
+        while self.in_flight:
+            result: tuple[Any, Any, Any]
+            if self._failed:
+                result = self._failed.popleft()
+            elif self._conn.poll(timeout if n == 0 else 0.0):
+                try:
+                    result = self._conn.recv()
+                except EOFError:
+                    raise RuntimeError("the stem worker process ended") from None
+            else:
+                break
+            tid, stems, cost = result
+            self.in_flight.remove(tid)
             n += 1
             if stems is None:
                 self.errors.append(f"tile {tid}: {cost}")
@@ -158,12 +191,11 @@ class TileWorker:
         return n
 
     def submit(self, job: TileJob) -> None:
+        """Hand ``job`` to the worker (its file is written beside the frame loop)."""
         if not self.proc.is_alive():
             raise RuntimeError(f"the stem worker process ended (exit {self.proc.exitcode})")
-        path = _write_job(job, self.folder)
-        self._paths.append(path)
-        self._conn.send((path, job.tid, len(job.points), job.tile_m))
         self.in_flight.append(job.tid)
+        self._jobs.put(job)
 
     def idle(self, smap: StemMap) -> bool:
         """Nothing in flight and nothing left to run."""
@@ -195,6 +227,8 @@ class TileWorker:
                 next_call = time.monotonic() + every_s
 
     def close(self, timeout: float = 2.0) -> None:
+        self._jobs.put(None)
+        self._feeder.join(timeout)
         with contextlib.suppress(OSError, BrokenPipeError):
             self._conn.send(None)
         self.proc.join(timeout)
@@ -202,7 +236,6 @@ class TileWorker:
             self.proc.kill()
             self.proc.join(timeout)
         self._conn.close()
-        self._paths.clear()
         shutil.rmtree(self.folder, ignore_errors=True)  # with jobs the child never read
 
     def __enter__(self) -> TileWorker:

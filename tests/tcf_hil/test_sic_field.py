@@ -272,6 +272,27 @@ def test_stems_among_whorls_and_needles_are_found_once_and_branches_never() -> N
         assert t["class"] == "S"
 
 
+def test_the_stem_is_not_followed_onto_something_wider_beside_it() -> None:
+    """Up the stem, a slice must taper and stay on the line: a stem hidden above 4.5 m
+    beside a wider clump 8 cm off (a neighbour's branches) is not followed onto it, which
+    would bend its curve into a crook."""
+    g = np.random.default_rng(3)
+    a = np.radians(np.arange(-100.0, 100.0, 6.0))
+
+    def half_cylinder(x: float, r: float, z0: float, z1: float) -> np.ndarray:
+        zz, aa = np.meshgrid(np.arange(z0, z1, 0.02), a)
+        rr = r + g.normal(0, 0.002, zz.shape)
+        return np.column_stack([x + (rr * np.cos(aa)).ravel(), (rr * np.sin(aa)).ravel(),
+                                zz.ravel()])
+
+    pts = np.vstack([half_cylinder(0.0, 0.10, 0.3, 4.5), half_cylinder(0.08, 0.125, 4.5, 8.0)])
+    trees = field_stems(pts, np.zeros(len(pts)), np.zeros(len(pts)), PRM)
+    assert len(trees) == 1
+    t = trees[0]
+    assert max(c[0] for c in t["curve"]) < 4.6, t["curve"]
+    assert t["class"] == "S" and t["dbh"] == pytest.approx(0.2, abs=0.01)
+
+
 # ------------------------------------------------------------------------------ classes
 def _curve(shape: str) -> tuple[np.ndarray, np.ndarray]:
     z = np.arange(0.75, 10.0, 0.5)

@@ -183,7 +183,7 @@ def test_map_eviction_keeps_the_stems_of_dropped_tiles() -> None:
     smap.add(right, np.array([20.0, 0.0]))  # the machine moved: the left tiles go
     smap.update()
     assert smap.stats.evicted_points > 0
-    held = sum(t.points + t.pending for t in smap.tiles.values())
+    held = sum(t.points for t in smap.tiles.values())
     assert smap.stats.points == held <= 11_000
     xs = sorted(round(o["cp"][0]) for o in smap.forest("t")["objects"])
     assert xs == [-20, 20]
@@ -201,7 +201,7 @@ def test_an_evicted_tile_keeps_its_stems_until_it_holds_more_points_again() -> N
     smap.add(left, np.array([-15.0, 5.0]))
     smap.add(right, np.array([15.0, 5.0]))  # the left tiles go, their stems found first
     tile = smap.tiles[(-2, 0)]
-    assert tile.evicted and tile.points + tile.pending == 0 and tile.basis > 1000
+    assert tile.evicted and tile.points == 0 and tile.basis > 1000
     kept = [o["dbh"] for o in tile.stems]
     assert len(kept) == 1
     smap.update()  # the right tiles
@@ -221,38 +221,59 @@ def test_an_evicted_tile_keeps_its_stems_until_it_holds_more_points_again() -> N
     assert len(tile.stems) == 1 and tile.stems[0]["dbh"] == pytest.approx(0.30, abs=0.01)
 
 
+@pytest.mark.parametrize("compiled", [True, False], ids=["hash-table", "sorted-runs"])
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), sizes=st.lists(st.integers(0, 400), min_size=1,
-                                                      max_size=8),
-       when=st.lists(st.booleans(), min_size=8, max_size=8))
-def test_a_compacted_tile_holds_the_first_point_of_each_voxel_in_arrival_order(
-        seed: int, sizes: list[int], when: list[bool]) -> None:
-    """Compaction (against the sorted keys of what was compacted before, at any moment)
-    equals one pass over all the points: the first of each voxel and kind (edge return or
-    not), in the order they came."""
+                                                      max_size=8))
+def test_a_tile_holds_the_first_point_of_each_voxel_in_arrival_order(
+        compiled: bool, seed: int, sizes: list[int]) -> None:
+    """A tile's voxel set, frame after frame (the hash table and, without compiled
+    kernels, the sorted runs): the same as one pass over all the points, the first of each
+    voxel and kind (edge return or not) in the order they came, whatever the frames."""
+    from tcf_hil.sic import _voxelset
     from tcf_hil.sic._map import _Tile
 
     rng = np.random.default_rng(seed)
     smap = StemMap(stem_params("tuned"), voxel_m=0.1)
     tile, seen = _Tile(), []
-    for n, now in zip(sizes, when, strict=False):
+    if not compiled:
+        tile.voxels = _voxelset.VoxelSet(compiled=False)
+    for n in sizes:
         # a few voxels only, so that most points repeat one seen before
         pts = (rng.integers(0, 6, (n, 3)) * 0.1 + rng.uniform(0.01, 0.09, (n, 3)))
         # x, y, z and the edge half width: an edge return and a clean one share a voxel
         pts = np.column_stack([pts, rng.integers(0, 2, n) * 0.01]).astype(np.float32)
-        tile.chunks.append(pts)
-        tile.pending += n
-        smap.stats.points += n
+        new = tile.voxels.add(smap._keys_of(smap._voxels(pts)))
+        tile.append(pts[new])
         seen.append(pts)
-        if now:
-            smap._compact(tile)
-    got = smap._compact(tile)
     allp = np.concatenate(seen)
     keys = smap._keys_of(smap._voxels(allp))
     _, first = np.unique(keys, return_index=True)
-    np.testing.assert_array_equal(got, allp[np.sort(first)])
-    np.testing.assert_array_equal(tile.keys, np.unique(keys))
-    assert tile.points == smap.stats.points == len(got) and tile.pending == 0
+    np.testing.assert_array_equal(tile.held, allp[np.sort(first)])
+    np.testing.assert_array_equal(tile.voxels.sorted(), np.unique(keys))
+    assert len(tile.voxels) == tile.points == len(first)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), sizes=st.lists(st.integers(0, 3000), min_size=1,
+                                                      max_size=12),
+       step=st.integers(1, 5000))
+def test_a_voxel_set_that_grows_moves_its_keys_a_step_at_a_time_and_loses_none(
+        seed: int, sizes: list[int], step: int) -> None:
+    """The hash table that grew keeps both tables until its keys moved (``step`` slots an
+    add): whatever the moment, the masks are those of a set of every key seen."""
+    from tcf_hil.sic._voxelset import VoxelSet, warm
+
+    if not warm():
+        pytest.skip("compiled kernels are off (TCF_HIL_NO_JIT or no numba)")
+    rng = np.random.default_rng(seed)
+    v, ref = VoxelSet(), VoxelSet(compiled=False)
+    v.step = step
+    for n in sizes:
+        keys = rng.integers(1, 3 * sum(sizes) + 2, n)
+        np.testing.assert_array_equal(v.add(keys), ref.add(keys))
+        assert len(v) == len(ref)
+    np.testing.assert_array_equal(v.sorted(), ref.sorted())
 
 
 @settings(max_examples=60, deadline=None)
@@ -288,7 +309,7 @@ def test_a_frame_goes_to_its_tiles_one_point_a_voxel_the_first_in_arrival_order(
         want.setdefault((i, j), []).append(p)
     assert sorted(smap.tiles) == sorted(want)
     for tid, tile in smap.tiles.items():
-        got = np.concatenate(tile.chunks)
+        got = tile.held
         np.testing.assert_array_equal(got[:, :3], np.array(want[tid], dtype=np.float32))
         assert not got[:, 3].any()  # no edge widths given: none
 

@@ -63,7 +63,12 @@ def test_a_job_is_the_same_through_the_worker_and_inline() -> None:
     smap = StemMap(prm, voxel_m=0.01)
     smap.add(cloud)
     job = smap.job((0, 0))
-    assert isinstance(job, TileJob) and job.points.dtype == np.float32
+    assert isinstance(job, TileJob)
+    want = job.points.copy()
+    assert want.dtype == np.float32 and len(want) == smap.stats.points
+    # the map goes on (the job holds views of its blocks): the job does not change
+    smap.add(_cylinders([(2.0, 3.0), (7.0, 7.0)], rng))
+    np.testing.assert_array_equal(np.concatenate(list(job.pieces())), want)
     with TileWorker(prm, nice=0) as w:
         w.submit(job)
         assert w.collect(smap, timeout=120.0) == 1
@@ -111,7 +116,7 @@ def test_a_dirty_tile_due_for_eviction_waits_for_the_worker() -> None:
     with TileWorker(prm) as w:
         w.drain(smap, timeout=120.0)
     assert smap.stats.evicted_points > 0  # gone once they ran
-    held = sum(t.points + t.pending for t in smap.tiles.values())
+    held = sum(t.points for t in smap.tiles.values())
     assert smap.stats.points == held <= 11_000
     xs = sorted(round(o["cp"][0]) for o in smap.forest("t")["objects"])
     assert xs == [-20, 20]
@@ -128,9 +133,9 @@ def test_a_worker_reports_a_failed_tile_and_goes_on() -> None:
     smap = StemMap(prm, voxel_m=0.01)
     smap.add(_cylinders([(2.0, 2.0)], np.random.default_rng(7)))
     good = smap.job((0, 0))
-    bad = TileJob((9, 9), np.full((50, 4), np.nan, np.float32), np.zeros(3), 10.0)
+    bad = TileJob.of((9, 9), np.ones((50, 4), np.float32), None, 10.0)  # type: ignore[arg-type]
     with TileWorker(prm, nice=0) as w:
-        w.submit(bad)  # the ground heights do not match the points: the child fails on it
+        w.submit(bad)  # no ground grid: the child fails on it
         w.submit(good)
         while w.in_flight:
             w.collect(smap, timeout=120.0)
