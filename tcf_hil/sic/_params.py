@@ -55,7 +55,12 @@ class StemParams:
     fit_tolerance_m: float = 0.02  # RANSAC inlier distance from a slice's circle
     dbh_tolerance_m: float = 0.012  # ... and from the breast-height circle
     dbh_window_m: tuple[float, float] = (0.8, 1.8)  # the breast-height circle's points
-    min_slices: int = 3  # a stem's circle is found in at least this many band slices
+    min_slices: int = 3  # a stem's candidate has votes in this many band layers (0.5 m)
+    # a stem's circle is found in at least this many of the band's slices, which lie one
+    # against the next (``slice_thickness_m`` apart: every return of the band in one;
+    # 4 x 0.25 m: 0.75 m of stem); a spruce's crown leaves its bark clear of needles in
+    # a few of them only
+    min_band_slices: int = 4
     # bark is a thin shell: of the points from 5 tolerances inside a slice's circle to
     # ``shell_outside`` tolerances outside it, 60 % lie on it (needles may crowd the bark's
     # outside; nothing of a stem lies inside it). Within ``crowd_m`` of a stem found
@@ -63,7 +68,7 @@ class StemParams:
     # too (a gap among the crown's needles is no stem)
     shell_outside: float = 2.0
     crowd_m: float = 1.0
-    curve_step_m: float = 0.5  # the stem curve's slices (and the axis's, in the band)
+    curve_step_m: float = 0.5  # the stem curve's slices above the band
     follow_radius_m: float = 0.15  # a slice up the stem is searched this far off its axis
     follow_misses: int = 5  # the stem is followed until this many slices in a row fail
     crook_m: float = 0.06  # a sideways step of the centre line this large is a crook (X)

@@ -293,6 +293,24 @@ def test_the_stem_is_not_followed_onto_something_wider_beside_it() -> None:
     assert t["class"] == "S" and t["dbh"] == pytest.approx(0.2, abs=0.01)
 
 
+def test_a_stem_that_ends_in_the_band_is_no_tree() -> None:
+    """A stem-sized cylinder with nothing above the band over it (a stump, a shrub's stem,
+    a sapling) is no tree; the same cylinder going on above the band is one."""
+    g = np.random.default_rng(5)
+    a = np.radians(np.arange(-100.0, 100.0, 6.0))
+
+    def stem(top: float) -> np.ndarray:
+        zz, aa = np.meshgrid(np.arange(0.3, top, 0.02), a)
+        rr = 0.06 + g.normal(0, 0.002, zz.shape)
+        return np.column_stack([(rr * np.cos(aa)).ravel(), (rr * np.sin(aa)).ravel(),
+                                zz.ravel()])
+
+    for top, n in ((3.6, 0), (7.0, 1)):
+        pts = stem(top)
+        trees = field_stems(pts, np.zeros(len(pts)), np.zeros(len(pts)), PRM)
+        assert len(trees) == n, (top, [(t["dbh"], t["h"]) for t in trees])
+
+
 # ------------------------------------------------------------------------------ classes
 def _curve(shape: str) -> tuple[np.ndarray, np.ndarray]:
     z = np.arange(0.75, 10.0, 0.5)
