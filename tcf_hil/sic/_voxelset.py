@@ -36,39 +36,31 @@ _ZERO_STEP = 1 << 19  # slots of the next table zeroed at each add (4 MiB)
 _FIB = 0x9E3779B97F4A7C15  # 2**64 / golden ratio: Knuth's multiplicative hash
 
 
-def _slot(k: Any, size: int) -> Any:
-    """A key's home slot in a table of ``size``: the top 32 bits of its Fibonacci hash
-    scaled to the size (Lemire's multiply-shift range reduction: any size, no division)."""
+def _find(table: Any, k: Any) -> Any:
+    """The slot of key ``k`` in ``table``, or of the empty slot where it would go (linear
+    probing from its home slot: the top 32 bits of its Fibonacci hash scaled to the size,
+    Lemire's multiply-shift range reduction: any size, no division)."""
+    size = table.shape[0]
     h = (np.uint64(k) * np.uint64(_FIB)) >> np.uint64(32)
-    return np.int64((h * np.uint64(size)) >> np.uint64(32))
+    s: Any = np.int64((h * np.uint64(size)) >> np.uint64(32))
+    while table[s] != 0 and table[s] != k:
+        s += 1
+        if s == size:
+            s = 0
+    return s
 
 
 def insert_keys(table: Any, old: Any, keys: Any, new: Any) -> int:
     """Insert ``keys`` in order into ``table`` (0 = empty), setting ``new[i]`` where
     ``keys[i]`` was in neither ``table`` nor ``old`` (a table being moved into this one;
     size 1: none); returns how many were new."""
-    size = table.shape[0]
-    osize = old.shape[0]
     added = 0
     for i in range(keys.shape[0]):
         k = keys[i]
-        s = _slot(k, size)
-        while table[s] != 0 and table[s] != k:
-            s += 1
-            if s == size:
-                s = 0
-        if table[s] == k:
-            new[i] = False
+        s = _find(table, k)
+        if table[s] == k or (old.shape[0] > 1 and old[_find(old, k)] == k):
+            new[i] = False  # held, or not moved yet
             continue
-        if osize > 1:  # not moved yet?
-            o = _slot(k, osize)
-            while old[o] != 0 and old[o] != k:
-                o += 1
-                if o == osize:
-                    o = 0
-            if old[o] == k:
-                new[i] = False
-                continue
         table[s] = k
         new[i] = True
         added += 1
@@ -78,17 +70,10 @@ def insert_keys(table: Any, old: Any, keys: Any, new: Any) -> int:
 def move_keys(old: Any, start: int, stop: int, table: Any) -> None:
     """Insert the keys of ``old[start:stop]`` (a table being moved) into ``table``, which
     holds none of them."""
-    size = table.shape[0]
     for j in range(start, stop):
         k = old[j]
-        if k == 0:
-            continue
-        s = _slot(k, size)
-        while table[s] != 0:
-            s += 1
-            if s == size:
-                s = 0
-        table[s] = k
+        if k != 0:
+            table[_find(table, k)] = k
 
 
 def _size_for(n: int) -> int:
@@ -106,10 +91,10 @@ def _kernel() -> Any:
     if not jit_enabled():
         return None
     if not _KERNELS:
-        global _slot
+        global _find
         njit = numba_module().njit
-        if not hasattr(_slot, "py_func"):  # not yet numba's
-            _slot = njit(cache=True, nogil=True, inline="always")(_slot)
+        if not hasattr(_find, "py_func"):  # not yet numba's
+            _find = njit(cache=True, nogil=True, inline="always")(_find)
         _KERNELS.extend((njit(cache=True, nogil=True)(insert_keys),
                          njit(cache=True, nogil=True)(move_keys)))
     return _KERNELS
