@@ -400,8 +400,12 @@ class StemMap:
                 elif self.stats.points <= self.hard_cap * self.max_points:
                     break  # not the nearer tiles instead: it goes once it ran
                 else:
-                    # its last run's points go with the job, which waits for the worker
-                    self.backlog.append(self.job(ids[k]))
+                    # its last run's points go with the job, which waits for the worker:
+                    # copied (its border cropped), not views that would keep the blocks
+                    # of the nine tiles this eviction lets go
+                    job = self.job(ids[k])
+                    self.backlog.append(TileJob.of(job.tid, job.points, job.ground,
+                                                   job.tile_m))
                     self.stats.held_runs += 1
             n = tile.drop()
             tile.evicted = True  # its stems stay (it ran above if it was dirty)

@@ -175,8 +175,12 @@ class VoxelSet:
                                   np.int64)
             self._zeroed = 0
         if self._next is not None:
-            z = len(self._next) if need > _FULL * len(self._table) else min(
-                len(self._next), self._zeroed + _ZERO_STEP)
+            force = need > _FULL * len(self._table)
+            if force and len(self._next) < _size_for(need):
+                # more keys at once than the next table was sized for: a bigger one
+                self._next = np.empty(_size_for(need), np.int64)
+                self._zeroed = 0
+            z = len(self._next) if force else min(len(self._next), self._zeroed + _ZERO_STEP)
             self._next[self._zeroed:z] = 0
             self._zeroed = z
             if z == len(self._next):

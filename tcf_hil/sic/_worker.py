@@ -146,12 +146,17 @@ class TileWorker:
             job = self._jobs.get()
             if job is None:
                 return
+            path = None
             try:
                 path, n = _write_job(job, self.folder)
                 # the ground grid (a few cells) goes through the pipe
                 self._conn.send((path, job.tid, n, job.ground, job.tile_m))
             except Exception as e:  # a full RAM disk, a closed pipe: that tile fails
+                if path is not None:
+                    with contextlib.suppress(OSError):
+                        os.unlink(path)
                 self._failed.append((job.tid, None, f"{type(e).__name__}: {e}"))
+            job = None  # its blocks go once the map lets them go
 
     def collect(self, smap: StemMap, timeout: float = 0.0) -> int:
         """Take the finished runs into ``smap`` (waiting up to ``timeout`` for the first);
@@ -229,6 +234,9 @@ class TileWorker:
     def close(self, timeout: float = 2.0) -> None:
         self._jobs.put(None)
         self._feeder.join(timeout)
+        if self._feeder.is_alive():  # writing a big job, or blocked on a child that hangs
+            self.proc.kill()
+            self._feeder.join(timeout)
         with contextlib.suppress(OSError, BrokenPipeError):
             self._conn.send(None)
         self.proc.join(timeout)

@@ -276,6 +276,20 @@ def test_a_voxel_set_that_grows_moves_its_keys_a_step_at_a_time_and_loses_none(
     np.testing.assert_array_equal(v.sorted(), ref.sorted())
 
 
+def test_a_voxel_set_takes_more_keys_at_once_than_its_next_table_was_sized_for() -> None:
+    """A next table sized at one add, still being zeroed when an add brings more keys than
+    it holds: a bigger one is made (a full table would leave a probe no empty slot)."""
+    from tcf_hil.sic._voxelset import VoxelSet, warm
+
+    if not warm():
+        pytest.skip("compiled kernels are off (TCF_HIL_NO_JIT or no numba)")
+    v, ref = VoxelSet(), VoxelSet(compiled=False)
+    for keys in (np.arange(1, 300_001), np.array([300_001]),
+                 np.arange(300_002, 1_000_002)[::-1]):
+        np.testing.assert_array_equal(v.add(keys), ref.add(keys))
+    assert len(v) == len(ref) == 1_000_001
+
+
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 2000), spread=st.floats(0.05, 25.0),
        far=st.booleans())
