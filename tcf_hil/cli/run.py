@@ -122,9 +122,11 @@ def demo(out: Path | None, seed: int | None, preset: str, compare: bool) -> None
     scn, out = load_scenario("forest-v"), run_dir(out)
     announce_backend()
     results: list[Any] = []
+    # the SIC's stem worker finishes the map's last tiles after the stream: seconds as a
+    # rule, a minute on a machine busy with other work (a SIC that is done exits at once)
     code = _session(lambda stop, say, live: run_bridge(
         scn, sic_reference_command(preset), out, mode="1024x10", seed=seed, stop=stop,
-        announce=say, watch=live.watch), out, keep=results)
+        announce=say, watch=live.watch, grace_s=120.0), out, keep=results)
     if code == 0 and compare and preset != "paper":
         other = out / "compare-paper"
         err_console.print("the same recording, replayed to the paper's algorithm "
@@ -194,7 +196,8 @@ def _print_side_by_side(a: Any, b: Any, preset: str) -> None:
                    "node with the harvester's id stops the run (exit 1).")
 @click.option("--grace", type=click.FloatRange(min=0), default=30.0, show_default=True,
               help="Seconds the SIC gets after the stream ends to publish its final forest "
-                   "and exit (then SIGTERM, then SIGKILL).")
+                   "and exit (then SIGTERM, then SIGKILL). The reference SIC's stem worker "
+                   "needs minutes after a natural stand at 2048x10 on one core.")
 @click.option("--ready-timeout", "ready_s", type=click.FloatRange(min=0), default=15.0,
               show_default=True,
               help="The clock starts when the SIC listens on the lidar UDP port, or after "
