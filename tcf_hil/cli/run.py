@@ -194,10 +194,11 @@ def _print_side_by_side(a: Any, b: Any, preset: str) -> None:
                    "bench or harvester can mix in), or join one on purpose: auto, "
                    "socketcan:IFACE, socketcand:HOST:PORT:CHANNEL. On a joined bus a second "
                    "node with the harvester's id stops the run (exit 1).")
-@click.option("--grace", type=click.FloatRange(min=0), default=30.0, show_default=True,
+@click.option("--grace", type=click.FloatRange(min=0), default=120.0, show_default=True,
               help="Seconds the SIC gets after the stream ends to publish its final forest "
-                   "and exit (then SIGTERM, then SIGKILL). The reference SIC's stem worker "
-                   "needs minutes after a natural stand at 2048x10 on one core.")
+                   "and exit (then SIGTERM, then SIGKILL); a SIC that exits sooner ends the "
+                   "run sooner. The reference SIC's stem worker needs up to a minute after a "
+                   "natural stand at 1024x10, minutes at 2048x10 on one core.")
 @click.option("--ready-timeout", "ready_s", type=click.FloatRange(min=0), default=15.0,
               show_default=True,
               help="The clock starts when the SIC listens on the lidar UDP port, or after "

@@ -342,9 +342,11 @@ def test_a_live_run_of_a_natural_stand_scores_above_the_floor(tmp_path: Path) ->
     """A regression guard, not the aim: a 0.16 ha corner of ``pine-thinning`` (2,200 stems/ha,
     branches, crowns, understory) driven 24 m at 1024x10 on the wire, the field SIC as its
     own process. Floors from a run measured on this 2-core machine under load: within 5 m
-    of the track 10 of 10 stems found, DBH RMSE 3.9 cm; 5-10 m, 31 of 61 and 5.0 cm (the
+    of the track 43 of 47 stems found, DBH RMSE 1.6 cm; 5-10 m, 99 of 110 and 3.0 cm (the
     emulator streams natural stands below real time: half speed, and the SIC waits 20 s for
-    a late packet instead of 3)."""
+    a late packet instead of 3). The SIC's stem worker finishes its last tiles after the
+    stream; with run's default 30 s grace it was killed with a third of the stems unpublished
+    on a loaded machine, hence --grace 300 (it exits as soon as it is done)."""
     import json
     import subprocess
     import sys
@@ -366,13 +368,16 @@ def test_a_live_run_of_a_natural_stand_scores_above_the_floor(tmp_path: Path) ->
     out = tmp_path / "run"
     p = subprocess.run([sys.executable, "-m", "tcf_hil.cli", "run", str(toml), "--mode",
                         "1024x10", "--speed", "0.5", "--sic",
-                        "{python} -m tcf_hil.sic --idle 20", "--out", str(out)],
+                        "{python} -m tcf_hil.sic --idle 20", "--grace", "300",
+                        "--out", str(out)],
                        capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr[-2000:]
     score = json.loads((out / "score.json").read_text())
     bands = {b["from_m"]: b for b in score["by_distance"]["bands"]}
-    assert bands[0.0]["detection"] >= 0.7, bands[0.0]
-    assert bands[0.0]["dbh_rmse_m"] <= 0.06, bands[0.0]
-    assert bands[5.0]["detection"] >= 0.4, bands[5.0]
-    assert bands[5.0]["dbh_rmse_m"] <= 0.08, bands[5.0]
+    sic = json.loads((out / "manifest.json").read_text())["sic"]
+    assert sic["ended_by"] is None, sic  # the SIC published its final forest and exited
+    assert bands[0.0]["detection"] >= 0.8, bands[0.0]
+    assert bands[0.0]["dbh_rmse_m"] <= 0.04, bands[0.0]
+    assert bands[5.0]["detection"] >= 0.75, bands[5.0]
+    assert bands[5.0]["dbh_rmse_m"] <= 0.05, bands[5.0]
     assert score["all_trees"]["false_positives"] <= 0.1 * score["all_trees"]["n_observed"]
