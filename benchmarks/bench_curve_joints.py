@@ -21,13 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-import tcf_hil.forest.mesh as mesh
-import tcf_hil.scene as scene_mod
+import tcf_hil.world.forest.mesh as mesh
+import tcf_hil.world.scene as scene_mod
 from emulators.lidar import Os0Emulator
 from protocols.ouster import os0_64_metadata
-from tcf_hil.forest import generate_forest
 from tcf_hil.scenario import load_scenario
-from tcf_hil.trajectory import Trajectory
+from tcf_hil.world.forest import generate_forest
+from tcf_hil.world.track import Trajectory
 
 CONFIGS = {"before": (0.0, False), "spacing": (mesh.CURVE_REACH_M, False),
            "spacing+spheres": (mesh.CURVE_REACH_M, True)}

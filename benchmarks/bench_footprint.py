@@ -25,10 +25,10 @@ import numpy as np
 from emulators.lidar import SENSOR_PRESETS, Os0Emulator
 from emulators.lidar._physics import Physics
 from protocols.ouster import os0_64_metadata
-from tcf_hil.forest import generate_forest
 from tcf_hil.scenario import load_scenario
-from tcf_hil.scene import Scene
-from tcf_hil.trajectory import Trajectory
+from tcf_hil.world.forest import generate_forest
+from tcf_hil.world.scene import Scene
+from tcf_hil.world.track import Trajectory
 
 DEFAULT_CASES = "II:1024x10,V:1024x10,V:2048x10,X:2048x10"
 FOOTPRINTS = ("ideal", "adaptive", "edges", "full")

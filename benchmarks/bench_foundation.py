@@ -17,11 +17,11 @@ import textwrap
 
 CASES: dict[str, str] = {
     "import baseline": """
-        import tcf_hil.forest, tcf_hil.evaluation, tcf_hil.sic
+        import tcf_hil.world.forest, tcf_hil.evaluation, tcf_hil.sic
         t = 0.0
     """,
     "generate forest-x (no meshes)": """
-        from tcf_hil.forest import generate_forest, ground_truth
+        from tcf_hil.world.forest import generate_forest, ground_truth
         from tcf_hil.scenario import load_scenario
         s = load_scenario("forest-x")
         t0 = time.perf_counter(); f = generate_forest(s); ground_truth(f)
@@ -29,8 +29,8 @@ CASES: dict[str, str] = {
     """,
     "generate forest-x + write all files": """
         import tempfile
-        from tcf_hil.forest import generate_forest
-        from tcf_hil.forest.output import write_forest
+        from tcf_hil.world.forest import generate_forest
+        from tcf_hil.world.forest.output import write_forest
         from tcf_hil.scenario import load_scenario
         s = load_scenario("forest-x")
         with tempfile.TemporaryDirectory() as d:
@@ -38,13 +38,13 @@ CASES: dict[str, str] = {
             t = time.perf_counter() - t0
     """,
     "generate 50 ha, 55 000 stems (no meshes)": """
-        from tcf_hil.forest import generate_forest, ground_truth
+        from tcf_hil.world.forest import generate_forest, ground_truth
         s = _fifty_ha()
         t0 = time.perf_counter(); f = generate_forest(s); ground_truth(f)
         t = time.perf_counter() - t0
     """,
     "generate 50 ha, 55 000 stems + meshes": """
-        from tcf_hil.forest import generate_forest, stem_mesh, terrain_mesh
+        from tcf_hil.world.forest import generate_forest, stem_mesh, terrain_mesh
         s = _fifty_ha()
         t0 = time.perf_counter(); f = generate_forest(s)
         sm = stem_mesh(f.stems, s.stems.tolerance_mm / 1000)
@@ -69,7 +69,7 @@ CASES: dict[str, str] = {
     "score 100k vs 100k, greedy, from JSON files (read+validate+evaluate)": """
         import tempfile, os
         from tcf_hil.evaluation import EvalConfig, evaluate
-        from tcf_hil.stems_json import load_stems
+        from tcf_hil.recording.stems_json import load_stems
         gdoc, odoc = _docs()
         with tempfile.TemporaryDirectory() as d:
             for name, doc in (("g.json", gdoc), ("o.json", odoc)):
@@ -80,8 +80,8 @@ CASES: dict[str, str] = {
             t = time.perf_counter() - t0
     """,
     "stem algorithm, forest-x surface samples, tuned": """
-        from tcf_hil.forest import generate_forest
-        from tcf_hil.forest.sampling import sample_surfaces
+        from tcf_hil.world.forest import generate_forest
+        from tcf_hil.world.forest.sampling import sample_surfaces
         from tcf_hil.scenario import load_scenario
         from tcf_hil.sic import identify_stems, stem_params
         c = sample_surfaces(generate_forest(load_scenario("forest-x")))
@@ -90,8 +90,8 @@ CASES: dict[str, str] = {
         extra = {"points": len(c), "stems_found": doc["total_objects_count"]}
     """,
     "stem algorithm, forest-x surface samples, paper": """
-        from tcf_hil.forest import generate_forest
-        from tcf_hil.forest.sampling import sample_surfaces
+        from tcf_hil.world.forest import generate_forest
+        from tcf_hil.world.forest.sampling import sample_surfaces
         from tcf_hil.scenario import load_scenario
         from tcf_hil.sic import identify_stems, stem_params
         c = sample_surfaces(generate_forest(load_scenario("forest-x")))
@@ -126,7 +126,7 @@ def _fifty_ha():
         "track": {"start_m": [0.0, -side / 2, 2.0], "end_m": [0.0, side / 2, 2.0]}})
 
 def _tables():
-    from tcf_hil.stems_json import stem_table
+    from tcf_hil.recording.stems_json import stem_table
     gd, od = _docs()
     return stem_table(gd, "gt"), stem_table(od, "obs")
 """

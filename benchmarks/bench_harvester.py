@@ -64,8 +64,8 @@ def run(seconds: float, rate: float) -> dict[str, float]:
         driver = (
             "import sys, time, threading\n"
             "from emulators.harvester import SimClock, BusSpec\n"
-            "from tcf_hil.forest import generate_forest\n"
-            "from tcf_hil.harvester import run_harvester\n"
+            "from tcf_hil.world.forest import generate_forest\n"
+            "from tcf_hil.devices.harvester import run_harvester\n"
             "from tcf_hil.scenario import load_scenario\n"
             "scn = load_scenario('forest-v'); f = generate_forest(scn)\n"
             "clock = SimClock.start(3 * 10**9, lead_ns=2 * 10**9)\n"

@@ -35,10 +35,11 @@ import numpy as np
 from emulators.lidar import SENSOR_PRESETS, Os0Emulator
 from protocols.ouster import finish_lidar_packets, os0_64_metadata
 from tcf_hil._crc import fast_crc_rows
-from tcf_hil.forest import generate_forest
 from tcf_hil.scenario import load_scenario
-from tcf_hil.scene import EmbreeCaster, Scene
-from tcf_hil.trajectory import Trajectory
+from tcf_hil.world.forest import generate_forest
+from tcf_hil.world.scene import Scene
+from tcf_hil.world.scene.embree import EmbreeCaster
+from tcf_hil.world.track import Trajectory
 
 
 def main() -> None:

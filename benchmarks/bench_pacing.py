@@ -11,7 +11,7 @@ import argparse
 import os
 import statistics
 
-from tcf_hil.lidar import stream_lidar
+from tcf_hil.devices.lidar import stream_lidar
 from tcf_hil.scenario import load_scenario
 
 

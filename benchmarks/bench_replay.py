@@ -3,8 +3,8 @@
 Writes a synthetic Ouster recording (the emulator's 2048x10 packets, RNG19_RFL8_SIG16_NIR16,
 64 beams, IPv4-fragmented at a 1500-byte MTU as a real link carries them, 100 IMU packets a
 second) of each length asked, then, each in a fresh process: the check pass
-(:meth:`tcf_hil.replay.Recording.load`), one read of every datagram as the replay sends it
-(:func:`tcf_hil.replay.events`, no pacing), and sending them all to a local UDP socket as
+(:meth:`tcf_hil.recording.reader.Recording.load`), one read of every datagram as the replay sends it
+(:func:`tcf_hil.recording.reader.events`, no pacing), and sending them all to a local UDP socket as
 fast as the loop goes. Reports the file size, the process's peak resident memory (ru_maxrss)
 and the seconds of each pass against the recording's length.
 
@@ -62,7 +62,7 @@ def write_recording(path: Path, minutes: float, mode: str = "2048x10") -> None:
 
 def measure(path: Path) -> dict[str, float]:
     """In this process: check, read, send; seconds and peak RSS."""
-    from tcf_hil.replay import Recording, events
+    from tcf_hil.recording.reader import Recording, events
 
     out: dict[str, float] = {}
     t = time.perf_counter()

@@ -68,10 +68,10 @@ def record(scene: str, mode: str, sensor: str, cache: Path, *, max_frames: int |
            divergence_deg: float | None = None) -> Path:
     """The emulator's packets and CAN frames for one (scene, mode, sensor), kept under
     ``cache`` (reused when present); returns the directory."""
+    from tcf_hil.devices.harvester import HarvesterModel
+    from tcf_hil.devices.lidar import LidarRun
     from tcf_hil.experiments.offline import drive
-    from tcf_hil.forest.scenery import track_distance
-    from tcf_hil.harvester import HarvesterModel
-    from tcf_hil.lidar import LidarRun
+    from tcf_hil.world.forest.scenery import track_distance
 
     key = json.dumps([scene, mode, sensor, max_frames, divergence_deg, 2])
     d = cache / f"{scene}-{mode}-{sensor}-{hashlib.sha1(key.encode()).hexdigest()[:8]}"

@@ -33,9 +33,9 @@ import numpy as np
 
 _CHILD = r"""
 import json, math, resource, sys, time
-from tcf_hil.forest import generate_forest, ground_truth
+from tcf_hil.world.forest import generate_forest, ground_truth
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
-from tcf_hil.scene import Scene
+from tcf_hil.world.scene import Scene
 ha, rng_m, geometry = float(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
 d = scenario_to_dict(load_scenario("pine-thinning"))
 side = 100.0 * math.sqrt(ha)
@@ -70,7 +70,7 @@ def generation(ha: float, rng_m: float, geometry: str) -> dict[str, Any]:
 
 
 def culling(frames: int, ranges: list[float], ha: float) -> list[dict[str, Any]]:
-    from tcf_hil.lidar import LidarRun
+    from tcf_hil.devices.lidar import LidarRun
     from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
 
     base = scenario_to_dict(load_scenario("pine-thinning"))

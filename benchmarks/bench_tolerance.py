@@ -1,11 +1,11 @@
 """Speed against error: stem tessellation tolerance -> range error against the exact
-surfaces (tcf_hil.analytic) -> rays/s, on one forest and mode, Embree.
+surfaces (tcf_hil.world.analytic) -> rays/s, on one forest and mode, Embree.
 
 Run: ``python benchmarks/bench_tolerance.py [--forest V] [--mode 1024x10]
 [--tolerances-mm 0.5,1,2,5,10,20,curves] [--json OUT]``. The surface error (along the
 normal) is bounded by the tolerance; the range error is that divided by |cos incidence| and
 grows for grazing rays. ``curves``: the stems as Embree's round curves instead
-(``stems.geometry``), to within :data:`tcf_hil.forest.mesh.CURVE_TOLERANCE_M`.
+(``stems.geometry``), to within :data:`tcf_hil.world.forest.mesh.CURVE_TOLERANCE_M`.
 """
 
 from __future__ import annotations
@@ -19,11 +19,11 @@ import numpy as np
 
 from emulators.lidar import Os0Emulator
 from protocols.ouster import os0_64_metadata
-from tcf_hil.analytic import refine_hits
-from tcf_hil.forest import generate_forest
 from tcf_hil.scenario import load_scenario
-from tcf_hil.scene import Scene
-from tcf_hil.trajectory import Trajectory
+from tcf_hil.world.analytic import refine_hits
+from tcf_hil.world.forest import generate_forest
+from tcf_hil.world.scene import Scene
+from tcf_hil.world.track import Trajectory
 
 
 def main() -> None:

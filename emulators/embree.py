@@ -112,7 +112,7 @@ class HeightGrid:
                 z: NDArray[np.floating]) -> HeightGrid:
         """The heights ``z`` (ny, nx) over the lattice ``xs`` by ``ys``, laid out so that
         Embree splits each cell along the diagonal from (x_i, y_j) to (x_i+1, y_j+1) (as
-        :func:`tcf_hil.forest.mesh.terrain_mesh` does): each row reversed."""
+        :func:`tcf_hil.world.forest.mesh.terrain_mesh` does): each row reversed."""
         v = np.empty((len(ys), len(xs), 3), np.float32)
         v[:, :, 0] = np.asarray(xs, np.float64)[None, ::-1]
         v[:, :, 1] = np.asarray(ys, np.float64)[:, None]

@@ -13,7 +13,7 @@ Layout (little-endian)::
 
 Object ids are the emulator's (-1 no return; 0 the ground; 1..n the stems; n+1..2n tree
 i's branches as n + i; 2n+1..3n its foliage; then one id per understory plant, dead-wood log,
-stump and boulder); the component table (``tcf_hil.forest.scenery.COMPONENTS`` codes) tells
+stump and boulder); the component table (``tcf_hil.world.forest.scenery.COMPONENTS`` codes) tells
 which is which. Images are staggered (indexed by measurement id, as the packets' columns).
 Records are in send order, one per frame that left with lidar packets; a frame is found by
 its column times (a reader of the capture knows them; frame ids wrap and restart).

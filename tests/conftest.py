@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from tcf_hil.forest import Forest, generate_forest
 from tcf_hil.scenario import load_scenario
+from tcf_hil.world.forest import Forest, generate_forest
 
 
 @pytest.fixture(scope="session")

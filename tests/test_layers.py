@@ -48,6 +48,7 @@ class Import:
     lazy: bool  # inside a function: importing the module does not need it
     guarded: bool  # inside try/except ImportError (or broader) or contextlib.suppress
     names: tuple[str, ...] = ()  # what ``from module import ...`` takes
+    typing_only: bool = False  # under ``if TYPE_CHECKING:``: never imported at run time
 
     @property
     def top(self) -> str:
@@ -69,6 +70,10 @@ def _catches_import_errors(types: ast.expr | None) -> bool:
                for e in exprs)
 
 
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
 def _call_name(func: ast.expr) -> str:
     """``a.b.c`` for a called name (``""`` for anything else)."""
     parts: list[str] = []
@@ -85,12 +90,31 @@ class _Scanner(ast.NodeVisitor):
         self.rel, self.package = rel, package
         self.imports: list[Import] = []
         self.exits: list[Exit] = []
+        self.attributes: list[tuple[str, str, str]] = []  # (where, alias, attribute)
+        self.aliases: dict[str, str] = {}  # a name bound by an import -> what it names
         self._depth = 0  # functions around the node
         self._guards = 0  # import guards around the node
+        self._typing = 0  # ``if TYPE_CHECKING:`` blocks around the node
 
     def _add(self, node: ast.AST, module: str, names: tuple[str, ...] = ()) -> None:
         self.imports.append(Import(f"{self.rel}:{getattr(node, 'lineno', 0)}", module,
-                                   self._depth > 0, self._guards > 0, names))
+                                   self._depth > 0, self._guards > 0, names,
+                                   self._typing > 0))
+
+    def visit_If(self, node: ast.If) -> None:
+        typing = "TYPE_CHECKING" in ast.unparse(node.test)
+        self.visit(node.test)
+        self._typing += typing
+        for stmt in node.body:
+            self.visit(stmt)
+        self._typing -= typing
+        for stmt in node.orelse:
+            self.visit(stmt)
+
+    def visit_Attribute(self, node: ast.Attribute) -> None:
+        if isinstance(node.value, ast.Name) and _private(node.attr):
+            self.attributes.append((f"{self.rel}:{node.lineno}", node.value.id, node.attr))
+        self.generic_visit(node)
 
     def _function(self, node: ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda) -> None:
         self._depth += 1
@@ -122,13 +146,20 @@ class _Scanner(ast.NodeVisitor):
     def visit_Import(self, node: ast.Import) -> None:
         for alias in node.names:
             self._add(node, alias.name)
+            if alias.asname:
+                self.aliases[alias.asname] = alias.name
 
     def visit_ImportFrom(self, node: ast.ImportFrom) -> None:
         names = tuple(a.name for a in node.names)
         if node.level:  # relative: inside this file's own package
-            self._add(node, ".".join(filter(None, [self.package, node.module])), names)
+            module = ".".join(filter(None, [self.package, node.module]))
         elif node.module:
-            self._add(node, node.module, names)
+            module = node.module
+        else:
+            return
+        self._add(node, module, names)
+        for a in node.names:
+            self.aliases[a.asname or a.name] = f"{module}.{a.name}"
 
     def visit_Call(self, node: ast.Call) -> None:
         name = _call_name(node.func)
@@ -304,6 +335,168 @@ def test_only_command_line_modules_end_the_process() -> None:
 
 
 # ---------------------------------------------------------------------------------------------
+# the architecture: subsystems in order, no circles, no private names across modules
+# ---------------------------------------------------------------------------------------------
+SUBSYSTEMS = ("scenario", "world", "recording", "evaluation", "devices", "results", "run", "sic",
+              "experiments", "cli")
+"""tcf_hil's subsystems, each importing only those before it (and the helpers); the SIC, an
+outside program, imports none of them (:data:`SIC_MAY_IMPORT`)."""
+HELPERS = frozenset({"errors", "_io", "_crc", "_rotations", "_plots", "_logs"})
+"""Small shared modules any subsystem may import; they import no subsystem."""
+SIC_MAY_IMPORT = HELPERS - {"_io", "_plots", "_logs"}
+"""The reference SIC is an outside program: its own package, protocols, emulators' kernels and
+the errors, CRC and rotations (its rules in the issue that made it field-grade)."""
+
+
+def module_name(path: Path, root: Path = ROOT) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+@cache
+def module_files() -> dict[str, Path]:
+    return {module_name(f): f for f in files(*PACKAGES)}
+
+
+def _target(name: str, mods: Mapping[str, Path]) -> str | None:
+    while name and name not in mods:
+        name = name.rpartition(".")[0]
+    return name or None
+
+
+def import_graph() -> dict[str, dict[str, str]]:
+    """module -> {imported module: where} for every import that can run (at the top of a file
+    or inside a function; ``if TYPE_CHECKING:`` blocks never run), a ``from package import
+    module`` pointing at the module."""
+    mods = module_files()
+    graph: dict[str, dict[str, str]] = {}
+    for m, f in mods.items():
+        out = graph.setdefault(m, {})
+        for i in scan(f).imports:
+            if i.top not in PACKAGES or i.typing_only:
+                continue
+            subs = [f"{i.module}.{n}" for n in i.names if f"{i.module}.{n}" in mods]
+            for t in subs or [_target(i.module, mods)]:
+                if t is not None and t != m:
+                    out.setdefault(t, i.where)
+    return graph
+
+
+def circles(graph: Mapping[str, Mapping[str, str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, {}):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_import_circles() -> None:
+    """No module imports, directly or through others, a module that imports it back (lazy
+    imports inside functions count: a circle broken only by import order is still one)."""
+    graph = import_graph()
+    bad = []
+    for comp in circles(graph):
+        arrows = [f"{a} -> {b} ({graph[a][b]})" for a in comp for b in graph[a] if b in comp]
+        bad.append(" <-> ".join(comp) + ":\n      " + "\n      ".join(arrows))
+    _fail(bad, "import circles")
+
+
+def subsystem(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if parts[0] == "tcf_hil" and len(parts) > 1 else parts[0]
+
+
+def test_subsystems_import_only_those_below_them() -> None:
+    """Each subsystem of tcf_hil imports only the subsystems listed before it in
+    :data:`SUBSYSTEMS`, the helpers, protocols and emulators; a helper imports no subsystem;
+    the SIC only :data:`SIC_MAY_IMPORT`. Every package under tcf_hil/ is one of them."""
+    known = set(SUBSYSTEMS) | HELPERS | {"__init__", "__main__"}
+    pkgs = {p.name for p in (ROOT / "tcf_hil").iterdir()
+            if p.suffix == ".py" or (p / "__init__.py").exists()}
+    bad = [f"tcf_hil/{p}: not a subsystem in SUBSYSTEMS nor a helper in HELPERS"
+           for p in sorted(pkgs - {f"{k}.py" for k in known} - known)]
+    for m, targets in import_graph().items():
+        if not m.startswith("tcf_hil."):
+            continue
+        a = subsystem(m)
+        if a in ("__main__",):
+            continue
+        for t, where in targets.items():
+            b = subsystem(t)
+            if b in ("protocols", "emulators") or b == a or t == "tcf_hil":
+                continue
+            if a == "sic":
+                ok = b in SIC_MAY_IMPORT
+            elif a in HELPERS:
+                ok = b in HELPERS
+            elif b in HELPERS:
+                ok = True
+            else:
+                ok = (a in SUBSYSTEMS and b in SUBSYSTEMS
+                      and SUBSYSTEMS.index(b) < SUBSYSTEMS.index(a))
+            if not ok:
+                bad.append(f"{where}: {m} ({a}) imports {t} ({b})")
+    _fail(bad, "imports that run back up the subsystems' order")
+
+
+def test_every_subsystem_says_what_it_owns() -> None:
+    bad = []
+    for p in sorted((ROOT / "tcf_hil").iterdir()):
+        init = p / "__init__.py"
+        if init.exists():
+            doc = ast.get_docstring(ast.parse(init.read_text(encoding="utf-8"))) or ""
+            if len(doc.split()) < 12:
+                bad.append(f"{init.relative_to(ROOT)}: no docstring saying what it owns")
+    _fail(bad, "subsystems without a docstring")
+
+
+def test_no_module_takes_another_modules_private_names() -> None:
+    """``from a.b import _x`` and ``b._x`` (``b`` an imported module) reach into a module's
+    privates; a module takes only public names from another (tests may reach in)."""
+    mods = module_files()
+    bad: list[str] = []
+    for m, f in mods.items():
+        s = scan(f)
+        for i in s.imports:
+            if i.top not in PACKAGES:
+                continue
+            bad += [f"{i.where} takes {i.module}:{n}" for n in i.names
+                    if _private(n) and f"{i.module}.{n}" not in mods and i.module != m]
+        for where, alias, attr in s.attributes:
+            target = s.aliases.get(alias)
+            if target in mods and target != m:
+                bad.append(f"{where} takes {target}.{attr}")
+    _fail(bad, "private names taken from another module")
+
+
+# ---------------------------------------------------------------------------------------------
 # the checks themselves
 # ---------------------------------------------------------------------------------------------
 def test_the_scanner_sees_every_form_of_import_and_exit(tmp_path: Path) -> None:
@@ -321,8 +514,8 @@ def test_the_scanner_sees_every_form_of_import_and_exit(tmp_path: Path) -> None:
         "except ImportError:\n"
         "    open3d = None\n"
         "def f():\n"
-        "    import tcf_hil.forest\n"
-        "    importlib.import_module('tcf_hil.scene')\n"
+        "    import tcf_hil.world.forest\n"
+        "    importlib.import_module('tcf_hil.world.scene')\n"
         "    with contextlib.suppress(Exception):\n"
         "        from threadpoolctl import threadpool_limits\n"
         "    try:\n"
@@ -337,8 +530,8 @@ def test_the_scanner_sees_every_form_of_import_and_exit(tmp_path: Path) -> None:
     got = {(i.module, i.where.split(":")[1], i.lazy, i.guarded) for i in s.imports}
     assert ("emulators.sub", "4", False, False) in got
     assert ("open3d", "7", False, True) in got
-    assert ("tcf_hil.forest", "11", True, False) in got
-    assert ("tcf_hil.scene", "12", True, False) in got
+    assert ("tcf_hil.world.forest", "11", True, False) in got
+    assert ("tcf_hil.world.scene", "12", True, False) in got
     assert ("threadpoolctl", "14", True, True) in got
     assert [(e.where, e.what) for e in s.exits] == [
         ("emulators/x.py:16", "sys.exit("), ("emulators/x.py:18", "raise SystemExit"),

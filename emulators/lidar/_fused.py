@@ -3,7 +3,7 @@ without the GIL: the rays (:func:`~emulators.lidar._kernel.make_rays`), ``rtcInt
 (:mod:`emulators.embree`) and the per-ray answer
 (:func:`~emulators.lidar._kernel.answer_chunk`), the very kernels the chunk path calls one
 after the other with Python in between. Imported lazily (numba), only where the scene hands
-over an Embree scene (:meth:`tcf_hil.scene.Scene.direct`) and compiled kernels are on.
+over an Embree scene (:meth:`tcf_hil.world.scene.Scene.direct`) and compiled kernels are on.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from emulators.jit import compiled, jit_enabled
+from emulators.jit import compiled
 
 
 def answer_kernel() -> Callable[..., None] | None:
@@ -67,18 +67,6 @@ def answer_chunk(t: Any, sid: Any, noise: Any, col0: int, n_m: float, min_r: flo
                 if clamp_signal and sig > np.float32(65535.0):
                     sig = np.float32(65535.0)
                 w_signal[p, j, h] = np.int64(sig)
-
-
-def fused_kernel() -> Callable[..., None] | None:
-    """:func:`emulators.lidar._fused.cast_answer_blocks` (blocks of columns encoded, their
-    rays made, cast through Embree and answered in one call), or None where compiled kernels
-    are off."""
-    if not jit_enabled():
-        return None
-    from emulators.lidar._fused import cast_answer_blocks
-
-    kernel: Callable[..., None] = cast_answer_blocks
-    return kernel
 
 
 def rays_kernel() -> Callable[..., None] | None:

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from emulators.jit import jit_enabled
-from emulators.lidar._kernel import answer_kernel, frames_kernel, fused_kernel, rays_kernel
+from emulators.lidar._kernel import answer_kernel, frames_kernel, rays_kernel
 from emulators.lidar._physics import Physics, SensorModel, Surfaces
 from protocols.ouster import (
     EMULATED_PROFILES,
@@ -50,6 +50,18 @@ first, then -1 (the miss), so that a miss (-1) and primitive j (-2 - j) index it
 end."""
 
 
+def _fused_kernel() -> Callable[..., None] | None:
+    """:func:`emulators.lidar._fused.cast_answer_blocks` (blocks of columns encoded, their
+    rays made, cast through Embree and answered in one call), or None where compiled kernels
+    are off."""
+    if not jit_enabled():
+        return None
+    from emulators.lidar._fused import cast_answer_blocks
+
+    kernel: Callable[..., None] = cast_answer_blocks
+    return kernel
+
+
 class RayScene(Protocol):
     """The least a scene offers: a cast."""
 
@@ -63,7 +75,7 @@ class RayScene(Protocol):
 @runtime_checkable
 class FastRayScene(RayScene, Protocol):
     """A scene that declares the emulator's faster ways to cast through it, each member
-    with an answer for "not here" (as :class:`tcf_hil.scene.Scene` does)."""
+    with an answer for "not here" (as :class:`tcf_hil.world.scene.Scene` does)."""
 
     @property
     def threads_itself(self) -> bool:
@@ -138,7 +150,7 @@ class PosePieces(Protocol):
 @runtime_checkable
 class DensePoseSource(PoseSource, Protocol):
     """A pose source that also gives many close, ascending times' poses fast, from pieces
-    it builds for a stretch of time (as :class:`tcf_hil.trajectory.Trajectory` does): the
+    it builds for a stretch of time (as :class:`tcf_hil.world.track.Trajectory` does): the
     emulator builds them for two seconds of frames at a time while frames are read in
     order."""
 
@@ -214,7 +226,7 @@ class FrameResult:
 
 class _Nothing:
     """A scene with nothing in it; with ``embree``, an Embree scene of one triangle far away
-    that it hands over (``direct``), as :class:`tcf_hil.scene.Scene` does."""
+    that it hands over (``direct``), as :class:`tcf_hil.world.scene.Scene` does."""
 
     threads_itself = False
 
@@ -297,7 +309,7 @@ class Os0Emulator:
 
     Column poses come from pieces the pose source builds for two seconds of frames at once
     while frames are read in order (where it is a :class:`DensePoseSource`, e.g.
-    :class:`tcf_hil.trajectory.Trajectory`; else ``sensor_pose`` per frame); a frame's poses
+    :class:`tcf_hil.world.track.Trajectory`; else ``sensor_pose`` per frame); a frame's poses
     and ``M_c`` are made first. Then, where the scene hands over an Embree scene
     (:meth:`FastRayScene.direct`) and numba is here, one compiled call per thread (this one and
     ``threads - 1`` more) takes blocks of columns in turn and, without the GIL, encodes
@@ -460,7 +472,7 @@ class Os0Emulator:
         """How frame k's column poses are had: (pieces to evaluate at the column times, or
         None for the pose source's own ``sensor_pose``/``sensor_pose_dense``), the times.
 
-        A :class:`DensePoseSource` (a :class:`tcf_hil.trajectory.Trajectory`) builds its
+        A :class:`DensePoseSource` (a :class:`tcf_hil.world.track.Trajectory`) builds its
         pieces for two seconds of frames at a time while frames are read in order: the same
         knots as one frame at a time, so the same poses up to the last bits of the exact
         poses at the knots (numpy's vector maths may round differently in a longer batch)."""
@@ -598,7 +610,7 @@ class Os0Emulator:
         job = _FrameJob(mt, oc, noise, sid_out, arr, self._views(arr), ts, o_all, d_all, t_all,
                         ok_all, np.zeros((W, H), np.float32) if physics is not None else None)
         direct = self._direct_scene()
-        fused = fused_kernel() if direct is not None else None
+        fused = _fused_kernel() if direct is not None else None
         centre: tuple[Any, ...] | None = None
         surfaces = self._scene_surfaces() if physics is not None else None
         if direct is not None and fused is not None and physics is not None \

@@ -289,6 +289,24 @@ class FootprintGrid:
         return ent, pos
 
 
+
+@dataclass(frozen=True)
+class _Frame:
+    """What the phases of :meth:`Physics.respond` share about one frame's cast."""
+
+    o: NDArray[np.float32]  # (W, 3) each column's origin
+    d: NDArray[np.float32]  # (N, 3) column-major ray directions
+    cast: Any  # float32 rays -> (distance, primitive or stem id, the curve hits' |cos|)
+    n_m: float
+    run: Callable[[Any, list[tuple[Any, ...]]], None]  # fn over calls, spread over threads
+    k: Any  # the compiled kernels, or None
+    surf: bool  # the scene tells primitives (surfaces)
+    sop: Any  # the surfaces' stem of each primitive
+    mop: Any  # and material
+    nrm: Any  # and normal
+    parts: list[tuple[int, int]]  # the frame's pixels in parts, whole columns
+
+
 class Physics:
     """A :class:`SensorModel` prepared for one sensor mode and pixel grid (see the module
     doc): ``shape`` (W, H), ``row_step`` (H - 1,) the column of beam h + 1's pixel nearest
@@ -366,45 +384,75 @@ class Physics:
         Returns the pixel words as (H, W) uint32 images ``RANGE`` (mm, 0 none), ``SIGNAL``,
         ``REFLECTIVITY``, ``NEAR_IR`` and, with ``dual``, ``RANGE2``, ``SIGNAL2``,
         ``REFLECTIVITY2``; and the stem ids (W, H) ``sid`` (-1 none) and ``sid2``."""
-        m = self.model
         W, H = self.shape
         N = W * H
         if run is None:
             def run(fn: Any, calls: list[tuple[Any, ...]]) -> None:
                 for c in calls:
                     fn(*c)
-        k = _kernels() if self.jit else None
-        surf = surfaces is not None
         sop, mop, nrm = ((surfaces.stem_of_prim, surfaces.material_of_prim, surfaces.normals)
                          if surfaces is not None else _NO_SURFACES)
-        parts = _parts(N, H, 8)
-        cn0 = cn if cn is not None else np.zeros(0, np.float32)
-        # 0. the draws of detection and noise, each return's in two halves by two threads
-        # at once; with ``submit``, in the background while the footprint is worked out
+        f = _Frame(o, d, cast, n_m, run, _kernels() if self.jit else None,
+                   surfaces is not None, sop, mop, nrm, _parts(N, H, 8))
+        draws = self._start_draws(N, rng, dual, submit)  # 0. before anything: the rng's order
+        ss, r, e, nir = self._centre_echoes(f, t, prim, cn, centre)  # 1.
+        e1, r1, s1 = e, r, ss  # the first return: the centre's, changed where sampled
+        e2, r2, s2 = ((np.zeros(N), np.full(N, np.inf), np.full(N, -1, np.int32)) if dual
+                      else (np.empty(0), np.empty(0), np.empty(0, np.int32)))
+        flags, lat = self._flag_footprint(f, ss)  # 2. where the footprint can straddle an edge
+        idx = np.flatnonzero(flags.reshape(-1) != 0)
+        self.last_flagged = len(idx)
+        self.last_flags = flags
+        self.last_cast = self.last_probed
+        if len(idx):
+            echoes = self._sample_footprint(f, idx, flags, lat, ss, r, e)
+            # the centre's no longer read: the sampled pixels' echoes go in its place
+            e1[idx], r1[idx], s1[idx] = echoes[:3]
+            if dual:
+                e2[idx], r2[idx], s2[idx] = echoes[3:]
+        # 3. detection, noise, the words; then ambient false returns where none was detected
+        out, flat = self._detect_words(f, nir, ((e1, r1, s1), (e2, r2, s2)), draws, dual)
+        self._false_returns(flat, rng)
+        return out
+
+    def _start_draws(self, N: int, rng: np.random.Generator, dual: bool,
+                     submit: Callable[..., Any] | None) -> list[tuple[Any, ...]]:
+        """The draws of detection and noise, each return's in two halves by two threads at
+        once; with ``submit``, in the background while the footprint is worked out."""
         draws = []
         for _ in range(2 if dual else 1):
             u, z = np.empty(N), np.empty(N)
             jobs = [(g, u[a:b], z[a:b]) for g, (a, b) in
                     zip(rng.spawn(2), ((0, N // 2), (N // 2, N)), strict=True)]
             draws.append((u, z, jobs, [submit(_draw, *j) for j in jobs] if submit else []))
-        # 1. the centre rays' echoes (or as the cast made them: ``centre``)
+        return draws
+
+    def _centre_echoes(self, f: _Frame, t: FloatArray, prim: NDArray[np.int32],
+                       cn: NDArray[np.float32] | None, centre: tuple[Any, ...] | None
+                       ) -> tuple[Any, ...]:
+        """The centre rays' echoes ``ss, r, e, nir`` (or as the cast made them)."""
         if centre is not None:
-            ss, r, e, nir = centre
+            return centre
+        N = self.shape[0] * self.shape[1]
+        ss, r, e = np.empty(N, np.int32), np.empty(N), np.empty(N)
+        nir = np.empty(N, np.uint32)
+        cn0 = cn if cn is not None else np.zeros(0, np.float32)
+        m = self.model
+        if f.k is not None:
+            f.run(f.k.centre_echoes, [(prim, cn0, t, f.d, f.sop, f.mop, f.nrm, self.refl,
+                                       f.surf, f.n_m, self.R_NEAR, m.ambient, a, b, ss, r, e,
+                                       nir) for a, b in f.parts])
         else:
-            ss, r, e = np.empty(N, np.int32), np.empty(N), np.empty(N)
-            nir = np.empty(N, np.uint32)
-        if centre is None and k is not None:
-            run(k.centre_echoes, [(prim, cn0, t, d, sop, mop, nrm, self.refl, surf, n_m,
-                                   self.R_NEAR, m.ambient, a, b, ss, r, e, nir)
-                                  for a, b in parts])
-        elif centre is None:
-            self._centre_np(prim, cn0, t, d, sop, mop, nrm, surf, n_m, ss, r, e, nir)
-        # 2. the footprint where it can straddle an edge (the second return: where the
-        # profile carries one)
-        e1, r1, s1 = e, r, ss  # the first return: the centre's, changed where sampled
-        e2, r2, s2 = ((np.zeros(N), np.full(N, np.inf), np.full(N, -1, np.int32)) if dual
-                      else (np.empty(0), np.empty(0), np.empty(0, np.int32)))
-        g = self.grid
+            self._centre_np(prim, cn0, t, f.d, f.sop, f.mop, f.nrm, f.surf, f.n_m, ss, r, e,
+                            nir)
+        return ss, r, e, nir
+
+    def _flag_footprint(self, f: _Frame, ss: NDArray[np.int32]
+                        ) -> tuple[NDArray[np.uint8], list[tuple[Any, ...]]]:
+        """Which pixels' footprints are sampled (W, H): 1 the row, 3 the grid; and the
+        lattice rays cast to probe vertical edges (``ent, oo, dd, ts, ps``)."""
+        m, g = self.model, self.grid
+        W, H = self.shape
         flags = np.zeros((W, H), np.uint8)
         if m.footprint == "full":
             flags[:] = 3
@@ -413,77 +461,95 @@ class Physics:
             # the next beam's pixels about the nearest in angle: within the row's reach
             # (one FWHM sideways) for adaptive, the three nearest for edges
             vw = 1 if every else g.reach
-            if k is not None:
-                run(k.flag_edges, [(ss.reshape(W, H), self.row_step, g.reach, vw, every, a, b,
-                                    flags) for a, b in _parts(W, 1, 8, H)])
+            if f.k is not None:
+                f.run(f.k.flag_edges, [(ss.reshape(W, H), self.row_step, g.reach, vw, every,
+                                        a, b, flags) for a, b in _parts(W, 1, 8, H)])
             else:
                 self._flag_np(ss.reshape(W, H), g.reach, vw, every, flags)
         if g.weights.shape[1] == 1:
             flags[:] = 0
         if self._turns is None:  # which way columns and beams go: the sensor's, for good
-            self._turns = (_column_turn(d, W, H), _row_turn(d, W, H, self.row_step))
-        turn, down = self._turns[0], self._turns[1] * g.rows  # down: the row to beam h + 1
+            self._turns = (_column_turn(f.d, W, H), _row_turn(f.d, W, H, self.row_step))
         self.last_probed = 0
-        NR = 2 * g.rows + 1
         lat: list[tuple[Any, ...]] = []  # lattice rays cast: (ent, oo, dd, ts, ps)
         if g.rows and m.footprint == "adaptive":
-            # a vertical edge lies somewhere in the 1.4 degrees to the next beam: probe the
-            # footprint's outer row on the edge's side, and sample the grid only where a
-            # probe sees another object than the centre (most see the same: the edge
-            # passes beyond the footprint)
-            fv = flags.reshape(-1)
-            pv = np.flatnonzero((fv & 6) != 0)
-            if len(pv):
-                sides = fv[pv]
-                has2 = (sides & 2) != 0
-                has4 = (sides & 4) != 0
-                base = ((pv // H) * g.sub * H + pv % H) * NR + g.rows
-                ent_p = np.concatenate([base[has2] + down, base[has4] - down])
-                who = np.concatenate([np.flatnonzero(has2), np.flatnonzero(has4)])
-                o_p = np.argsort(ent_p, kind="stable")
-                ent_p, who = ent_p[o_p], who[o_p]
-                hits = self._lattice_cast(o, d, ent_p, W, H, turn, cast, k, run)
-                lat.append((ent_p, *hits))
-                pr = hits[3]
-                sid_p = sop[pr] if surf else pr  # -1 (and a curve's -2 - j) from the end
-                sid_p = np.where(np.isfinite(hits[2]), sid_p, -1)
-                differs = np.zeros(len(pv), bool)
-                differs[who[sid_p != ss[pv[who]]]] = True
-                fv[pv] = np.where(differs, 3, fv[pv] & 1)
-                self.last_probed = len(ent_p)
+            self._probe_edges(f, ss, flags, lat)
         if self.last_probed == 0:  # vertical edges not probed (no rows, edges): the grid
             flags[(flags & 6) != 0] = 3
         if m.footprint == "edges":  # the grid, not the row, at a vertical edge too
             flags[flags == 1] = 3
-        idx = np.flatnonzero(flags.reshape(-1) != 0)
-        self.last_flagged = len(idx)
-        self.last_flags = flags
-        self.last_cast = self.last_probed
-        if len(idx):
-            fl = flags.reshape(-1)[idx]
-            M = len(idx)
-            echoes = (np.empty(M), np.empty(M), np.empty(M, np.int32), np.empty(M),
-                      np.empty(M), np.empty(M, np.int32))  # e1 r1 s1 e2 r2 s2 of idx
-            ent, pos = g.needed(idx, fl, W, H, k, run, lat[0][0] if lat else None)
-            self.last_cast += len(ent)
-            lat.append((ent, *self._lattice_cast(o, d, ent, W, H, turn, cast, k, run)))
-            dd, ts, ps, cs = (np.concatenate([x[n] for x in lat]) if len(lat) > 1
-                              else lat[0][n] for n in range(2, 6))
-            args = (g.weights, g.row_j, g.grid_j, g.grid_i, g.sub, g.rows, pos, H, ss, r, e,
-                    ts, ps, cs, dd, sop, mop, nrm, self.refl, surf, n_m, self.R_NEAR,
-                    m.range_resolution_m, self.ORDERS[m.return_order], *echoes)
-            if k is not None:
-                run(k.footprint_echoes, [(idx, fl, a, b, *args)
+        return flags, lat
+
+    def _probe_edges(self, f: _Frame, ss: NDArray[np.int32], flags: NDArray[np.uint8],
+                     lat: list[tuple[Any, ...]]) -> None:
+        """A vertical edge lies somewhere in the 1.4 degrees to the next beam: probe the
+        footprint's outer row on the edge's side, and sample the grid only where a probe
+        sees another object than the centre (most see the same: the edge passes beyond the
+        footprint)."""
+        g = self.grid
+        W, H = self.shape
+        assert self._turns is not None
+        turn, down = self._turns[0], self._turns[1] * g.rows  # down: the row to beam h + 1
+        NR = 2 * g.rows + 1
+        fv = flags.reshape(-1)
+        pv = np.flatnonzero((fv & 6) != 0)
+        if not len(pv):
+            return
+        sides = fv[pv]
+        has2 = (sides & 2) != 0
+        has4 = (sides & 4) != 0
+        base = ((pv // H) * g.sub * H + pv % H) * NR + g.rows
+        ent_p = np.concatenate([base[has2] + down, base[has4] - down])
+        who = np.concatenate([np.flatnonzero(has2), np.flatnonzero(has4)])
+        o_p = np.argsort(ent_p, kind="stable")
+        ent_p, who = ent_p[o_p], who[o_p]
+        hits = self._lattice_cast(f.o, f.d, ent_p, W, H, turn, f.cast, f.k, f.run)
+        lat.append((ent_p, *hits))
+        pr = hits[3]
+        sid_p = f.sop[pr] if f.surf else pr  # -1 (and a curve's -2 - j) from the end
+        sid_p = np.where(np.isfinite(hits[2]), sid_p, -1)
+        differs = np.zeros(len(pv), bool)
+        differs[who[sid_p != ss[pv[who]]]] = True
+        fv[pv] = np.where(differs, 3, fv[pv] & 1)
+        self.last_probed = len(ent_p)
+
+    def _sample_footprint(self, f: _Frame, idx: NDArray[np.intp], flags: NDArray[np.uint8],
+                          lat: list[tuple[Any, ...]], ss: NDArray[np.int32], r: FloatArray,
+                          e: FloatArray) -> tuple[Any, ...]:
+        """The flagged pixels' echoes from their footprint's sub-rays: ``e1 r1 s1 e2 r2 s2``
+        of ``idx``."""
+        m, g = self.model, self.grid
+        W, H = self.shape
+        assert self._turns is not None
+        fl = flags.reshape(-1)[idx]
+        M = len(idx)
+        echoes = (np.empty(M), np.empty(M), np.empty(M, np.int32), np.empty(M),
+                  np.empty(M), np.empty(M, np.int32))  # e1 r1 s1 e2 r2 s2 of idx
+        ent, pos = g.needed(idx, fl, W, H, f.k, f.run, lat[0][0] if lat else None)
+        self.last_cast += len(ent)
+        lat.append((ent, *self._lattice_cast(f.o, f.d, ent, W, H, self._turns[0], f.cast,
+                                             f.k, f.run)))
+        dd, ts, ps, cs = (np.concatenate([x[n] for x in lat]) if len(lat) > 1
+                          else lat[0][n] for n in range(2, 6))
+        args = (g.weights, g.row_j, g.grid_j, g.grid_i, g.sub, g.rows, pos, H, ss, r, e,
+                ts, ps, cs, dd, f.sop, f.mop, f.nrm, self.refl, f.surf, f.n_m, self.R_NEAR,
+                m.range_resolution_m, self.ORDERS[m.return_order], *echoes)
+        if f.k is not None:
+            f.run(f.k.footprint_echoes, [(idx, fl, a, b, *args)
                                          for a, b in _parts(len(idx), 1, 8)])
-            else:
-                self._echoes_np(idx, fl, *args)
-            # the centre's no longer read: the sampled pixels' echoes go in its place
-            e1[idx], r1[idx], s1[idx] = echoes[:3]
-            if dual:
-                e2[idx], r2[idx], s2[idx] = echoes[3:]
-        # 3. detection, noise, the words
+        else:
+            self._echoes_np(idx, fl, *args)
+        return echoes
+
+    def _detect_words(self, f: _Frame, nir: NDArray[np.uint32],
+                      returns: tuple[tuple[Any, Any, Any], ...], draws: list[tuple[Any, ...]],
+                      dual: bool) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Detection, noise and the pixel words of each return: the (H, W) images (views of
+        column-major (W, H) arrays, as the packets hold them) and the flat words."""
+        m = self.model
+        W, H = self.shape
+        N = W * H
         q = self.quantum_mm
-        # the images are (H, W) views of column-major (W, H) arrays, as the packets hold them
         out: dict[str, Any] = {"NEAR_IR": nir.reshape(W, H).T}
         flat: dict[str, Any] = {}
         # above s_sure ln(s) / width > 9.5, more than any draw under 9; above s_floor the
@@ -492,15 +558,15 @@ class Physics:
         s_floor = ((m.range_sigma_m / m.range_sigma_min_m) ** (1.0 / m.range_sigma_exponent)
                    * 1.001 if m.range_sigma_min_m > 0 and m.range_sigma_exponent > 0
                    else math.inf)
-        for n_ret, (ee, rr, sd) in enumerate(((e1, r1, s1), (e2, r2, s2))):
+        for n_ret, (ee, rr, sd) in enumerate(returns):
             if n_ret == 1 and not dual:
                 break
             u, z, jobs, pending = draws[n_ret]
             if pending:
-                for f in pending:
-                    f.result()
+                for fut in pending:
+                    fut.result()
             else:
-                run(_draw, jobs)
+                f.run(_draw, jobs)
             words = [np.empty(N, np.uint32) for _ in range(3)]
             sid_out = np.empty(N, np.int32)
             args2 = (ee, rr, sd, u, z)
@@ -508,8 +574,8 @@ class Physics:
                 self.scale, self.gain, self.sg, m.detection_width, s_sure,
                 m.range_sigma_min_m, m.range_sigma_m, m.range_sigma_exponent, s_floor,
                 m.min_range_m, self.carried_m, self.photons, self.R_NEAR, q, *words, sid_out)
-            if k is not None:
-                run(k.detect, [(*args2, a, b, *consts) for a, b in parts])
+            if f.k is not None:
+                f.run(f.k.detect, [(*args2, a, b, *consts) for a, b in f.parts])
             else:
                 self._detect_np(*args2, *consts)
             sfx = "2" if n_ret else ""
@@ -517,22 +583,27 @@ class Physics:
                 flat[name + sfx] = w
                 out[name + sfx] = w.reshape(W, H).T
             out["sid" + sfx] = sid_out.reshape(W, H)
-        # ambient false returns, where no return was detected
-        if m.false_positive_rate > 0:
-            empty = np.flatnonzero(flat["RANGE"] == 0)
-            n_fp = int(rng.binomial(len(empty), m.false_positive_rate))
-            if n_fp:
-                at = empty[rng.choice(len(empty), n_fp, replace=False)]
-                lo = max(m.min_range_m, 0.0)
-                rf = lo + rng.random(n_fp) * (self.far_m - lo)
-                rn = np.maximum(rf, self.R_NEAR)
-                for name, v in (("RANGE", np.rint(rf * (1000.0 / q)) * q),
-                                ("SIGNAL", np.full(n_fp, min(self.threshold * self.photons,
-                                                             65535.0))),
-                                ("REFLECTIVITY", np.clip(np.rint(
-                                    self.threshold * (rn * rn) / self.sg * 100.0), 0.0, 255.0))):
-                    flat[name][at] = v.astype(np.uint32)
-        return out
+        return out, flat
+
+    def _false_returns(self, flat: dict[str, Any], rng: np.random.Generator) -> None:
+        """Ambient false returns, where no return was detected (in place, in ``flat``)."""
+        m = self.model
+        if m.false_positive_rate <= 0:
+            return
+        q = self.quantum_mm
+        empty = np.flatnonzero(flat["RANGE"] == 0)
+        n_fp = int(rng.binomial(len(empty), m.false_positive_rate))
+        if n_fp:
+            at = empty[rng.choice(len(empty), n_fp, replace=False)]
+            lo = max(m.min_range_m, 0.0)
+            rf = lo + rng.random(n_fp) * (self.far_m - lo)
+            rn = np.maximum(rf, self.R_NEAR)
+            for name, v in (("RANGE", np.rint(rf * (1000.0 / q)) * q),
+                            ("SIGNAL", np.full(n_fp, min(self.threshold * self.photons,
+                                                         65535.0))),
+                            ("REFLECTIVITY", np.clip(np.rint(
+                                self.threshold * (rn * rn) / self.sg * 100.0), 0.0, 255.0))):
+                flat[name][at] = v.astype(np.uint32)
 
     def _lattice_cast(self, o: NDArray[np.float32], d: NDArray[np.float32],
                       ent: NDArray[np.intp], W: int, H: int, turn: float, cast: Any,

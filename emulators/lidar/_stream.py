@@ -1,13 +1,13 @@
 """Paced UDP sending of lidar and IMU packets from the sensor's own address.
 
-Real-time pacing sleeps until shortly before each packet's due time and then waits out the
-rest with short yields (``spin_us``), so the interval error stays at tens of microseconds
-without burning a whole core. Where the process may (root, or CAP_SYS_NICE / an RLIMIT_RTPRIO
-above 0), the sending thread runs under SCHED_FIFO while it paces: a frame factory on the
-other core or any other process then cannot delay a packet by a scheduler time slice
-(milliseconds); without it the p99 error is a few hundred microseconds. A destination that
-refuses packets (ICMP port unreachable) does not stop the stream: the error is counted and
-sending goes on.
+Real-time pacing (:class:`emulators.pacing.Pacer`, shared with replay) sleeps until shortly
+before each packet's due time and then waits out the rest with short yields (``spin_us``), so
+the interval error stays at tens of microseconds without burning a whole core. Where the
+process may (root, or CAP_SYS_NICE / an RLIMIT_RTPRIO above 0), the sending thread runs under
+SCHED_FIFO while it paces: a frame factory on the other core or any other process then cannot
+delay a packet by a scheduler time slice (milliseconds); without it the p99 error is a few
+hundred microseconds. A destination that refuses packets (ICMP port unreachable) does not stop
+the stream: the error is counted and sending goes on.
 """
 
 from __future__ import annotations
@@ -19,9 +19,10 @@ import socket
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
+
+from emulators.pacing import Pacer, SimClockLike
 
 __all__ = ["Datagram", "PacedSender", "Route", "SendStats"]
 
@@ -92,14 +93,6 @@ class Route:
         return dest, ports.get(made, made)
 
 
-class SimClockLike(Protocol):
-    """A shared simulation clock (emulators.harvester.SimClock)."""
-
-    speed: float
-
-    def monotonic_at(self, t_sim_ns: int) -> int: ...
-
-
 class PacedSender:
     """Sends datagrams from ``sensor_ip`` (an ephemeral port) to ``dest_ip``.
 
@@ -131,12 +124,9 @@ class PacedSender:
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
         self.sock.bind((sensor_ip, 0))
         self.stats = SendStats()
-        self._t0_sim: int | None = None
-        self._t0_wall = 0
-        self.clock = clock
-        if clock is not None:  # one simulation clock with the other emulators of a run
-            self.speed = clock.speed
-            self._mono_minus_perf = time.monotonic_ns() - time.perf_counter_ns()
+        self.clock = clock  # one simulation clock with the other emulators of a run
+        self.pacer = Pacer(speed, clock=clock, spin_ns=self.spin_ns)
+        self.speed = self.pacer.speed
 
     def _enter_realtime(self) -> None:
         if not self._want_rt or self._old_sched is not None or not hasattr(os, "SCHED_FIFO"):
@@ -149,7 +139,7 @@ class PacedSender:
             return  # not permitted here: ordinary scheduling
         self._old_sched = old
         self.stats.realtime = True
-        self.spin_ns = (self._spin_us or 200) * 1000
+        self.spin_ns = self.pacer.spin_ns = (self._spin_us or 200) * 1000
 
     def _leave_realtime(self) -> None:
         if self._old_sched is not None:
@@ -167,22 +157,10 @@ class PacedSender:
     def __exit__(self, *_exc: object) -> None:
         self.close()
 
-    def _wait(self, t_ns: int) -> int:
-        if self._t0_sim is None:
-            self._t0_sim, self._t0_wall = t_ns, time.perf_counter_ns()
-        if self.speed == 0:
-            return time.perf_counter_ns()
-        if self.clock is not None:
-            due = self.clock.monotonic_at(t_ns) - self._mono_minus_perf
-        else:
-            due = self._t0_wall + int((t_ns - self._t0_sim) / self.speed)
-        now = time.perf_counter_ns()
-        if due - now > self.spin_ns:
-            time.sleep((due - now - self.spin_ns) / 1e9)
-        while (now := time.perf_counter_ns()) < due:
-            time.sleep(0)
-        self.stats.add_late(now - due)
-        return now
+    def _wait(self, t_ns: int) -> None:
+        late = self.pacer.wait(t_ns)
+        if self.speed > 0:
+            self.stats.add_late(late)
 
     def send(self, datagrams: Iterable[Datagram]) -> None:
         """Send in order, each at its due time. Under SCHED_FIFO only while in here: the

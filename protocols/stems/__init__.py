@@ -1,6 +1,6 @@
 """The stems JSON documents (paper's Algorithm 1): published JSON Schemas for ground truth and
 for observed (SIC) output, and the class/quality code tables. Data only: validation with a
-JSON Schema library happens in :mod:`tcf_hil.stems_json`."""
+JSON Schema library happens in :mod:`tcf_hil.recording.stems_json`."""
 
 from __future__ import annotations
 

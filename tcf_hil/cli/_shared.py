@@ -46,7 +46,7 @@ MODES: tuple[str, ...] = OS0_64_MODES
 PROFILE_NAMES: tuple[str, ...] = ("RNG19_RFL8_SIG16_NIR16", *sorted(
     p for p in EMULATED_PROFILES if p != "RNG19_RFL8_SIG16_NIR16"))
 BACKEND_CHOICES: tuple[str, ...] = ("auto", "embree", "open3d", "trimesh")
-"""Ray backends by name (:data:`tcf_hil.scene.BACKENDS` and ``auto``; a test holds the two
+"""Ray backends by name (:data:`tcf_hil.world.scene.BACKENDS` and ``auto``; a test holds the two
 together without importing the scene here, which would slow every command's start)."""
 _announced: set[str] = set()
 
@@ -55,7 +55,7 @@ def announce_backend(name: str = "auto") -> None:
     """Say once per process which ray backend ``auto`` took, where it is not Embree (e.g.
     ``ray backend: open3d (embreex is not installed here: Embree has no wheel for aarch64)``).
     A named backend that is missing is the ConfigError its scene raises."""
-    from tcf_hil.scene import resolve_backend
+    from tcf_hil.world.scene import resolve_backend
 
     if name in _announced:
         return
@@ -147,7 +147,7 @@ def scenario_with_faults(name: str, faults: Sequence[str], seed: int | None = No
                          sensor: str | None = None) -> Any:
     """The scenario with the --fault options applied and the --sensor preset (None: its
     own ``[sensor]``)."""
-    from tcf_hil.faults import apply_fault_options
+    from tcf_hil.devices.faults import apply_fault_options
     from tcf_hil.scenario import load_scenario, with_sensor
 
     return with_sensor(apply_fault_options(load_scenario(name, seed=seed), faults), sensor)

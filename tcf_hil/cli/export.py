@@ -45,7 +45,7 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
       tcf-hil export runs/forest-v --out stems.geojson --epsg 3067
       tcf-hil export runs/forest-v --out stems.csv --stems truth
     """
-    from tcf_hil.export import export
+    from tcf_hil.results.export import export
 
     suffix = out.suffix.lower()
     if epsg is not None and suffix not in (".las", ".laz", ".geojson"):

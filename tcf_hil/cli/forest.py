@@ -86,9 +86,9 @@ def forest_generate(scenario_name: str, seed: int | None, out: Path, no_meshes: 
       tcf-hil forest generate forest-v --out forest-v/
       tcf-hil forest generate pine-thinning --scenery --out pine/
     """
-    from tcf_hil.forest import generate_forest
-    from tcf_hil.forest.output import write_forest
     from tcf_hil.scenario import load_scenario
+    from tcf_hil.world.forest import generate_forest
+    from tcf_hil.world.forest.output import write_forest
 
     scn = load_scenario(scenario_name, seed=seed)
     with blame(scenario_name), \
@@ -122,10 +122,10 @@ def forest_sample(scenario_name: str, seed: int | None, out: Path, points_per_st
                   float32: bool) -> None:
     """Surface-sample a forest (the paper's point clouds without lidar) into a PCD file."""
     from tcf_hil._io import write_bytes_atomic, write_json_atomic
-    from tcf_hil.forest import generate_forest
-    from tcf_hil.forest import ground_truth as gt_doc
-    from tcf_hil.forest.sampling import sample_surfaces
     from tcf_hil.scenario import load_scenario
+    from tcf_hil.world.forest import generate_forest
+    from tcf_hil.world.forest import ground_truth as gt_doc
+    from tcf_hil.world.forest.sampling import sample_surfaces
 
     scn = load_scenario(scenario_name, seed=seed)
     with blame(scenario_name), console.status(f"sampling {scn.name}"):

@@ -64,9 +64,9 @@ def harvester_run(scenario_name: str, can_spec: str, node_id: int | None, rate: 
     import can
 
     from emulators.harvester import BusSpecError, check_log_path
-    from tcf_hil.faults import FaultLog
-    from tcf_hil.forest import generate_forest
-    from tcf_hil.harvester import open_bus, run_harvester
+    from tcf_hil.devices.faults import FaultLog
+    from tcf_hil.devices.harvester import open_bus, run_harvester
+    from tcf_hil.world.forest import generate_forest
 
     if log_path is not None:
         try:

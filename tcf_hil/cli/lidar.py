@@ -67,7 +67,7 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
     (--fault, or the scenario's [faults]) go into the capture, logged in faults.jsonl.
     """
     from emulators.lidar import ReturnModel
-    from tcf_hil.lidar import record_pcap
+    from tcf_hil.devices.lidar import record_pcap
 
     scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     announce_backend(backend)
@@ -128,8 +128,8 @@ def lidar_stream(scenario_name: str, mode: str, profile: str, seed: int | None,
     by `tcf-hil lidar pcap`):
       sensor.SensorFrameSetSource("127.0.0.2", sensor_info=[core.SensorInfo(json_text)])
     """
-    from tcf_hil.endpoints import claim_sensor_host
-    from tcf_hil.lidar import RecordResult
+    from tcf_hil.devices.endpoints import claim_sensor_host
+    from tcf_hil.devices.lidar import RecordResult
 
     scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     announce_backend()
@@ -164,7 +164,7 @@ def _stream(scn: Any, stop: Any, sensor_address: str, http_port: int | None,
             http_address: str | None, linger: bool, summary: Any, *, mode: str, profile: str,
             seed: int | None, dest: str, lidar_port: int, imu_port: int, speed: float,
             frames: int | None, record: Path | None) -> None:
-    from tcf_hil.lidar import serve_sensor, stream_lidar
+    from tcf_hil.devices.lidar import serve_sensor, stream_lidar
 
     if http_port is not None:
         host_ip = http_address or sensor_address

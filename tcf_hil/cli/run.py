@@ -387,7 +387,7 @@ def soak_cmd(scenario_name: str, minutes: float, mode: str, preset: str, seed: i
     failed, 130 when stopped by Ctrl-C.
     """
     from tcf_hil._logs import library_logs
-    from tcf_hil.soak import run_soak
+    from tcf_hil.run.soak import run_soak
 
     scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     out = run_dir(out, "soak-")

@@ -103,9 +103,9 @@ def score(gt: Path, observed: Path, match_method: str, max_distance: float,
     """
     from tcf_hil._io import write_json_atomic
     from tcf_hil.evaluation import EvalConfig, evaluate, metrics_table, write_plots
-    from tcf_hil.inventory import is_inventory, read_inventory
-    from tcf_hil.recorder import blank_absent
-    from tcf_hil.stems_json import load_stems, stem_table
+    from tcf_hil.evaluation.scoring import blank_absent
+    from tcf_hil.recording.inventory import is_inventory, read_inventory
+    from tcf_hil.recording.stems_json import load_stems, stem_table
 
     try:
         cfg = EvalConfig(match=match_method, max_distance_m=max_distance,  # type: ignore[arg-type]

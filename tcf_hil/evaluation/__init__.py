@@ -1,4 +1,11 @@
-"""Experimental evaluation (EE): matching, evaluation matrix, weighted score, metrics, plots."""
+"""Experimental evaluation (EE): matching, evaluation matrix, weighted score, metrics, plots,
+and the scoring of a SIC's forest against the truth (:mod:`.scoring`: all trees, the trees
+the sensor saw, bands of distance from the track), done once per run and handed to the
+report and the export.
+
+May import the recordings (stems documents) and the small shared helpers; never the world's
+generators, the devices, a run or the results.
+"""
 
 from tcf_hil.evaluation._match import candidate_pairs, match
 from tcf_hil.evaluation._metrics import (

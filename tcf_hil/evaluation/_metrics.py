@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tcf_hil.evaluation._match import MatchMethod, match
-from tcf_hil.stems_json import StemTable
+from tcf_hil.recording.stems_json import StemTable
 
 LABELS: tuple[str, ...] = ("S", "C", "X", "N")
 CASES: tuple[str, ...] = ("E", "A", "N")

@@ -8,9 +8,9 @@ from typing import Any
 from rich.table import Table
 
 from tcf_hil._io import ensure_dir, write_bytes_atomic
+from tcf_hil._plots import em_heatmap, matched_positions
 from tcf_hil.evaluation._metrics import LABELS, Evaluation
-from tcf_hil.plots import em_heatmap, matched_positions
-from tcf_hil.stems_json import StemTable
+from tcf_hil.recording.stems_json import StemTable
 
 ROWS: tuple[tuple[str, str, str], ...] = (
     ("evaluation_score_percent", "Evaluation score (wc)", "{:.1f} %"),

@@ -4,7 +4,7 @@ tolerance x ray backend x reference SIC preset.
 Each (mode, tolerance, backend) emulates the track once; both SIC presets read the same
 packet and CAN bytes in lockstep (:func:`tcf_hil.experiments.offline.drive`), so their
 timings share the machine's state. A few frames are also cast exactly
-(:mod:`tcf_hil.analytic`) to give the range error the tessellation costs.
+(:mod:`tcf_hil.world.analytic`) to give the range error the tessellation costs.
 """
 
 from __future__ import annotations
@@ -55,13 +55,13 @@ BENCH_COLUMNS = ("forest", "mode", "tolerance_mm", "backend", "preset", "sensor"
 
 def backend_available(name: str) -> str | None:
     """None if the backend can be used here (``auto`` always can), else why not."""
-    from tcf_hil.scene import BACKENDS, backend_unavailable
+    from tcf_hil.world.scene import BACKENDS, backend_unavailable
 
     return backend_unavailable(name) if name in BACKENDS else None
 
 
 def _range_error(run: Any, k: int) -> np.ndarray:
-    from tcf_hil.analytic import refine_hits
+    from tcf_hil.world.analytic import refine_hits
 
     o, d, _, _ = run.emu.rays(k)
     t, sid = run.scene.cast(o, d)
@@ -100,7 +100,7 @@ def _return_error(run: Any, k: int) -> tuple[np.ndarray, float, float]:
     ray (m, signed: + behind it): noise, footprint and mesh together, as a user of the
     packets sees them. Also the share of stem pixels with a return, and of pixels
     supersampled."""
-    from tcf_hil.analytic import refine_hits
+    from tcf_hil.world.analytic import refine_hits
 
     o, d, _, _ = run.emu.rays(k)
     fr = run.emu.frame(k)
@@ -120,11 +120,11 @@ def run_bench(grid: BenchGrid, *, seed: int | None = None,
               say: Callable[[str], None] = lambda _s: None) -> tuple[list[dict[str, Any]],
                                                                     list[str]]:
     """Every combination of the grid; returns (rows, notes on what was skipped)."""
+    from tcf_hil.devices.harvester import HarvesterModel
+    from tcf_hil.devices.lidar import LidarRun
+    from tcf_hil.evaluation.scoring import score_forest
     from tcf_hil.experiments.offline import RUN_T0_NS, OfflineSic, drive
-    from tcf_hil.harvester import HarvesterModel
-    from tcf_hil.lidar import LidarRun
-    from tcf_hil.recorder import score_forest
-    from tcf_hil.stems_json import stem_table
+    from tcf_hil.recording.stems_json import stem_table
 
     base = with_sensor(load_scenario(grid.forest, seed=seed), grid.sensor)
     rows: list[dict[str, Any]] = []
@@ -219,9 +219,9 @@ def _cost(r: dict[str, Any]) -> float:
 
 
 def pareto_png(rows: Sequence[dict[str, Any]], title: str) -> bytes:
-    from tcf_hil.plots import _pyplot, figure_png
+    from tcf_hil._plots import figure_png, pyplot
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(12.5, 5.0))
     cost = [_cost(r) for r in rows]
     for ax, key, label, scale in ((axes[0], "wc_seen", "100 - wc against seen trees (%)", 1.0),

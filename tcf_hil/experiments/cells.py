@@ -144,7 +144,7 @@ def _score_row(all_ev: Evaluation, seen_ev: Evaluation) -> dict[str, Any]:
 
 
 def _base_row(cell: Cell, scn: Scenario) -> dict[str, Any]:
-    from tcf_hil.scene import resolve_backend
+    from tcf_hil.world.scene import resolve_backend
 
     row: dict[str, Any] = dict.fromkeys(COLUMN_NAMES, "")
     row.update(cell=cell.id, forest=cell.forest, mode=cell.mode, seed=cell.seed, sic=cell.sic,
@@ -204,11 +204,11 @@ def _reference(cell: Cell, scn: Scenario, row: dict[str, Any],
 
 
 def _sampled(cell: Cell, scn: Scenario, row: dict[str, Any]) -> dict[str, Any]:
-    from tcf_hil.forest import generate_forest, ground_truth
-    from tcf_hil.forest.sampling import sample_surfaces
-    from tcf_hil.recorder import score_forest
+    from tcf_hil.evaluation.scoring import score_forest
+    from tcf_hil.recording.stems_json import stem_table
     from tcf_hil.sic import identify_stems, stem_params
-    from tcf_hil.stems_json import stem_table
+    from tcf_hil.world.forest import generate_forest, ground_truth
+    from tcf_hil.world.forest.sampling import sample_surfaces
 
     t0 = time.perf_counter()
     forest = generate_forest(scn)
@@ -243,7 +243,7 @@ def _command(cell: Cell, scn: Scenario, row: dict[str, Any], out_dir: str | None
     toml = cdir / "scenario.toml"
     toml.write_text(cell.scenario_toml, "utf-8")
     run_dir = cdir / "run"
-    # each run owns its CAN bus, sensor address and UDP ports (tcf_hil.endpoints)
+    # each run owns its CAN bus, sensor address and UDP ports (tcf_hil.devices.endpoints)
     cmd = [sys.executable, "-m", "tcf_hil", "run", str(toml), "--sic", cell.sic,
            "--mode", cell.mode, "--profile", cell.profile, "--seed", str(cell.seed),
            "--speed", f"{cell.speed:g}", "--out", str(run_dir)]

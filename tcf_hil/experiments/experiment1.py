@@ -11,11 +11,11 @@ from typing import Any
 
 from tcf_hil._io import ensure_dir, write_bytes_atomic, write_json_atomic
 from tcf_hil.evaluation import EvalConfig, evaluate, write_plots
-from tcf_hil.forest import generate_forest, ground_truth
-from tcf_hil.forest.sampling import sample_surfaces
+from tcf_hil.recording.stems_json import stem_table
 from tcf_hil.scenario import load_scenario
 from tcf_hil.sic import identify_stems, stem_params
-from tcf_hil.stems_json import stem_table
+from tcf_hil.world.forest import generate_forest, ground_truth
+from tcf_hil.world.forest.sampling import sample_surfaces
 
 PAPER_TABLE6: dict[str, dict[str, float]] = {
     "forest-v": {"accuracy_percent": 90.9, "misclassified_percent": 9.1,

@@ -1,6 +1,7 @@
 """One run of the reference SIC on the wire's bytes, unpaced, in one process.
 
-The emulator makes the same lidar packets as a live run (:class:`tcf_hil.lidar.LidarRun`) and
+The emulator makes the same lidar packets as a live run
+(:class:`tcf_hil.devices.lidar.LidarRun`) and
 the harvester model the same TPDO frames as its CANopen node (``encode_pose``); the reference
 SIC decodes them exactly as it does from UDP and CAN: packets through
 :func:`protocols.ouster.decode_lidar_packets` with the CRC check, TPDOs through canopen and the
@@ -25,16 +26,16 @@ from numpy.typing import NDArray
 
 from protocols.harvester import encode_pose
 from tcf_hil._crc import fast_crc_rows
+from tcf_hil._rotations import rotation_ypr
+from tcf_hil.devices.harvester import HarvesterModel
+from tcf_hil.devices.lidar import LidarRun
 from tcf_hil.evaluation import EvalConfig
-from tcf_hil.forest import Forest
-from tcf_hil.harvester import HarvesterModel
-from tcf_hil.lidar import LidarRun
-from tcf_hil.recorder import Scores, score_forest
+from tcf_hil.evaluation.scoring import Scores, score_forest
+from tcf_hil.recording.stems_json import stem_table
 from tcf_hil.run import RUN_T0_NS  # as a live run: CAN time never goes negative
 from tcf_hil.scenario import Scenario
 from tcf_hil.sic import CanPose, LidarStats, OnboardSic, PoseTrack, SicConfig, StemMap
-from tcf_hil.stems_json import stem_table
-from tcf_hil.trajectory import rotation_ypr
+from tcf_hil.world.forest import Forest
 
 LEAD_NS = 1_000_000_000  # poses on the bus before the first column
 

@@ -144,7 +144,9 @@ def _worker_env(workers: int) -> dict[str, str]:
     (``TCF_HIL_RAY_THREADS``, unless set here already). Each worker runs one cell at a
     time; casting over every CPU in each of them costs more than it gains (two workers on
     2 cores, a natural stand's cell: 76 s with two threads each, 71 s with one)."""
-    from tcf_hil.scene import default_threads  # this machine's CPUs, unless the variable is set
+    from tcf_hil.world.scene import (
+        default_threads,  # this machine's CPUs, unless the variable is set
+    )
 
     if os.environ.get("TCF_HIL_RAY_THREADS"):
         return {}

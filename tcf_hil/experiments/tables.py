@@ -160,10 +160,10 @@ def _em_sum(recs: Sequence[dict[str, Any]], key: str = "em_all") -> np.ndarray |
 def heatmap_grids(records: Sequence[dict[str, Any]], out: Path) -> list[Path]:
     """One PNG per forest and SIC: the EM (summed over seeds) of every mode side by side,
     like the paper's Tables 7 and 8."""
+    from tcf_hil._plots import figure_png, pyplot
     from tcf_hil.evaluation import LABELS
-    from tcf_hil.plots import _pyplot, figure_png
 
-    plt = _pyplot()
+    plt = pyplot()
     g = _groups(records)
     by_forest: dict[tuple[str, str, str], list[tuple[str, list[dict[str, Any]]]]] = {}
     for (forest, mode, sic, preset), recs in g.items():
@@ -200,8 +200,8 @@ def heatmap_grids(records: Sequence[dict[str, Any]], out: Path) -> list[Path]:
 
 def weighting_figure(records: Sequence[dict[str, Any]], path: Path) -> Path | None:
     """Table 11: the EM of the first group weighted by W 1-1-1, 2-1-1 and 1-2-1."""
+    from tcf_hil._plots import figure_png, pyplot
     from tcf_hil.evaluation import LABELS
-    from tcf_hil.plots import _pyplot, figure_png
 
     g = _groups(records)
     if not g:
@@ -210,7 +210,7 @@ def weighting_figure(records: Sequence[dict[str, Any]], path: Path) -> Path | No
     em = _em_sum(recs)
     if em is None:
         return None
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(12.6, 4.0))
     for ax, (w, weights) in zip(axes, WEIGHTINGS.items(), strict=True):
         wem = em * np.asarray(weights)[:, None]

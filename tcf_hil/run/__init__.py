@@ -5,6 +5,10 @@ the emulated OS0-64 and harvester on one clock), ``run --replay`` and ``replay``
 (:class:`ReplayTraffic`: a recording sent again) and ``soak`` (a long live run). The
 session owns the endpoints, supervises the SIC's process, records its publications, writes
 the typed :class:`Manifest` and scores the result; a feature added there reaches them all.
+The recorder's intake (:mod:`.recorder`) keeps what the SIC publishes; :mod:`.soak` is the
+long live run.
+
+May import everything below it (scenario, world, recording, evaluation, devices, results).
 """
 
 from tcf_hil.run._figures import LiveFigures

@@ -5,7 +5,7 @@ and the score of its latest forest.
 The live score is computed in a helper process of its own: scoring a Forest V forest takes
 ~80 ms of Python, and in the bench's process it would hold the interpreter lock the UDP
 sender's pacing loop needs (the sender shares this process; see
-:func:`tcf_hil.lidar.stream_lidar`). The helper scores only the latest valid publication,
+:func:`tcf_hil.devices.lidar.stream_lidar`). The helper scores only the latest valid publication,
 and only when the previous score is done: a SIC that publishes faster than it is scored is
 shown its newest forest, never a queue of old ones.
 """
@@ -92,8 +92,8 @@ def _init(gt_doc: dict[str, Any], cfg: Any) -> None:
     with contextlib.suppress(OSError):
         os.nice(19)
     import tcf_hil.evaluation
-    import tcf_hil.recorder  # noqa: F401 - imported once, as the process starts
-    from tcf_hil.stems_json import stem_table
+    import tcf_hil.run.recorder  # noqa: F401 - imported once, as the process starts
+    from tcf_hil.recording.stems_json import stem_table
 
     if "inventory" in gt_doc:  # (a field inventory is read as observed stems)
         _TRUTH = (gt_doc, stem_table(gt_doc, "ground truth", "observed"), cfg)
@@ -104,8 +104,8 @@ def _init(gt_doc: dict[str, Any], cfg: Any) -> None:
 def _score(path: str) -> tuple[float | None, float | None]:
     from tcf_hil._io import loads_json
     from tcf_hil.evaluation import evaluate
-    from tcf_hil.recorder import blank_absent
-    from tcf_hil.stems_json import stem_table
+    from tcf_hil.evaluation.scoring import blank_absent
+    from tcf_hil.recording.stems_json import stem_table
 
     gt_doc, gt, cfg = _TRUTH
     obs = stem_table(loads_json(Path(path).read_text(encoding="utf-8", errors="replace"),

@@ -12,20 +12,23 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from emulators.harvester import SimClock
 from protocols.ouster import SensorMetadata
 from tcf_hil._io import write_bytes_atomic
-from tcf_hil.endpoints import SensorHost
+from tcf_hil.devices.endpoints import SensorHost
+from tcf_hil.devices.faults import FaultLog
+from tcf_hil.devices.harvester import HarvesterModel, run_harvester
 from tcf_hil.evaluation import EvalConfig
-from tcf_hil.faults import FaultLog, fault_plans, faults_active
-from tcf_hil.harvester import HarvesterModel, run_harvester
 from tcf_hil.run._figures import LiveFigures
 from tcf_hil.run._manifest import Manifest, SicRecord
 from tcf_hil.run._session import Announce, RunResult, RunSession, Wire, quiet
 from tcf_hil.run._sic import sensor_url
 from tcf_hil.scenario import Scenario, scenario_to_dict
+
+if TYPE_CHECKING:
+    from tcf_hil.world import World
 
 # the track starts at simulation time 60 s: the harvester's lead before it never reaches
 # negative times (the CAN pose time is an unsigned 32-bit microsecond count)
@@ -67,6 +70,8 @@ class LiveTraffic:
     2048x10 sends 16 MB/s). ``progress(done, total)`` counts frames on the wire."""
 
     noun = "stream"
+    world: World  # the run's world, resolved once in bind(): every device takes it
+    harvester: HarvesterModel  # the node's model in that world, built once
 
     def __init__(self, scn: Scenario, *, mode: str = "2048x10",
                  profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
@@ -101,30 +106,31 @@ class LiveTraffic:
 
     def bind(self, out: Path | None, host: SensorHost, ports: tuple[int, int]
              ) -> tuple[SensorMetadata, Path | None]:
-        from tcf_hil.lidar import LidarRun
+        from tcf_hil.devices.lidar import LidarRun
+        from tcf_hil.world import World
 
         assert out is not None, "a live run records into a run directory"
         scn = self.scn
         self.out, self.sensor_ip = out, host.address
         self.announce(f"building {scn.name} ({self.mode}, {self.profile}) ...")
-        run = LidarRun(scn, mode=self.mode, profile=self.profile, seed=self.seed,
-                       backend=self.backend, udp_dest="127.0.0.1", udp_port_lidar=ports[0],
-                       udp_port_imu=ports[1], t0_ns=RUN_T0_NS, keep_poses=self.record_lidar)
+        self.world = world = World.build(scn, seed=self.seed, t0_ns=RUN_T0_NS, lidar_ports=ports)
+        self.harvester = HarvesterModel.from_world(world)  # the node's model, once
+        run = LidarRun(scn, mode=self.mode, profile=self.profile, backend=self.backend,
+                       udp_dest="127.0.0.1", udp_port_lidar=ports[0], udp_port_imu=ports[1],
+                       keep_poses=self.record_lidar, world=world)
         if self.duration_s is not None:
             run.frames = max(1, min(run.frames,
                                     round(self.duration_s * run.meta.frequency_hz)))
         self.run = run
-        self.can_faults = None
-        if faults_active(scn.faults):
-            self.flog = FaultLog(out / "faults.jsonl", run.track.t0_ns)
-            self.can_faults = fault_plans(scn.faults, run.forest.seed, run.track.t0_ns).can
+        self.can_faults = world.faults.can if world.faults is not None else None
+        if world.faults is not None:
+            self.flog = FaultLog(out / "faults.jsonl", world.t0_ns)
         write_bytes_atomic(out / "metadata.json", run.meta.dumps().encode())
         return run.meta, out / "metadata.json"
 
     def manifest(self, sic: SicRecord | None) -> Manifest:
         run, scn = self.run, self.scn
-        node = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed,
-                                            RUN_T0_NS).node_config()
+        node = self.harvester.node_config()
         return Manifest(
             scenario=scn.name, seed=run.forest.seed, mode=self.mode, profile=self.profile,
             speed=self.speed, sic=sic, backend=run.backend, lidar_pcap=self.record_lidar,
@@ -136,7 +142,7 @@ class LiveTraffic:
 
     def prepare(self, wire: Wire) -> None:
         """The frame producer forks first, before the threads and the SIC exist."""
-        from tcf_hil.lidar import stream_lidar
+        from tcf_hil.devices.lidar import stream_lidar
 
         run, out, flog = self.run, self.out, self.flog
         api = wire.api
@@ -199,9 +205,10 @@ class LiveTraffic:
 
         def harvester() -> None:
             self.harv_result = run_harvester(
-                self.scn, run.forest.terrain, wire.spec, seed=run.forest.seed,
+                self.scn, self.world.forest.terrain, wire.spec, world=self.world,
+                model=self.harvester,
                 log_path=self.out / "can.log", speed=speed, stop=self.harv_stop,
-                clock=harv_clock, t0_ns=t0, duration_s=self.lead_s * speed + seconds,
+                clock=harv_clock, duration_s=self.lead_s * speed + seconds,
                 faults=self.can_faults, on_fault=flog.log if flog is not None else None,
                 on_conflict=self.conflicts.append, on_node=self._on_node)
 

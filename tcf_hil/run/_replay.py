@@ -1,7 +1,7 @@
 """Recorded traffic back on the wire with its original timing (times ``speed``): a tcf-hil
 run directory or a field recording (an Ouster pcap with its metadata, and a CAN log); the
 recorded metadata on the sensor's HTTP API and, for a run, the harvester node's SDO server
-answering what it answered (:mod:`tcf_hil.replay`)."""
+answering what it answered (:mod:`tcf_hil.recording.reader`)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from typing import Any
 
 from protocols.ouster import SensorMetadata
 from tcf_hil._io import write_bytes_atomic
-from tcf_hil.endpoints import SensorHost
+from tcf_hil.devices.endpoints import SensorHost
 from tcf_hil.run._figures import LiveFigures
 from tcf_hil.run._manifest import Manifest, SicRecord
 from tcf_hil.run._session import Announce, RunResult, RunSession, Wire, quiet
@@ -69,13 +69,13 @@ class ReplayTraffic:
                  progress: Callable[[int, int], None] | None = None,
                  ports: tuple[int | None, int | None] = (None, None),
                  truth: Path | None = None) -> None:
-        from tcf_hil.replay import Recording
+        from tcf_hil.recording.reader import Recording
 
         self.src, self.speed, self.loop, self.lead_s = src, speed, loop, lead_s
         self.ports = ports
         self.truth_path = truth
         if truth is not None:  # read now: a bad inventory is an error before anything runs
-            from tcf_hil.inventory import load_truth
+            from tcf_hil.recording.inventory import load_truth
 
             load_truth(truth)
         self.rec = Recording.load(src, meta=meta, can_log=can_log, can_offset_s=can_offset_s,
@@ -134,7 +134,7 @@ class ReplayTraffic:
             if rec.can_log is not None:
                 _link_or_copy(rec.can_log, out / f"can{rec.can_log.suffix.lower()}")
         if self.truth_path is not None:  # the ground truth given replaces the recorded one
-            from tcf_hil.inventory import is_inventory
+            from tcf_hil.recording.inventory import is_inventory
 
             for name in ("ground_truth.json", "inventory.csv", "visibility.json"):
                 with contextlib.suppress(FileNotFoundError):
@@ -156,14 +156,14 @@ class ReplayTraffic:
                         clock=clock)
 
     def prepare(self, wire: Wire) -> None:
-        from tcf_hil.replay import SdoResponder
+        from tcf_hil.run._send import SdoResponder
 
         if self.sdo_node is not None:
             self.sdo = SdoResponder(wire.spec, {**self.node, "node_id": self.node_id},
                                     self.rec.sdo_values)
 
     def start(self, wire: Wire, manifest: Manifest) -> None:
-        from tcf_hil.replay import replay
+        from tcf_hil.run._send import replay
 
         def send() -> None:
             replay(self.src, speed=self.speed, loop=self.loop, sensor_ip=self.sensor_ip,
@@ -200,7 +200,7 @@ class ReplayTraffic:
 
     def truth(self) -> dict[str, Any] | None:
         """The ground truth the run is scored against (``--truth``, else the recording's)."""
-        from tcf_hil.inventory import load_truth
+        from tcf_hil.recording.inventory import load_truth
 
         own = [self.src / "ground_truth.json", self.src / "inventory.csv"] \
             if self.rec.is_run else []

@@ -27,13 +27,14 @@ from emulators.harvester import BusSpec
 from emulators.lidar import Route, SensorApi
 from protocols.ouster import SensorMetadata
 from tcf_hil._io import ensure_dir, read_json, write_json_atomic
-from tcf_hil.endpoints import SensorHost, UdpPorts, claim_sensor_host, reserve_udp_ports
+from tcf_hil.devices.endpoints import SensorHost, UdpPorts, claim_sensor_host, reserve_udp_ports
+from tcf_hil.devices.harvester import open_bus
 from tcf_hil.evaluation import EvalConfig
-from tcf_hil.harvester import open_bus
-from tcf_hil.recorder import FileWatcher, Inbox, PublishServer, Scores, empty_forest, score_forest
+from tcf_hil.evaluation.scoring import ScoredForest, Scores, empty_forest, score_forest
 from tcf_hil.run._figures import LiveFigures, LiveScore
 from tcf_hil.run._manifest import Manifest, RunStatus, SicRecord
 from tcf_hil.run._sic import SicProcess, describe, sic_command, sic_environment
+from tcf_hil.run.recorder import FileWatcher, Inbox, PublishServer
 
 Announce = Callable[[str], None]
 
@@ -228,6 +229,23 @@ class _Live:
             self.score = None
 
 
+@dataclass
+class _RunState:
+    """What a run's phases hand on (:meth:`RunSession._run`)."""
+
+    manifest: Manifest
+    route: Route
+    status: RunStatus = RunStatus.COMPLETE
+    message: str = ""
+    rc: int | None = None
+    inbox: Inbox | None = None
+    server: PublishServer | None = None
+    watcher: FileWatcher | None = None
+    proc: SicProcess | None = None
+    live: _Live = field(default=None)  # type: ignore[assignment]  # set first thing
+    redirects: list[dict[str, Any]] = field(default_factory=list)
+
+
 class RunSession:
     """One run of ``traffic`` into ``out`` with the program ``sic`` under test.
 
@@ -237,7 +255,7 @@ class RunSession:
     ``http_port`` (0: a free one; None: no API). With a SIC the lidar and IMU ports are the
     run's own (the traffic's preferred ones unless taken); without, the traffic's. ``can``:
     ``own`` (a CAN server of the run's own) or a bus to join (see
-    :func:`tcf_hil.harvester.open_bus`). ``stop`` ends the run early (Ctrl-C): everything is
+    :func:`tcf_hil.devices.harvester.open_bus`). ``stop`` ends the run early (Ctrl-C): everything is
     closed and the forest published so far is scored. ``on_start`` gets the manifest once
     the traffic flows (the SIC's pid is in it). ``watch`` gets the run's
     :class:`LiveFigures` four times a second from a thread of its own while the run goes
@@ -289,130 +307,157 @@ class RunSession:
 
     def _run(self, host: SensorHost, meta: SensorMetadata, meta_path: Path | None,
              manifest: Manifest) -> RunResult:
-        out, traffic, stop, announce = self.out, self.traffic, self.stop, self.announce
-        inbox = server = watcher = None
+        """The run's phases: the recorder opened, the wire up (CAN bus, the sensor's HTTP
+        API), the SIC started, the traffic streamed while it is watched, the SIC's final
+        forest awaited; then everything closed, the manifest ended and the forest scored."""
+        st = _RunState(manifest, Route(meta.udp_dest, meta.udp_port_lidar, meta.udp_port_imu))
         if self.sic is not None:
-            assert out is not None, "a run with a SIC needs a run directory"
-            inbox = Inbox(out / "sic", self.t_mono0)
-            server = PublishServer(inbox).start()
-        proc: SicProcess | None = None
-        live = _Live(None, traffic, inbox, out)  # (no one watching: does nothing)
-        status, message, rc = RunStatus.COMPLETE, "", None
-        route = Route(meta.udp_dest, meta.udp_port_lidar, meta.udp_port_imu)
-        redirects: list[dict[str, Any]] = []
-        redirect = follow_redirects(route, redirects, self.t_mono0, announce)
-        lidar_port = meta.udp_port_lidar
+            assert self.out is not None, "a run with a SIC needs a run directory"
+            st.inbox = Inbox(self.out / "sic", self.t_mono0)
+            st.server = PublishServer(st.inbox).start()
+        st.live = _Live(None, self.traffic, st.inbox, self.out)  # (no one watching: nothing)
+        redirect = follow_redirects(st.route, st.redirects, self.t_mono0, self.announce)
         try:
-            with open_bus(self.can, announce=announce) as spec, contextlib.ExitStack() as apis:
+            with open_bus(self.can, announce=self.announce) as spec, \
+                    contextlib.ExitStack() as apis:
                 api = apis.enter_context(SensorApi(
                     meta, host.address, host.http_port, fixed=True, on_redirect=redirect)) \
                     if host.http_port >= 0 else None
-                wire = Wire(host, spec, api, route, stop, announce, self.t_mono0)
-                if self.sic is not None:
-                    assert out is not None and api is not None and server is not None \
-                        and inbox is not None and meta_path is not None
-                    env = sic_environment(out, meta, meta_path, spec, api, server.url,
-                                          traffic.node_id)
-                    manifest.endpoints = {k: v for k, v in env.items() if k.startswith("TCF_")}
-                    argv = sic_command(self.sic, env, self.shell)
-                traffic.prepare(wire)
-                if self.watch is not None:  # after the frame producer's fork (no threads)
-                    live = _Live(self.watch, traffic, inbox, out)
-                    live.start(self.sic is not None, self.eval_cfg)
-                if self.sic is not None:
-                    assert inbox is not None and out is not None
-                    live.phase("starting the SIC")
-                    watcher = FileWatcher(inbox, Path(env["TCF_PUBLISH_FILE"]))
-                    watcher.start()
-                    announce(f"SIC: {describe(argv)}")
-                    try:
-                        proc = SicProcess(argv, env, out, inbox, self.shell)
-                        assert manifest.sic is not None
-                        manifest.sic.pid = proc.pid
-                    except OSError as err:
-                        status, message = RunStatus.SIC_FAILED, f"cannot start the SIC: {err}"
-                    if proc is not None and self.ready_s > 0:
-                        # the traffic starts once the SIC listens on the lidar port (or after
-                        # ready_s): a slow start-up must not cost it the first frames
-                        p = proc
-                        if not wait_for_listener(route.dest_ip, lambda: route.port(lidar_port),
-                                                 self.ready_s, lambda: p.poll() is None, stop):
-                            if p.poll() is None and not stop.is_set():
-                                announce(f"the SIC does not listen on UDP "
-                                         f"{route.port(lidar_port)} after {self.ready_s:g} s; "
-                                         "starting anyway")
-                if self.sic is None or proc is not None:
-                    live.phase({"stream": "streaming", "replay": "replaying"}.get(
-                        traffic.noun, traffic.noun))
-                    traffic.start(wire, manifest)
-                    if out is not None:
-                        manifest.write(out)  # replayable from here on
-                    if self.on_start is not None:
-                        self.on_start(manifest)
-                    announce(traffic.describe(wire))
-                while traffic.alive(0.2) and (proc is not None or self.sic is None):
-                    if stop.is_set():
-                        status, message = RunStatus.INTERRUPTED, "stopped by the user"
-                        break
-                    if c := traffic.conflict():  # the SIC would get two machines' poses
-                        status, message = RunStatus.CAN_CONFLICT, c
-                        break
-                    if proc is not None and (code := proc.poll()) is not None:
-                        rc, status = code, RunStatus.SIC_EXITED
-                        message = (f"the SIC exited with code {rc} before the {traffic.noun} "
-                                   f"ended (see {proc.stderr_log.name})")
-                        break
-                traffic.finish()
-                if (c := traffic.conflict()) and status == RunStatus.COMPLETE:
-                    status, message = RunStatus.CAN_CONFLICT, c  # in the last moments
-                if stop.is_set() and status == RunStatus.COMPLETE:
-                    status, message = RunStatus.INTERRUPTED, "stopped by the user"
-                if proc is not None:
-                    if status == RunStatus.COMPLETE:
-                        live.phase("waiting for the SIC's final forest")
-                        announce(f"{traffic.noun} ended; waiting for the SIC's final forest ...")
-                    rc = proc.end(self.grace_s if status == RunStatus.COMPLETE else 0.0, stop)
-                    if stop.is_set() and status == RunStatus.COMPLETE:
-                        status, message = RunStatus.INTERRUPTED, "stopped by the user"
+                wire = Wire(host, spec, api, st.route, self.stop, self.announce, self.t_mono0)
+                self._start(st, wire, meta, meta_path)
+                self._stream(st)
+                self._finish(st)
         except BaseException as err:
-            status = RunStatus.INTERRUPTED if isinstance(err, KeyboardInterrupt) \
+            st.status = RunStatus.INTERRUPTED if isinstance(err, KeyboardInterrupt) \
                 else RunStatus.FAILED
-            message = message or f"{type(err).__name__}: {err}"
-            if status == RunStatus.FAILED:
+            st.message = st.message or f"{type(err).__name__}: {err}"
+            if st.status == RunStatus.FAILED:
                 raise
         finally:
-            live.close()
-            traffic.close(manifest)
-            if proc is not None:
-                proc.close()
-                rc = proc.proc.returncode
-            if watcher is not None:
-                watcher.close()
-            if server is not None:
-                server.close()
-            if inbox is not None:
-                inbox.close()
-            if (c := traffic.conflict()) and status == RunStatus.COMPLETE:
-                status, message = RunStatus.CAN_CONFLICT, c  # it came while the SIC finished
-            if inbox is not None and status != RunStatus.FAILED:
-                assert out is not None
-                status, message = self._conclude(status, message, rc, proc, inbox, out)
-            if redirects:
-                manifest.sensor_redirects = redirects
-            manifest.ended(status, message)
-            if manifest.sic is not None:
-                manifest.sic.returncode = rc
-                manifest.sic.ended_by = proc.signalled if proc is not None else None
-            if inbox is not None:
-                manifest.publications = {"total": len(inbox.items), "valid": len(inbox.valid),
-                                         "invalid": len(inbox.invalid),
-                                         "non_json_stdout_lines": inbox.non_json_lines}
+            self._close(st)
+        if st.inbox is None:
+            return RunResult(self.out, st.status, st.message, None, manifest, None, 0, 0)
+        assert self.out is not None
+        return self._score(self.out, manifest, st.inbox, st.rc)
+
+    def _start(self, st: _RunState, wire: Wire, meta: SensorMetadata,
+               meta_path: Path | None) -> None:
+        """The traffic prepared, the live display started, the SIC started (the traffic
+        waits until it listens on the lidar port, or ``ready_s``), then the traffic."""
+        out, traffic, manifest = self.out, self.traffic, st.manifest
+        argv: list[str] | str = []
+        env: dict[str, str] = {}
+        if self.sic is not None:
+            assert out is not None and wire.api is not None and st.server is not None \
+                and st.inbox is not None and meta_path is not None
+            env = sic_environment(out, meta, meta_path, wire.spec, wire.api, st.server.url,
+                                  traffic.node_id)
+            manifest.endpoints = {k: v for k, v in env.items() if k.startswith("TCF_")}
+            argv = sic_command(self.sic, env, self.shell)
+        traffic.prepare(wire)
+        if self.watch is not None:  # after the frame producer's fork (no threads)
+            st.live = _Live(self.watch, traffic, st.inbox, out)
+            st.live.start(self.sic is not None, self.eval_cfg)
+        if self.sic is not None:
+            self._start_sic(st, argv, env, meta.udp_port_lidar)
+        if self.sic is None or st.proc is not None:
+            st.live.phase({"stream": "streaming", "replay": "replaying"}.get(
+                traffic.noun, traffic.noun))
+            traffic.start(wire, manifest)
             if out is not None:
-                manifest.write(out)
-        if inbox is None:
-            return RunResult(out, status, message, None, manifest, None, 0, 0)
-        assert out is not None
-        return self._score(out, manifest, inbox, rc)
+                manifest.write(out)  # replayable from here on
+            if self.on_start is not None:
+                self.on_start(manifest)
+            self.announce(traffic.describe(wire))
+
+    def _start_sic(self, st: _RunState, argv: list[str] | str, env: dict[str, str],
+                   lidar_port: int) -> None:
+        assert st.inbox is not None and self.out is not None
+        st.live.phase("starting the SIC")
+        st.watcher = FileWatcher(st.inbox, Path(env["TCF_PUBLISH_FILE"]))
+        st.watcher.start()
+        self.announce(f"SIC: {describe(argv)}")
+        try:
+            st.proc = SicProcess(argv, env, self.out, st.inbox, self.shell)
+            assert st.manifest.sic is not None
+            st.manifest.sic.pid = st.proc.pid
+        except OSError as err:
+            st.status, st.message = RunStatus.SIC_FAILED, f"cannot start the SIC: {err}"
+        if st.proc is not None and self.ready_s > 0:
+            # the traffic starts once the SIC listens on the lidar port (or after ready_s):
+            # a slow start-up must not cost it the first frames
+            p, route, stop = st.proc, st.route, self.stop
+            if not wait_for_listener(route.dest_ip, lambda: route.port(lidar_port),
+                                     self.ready_s, lambda: p.poll() is None, stop):
+                if p.poll() is None and not stop.is_set():
+                    self.announce(f"the SIC does not listen on UDP {route.port(lidar_port)} "
+                                  f"after {self.ready_s:g} s; starting anyway")
+
+    def _stream(self, st: _RunState) -> None:
+        """Until the traffic ends, watching for a stop, a CAN conflict or the SIC's exit."""
+        traffic, proc = self.traffic, st.proc
+        while traffic.alive(0.2) and (proc is not None or self.sic is None):
+            if self.stop.is_set():
+                st.status, st.message = RunStatus.INTERRUPTED, "stopped by the user"
+                break
+            if c := traffic.conflict():  # the SIC would get two machines' poses
+                st.status, st.message = RunStatus.CAN_CONFLICT, c
+                break
+            if proc is not None and (code := proc.poll()) is not None:
+                st.rc, st.status = code, RunStatus.SIC_EXITED
+                st.message = (f"the SIC exited with code {code} before the {traffic.noun} "
+                              f"ended (see {proc.stderr_log.name})")
+                break
+
+    def _finish(self, st: _RunState) -> None:
+        """The traffic finished, then the SIC's final forest awaited (``grace_s``)."""
+        traffic, stop = self.traffic, self.stop
+        traffic.finish()
+        if (c := traffic.conflict()) and st.status == RunStatus.COMPLETE:
+            st.status, st.message = RunStatus.CAN_CONFLICT, c  # in the last moments
+        if stop.is_set() and st.status == RunStatus.COMPLETE:
+            st.status, st.message = RunStatus.INTERRUPTED, "stopped by the user"
+        if st.proc is not None:
+            if st.status == RunStatus.COMPLETE:
+                st.live.phase("waiting for the SIC's final forest")
+                self.announce(f"{traffic.noun} ended; waiting for the SIC's final forest ...")
+            st.rc = st.proc.end(self.grace_s if st.status == RunStatus.COMPLETE else 0.0, stop)
+            if stop.is_set() and st.status == RunStatus.COMPLETE:
+                st.status, st.message = RunStatus.INTERRUPTED, "stopped by the user"
+
+    def _close(self, st: _RunState) -> None:
+        """Everything closed (never raising past the run's own error), the status concluded
+        from how the SIC ended, and the manifest ended and written."""
+        manifest, inbox, proc = st.manifest, st.inbox, st.proc
+        st.live.close()
+        self.traffic.close(manifest)
+        if proc is not None:
+            proc.close()
+            st.rc = proc.proc.returncode
+        if st.watcher is not None:
+            st.watcher.close()
+        if st.server is not None:
+            st.server.close()
+        if inbox is not None:
+            inbox.close()
+        if (c := self.traffic.conflict()) and st.status == RunStatus.COMPLETE:
+            st.status, st.message = RunStatus.CAN_CONFLICT, c  # it came while the SIC finished
+        if inbox is not None and st.status != RunStatus.FAILED:
+            assert self.out is not None
+            st.status, st.message = self._conclude(st.status, st.message, st.rc, proc, inbox,
+                                                   self.out)
+        if st.redirects:
+            manifest.sensor_redirects = st.redirects
+        manifest.ended(st.status, st.message)
+        if manifest.sic is not None:
+            manifest.sic.returncode = st.rc
+            manifest.sic.ended_by = proc.signalled if proc is not None else None
+        if inbox is not None:
+            manifest.publications = {"total": len(inbox.items), "valid": len(inbox.valid),
+                                     "invalid": len(inbox.invalid),
+                                     "non_json_stdout_lines": inbox.non_json_lines}
+        if self.out is not None:
+            manifest.write(self.out)
 
     # ---------------------------------------------------------------------------- the end
     def _conclude(self, status: RunStatus, message: str, rc: int | None,
@@ -435,7 +480,7 @@ class RunSession:
                ) -> RunResult:
         """Score the latest valid forest (and every valid publication, as a timeline)
         against the run's ground truth; write score.json and report.html."""
-        from tcf_hil.report import write_report
+        from tcf_hil.results.report import write_report
 
         status, message, cfg = manifest.status, manifest.message or "", self.eval_cfg
         gt_doc = None
@@ -443,7 +488,7 @@ class RunSession:
             if (out / "ground_truth.json").exists():
                 gt_doc = read_json(out / "ground_truth.json")
             elif (out / "inventory.csv").exists():  # a field recording's
-                from tcf_hil.inventory import read_inventory
+                from tcf_hil.recording.inventory import read_inventory
 
                 gt_doc = read_inventory(out / "inventory.csv")
         scores: Scores | None = None
@@ -453,7 +498,7 @@ class RunSession:
             latest = inbox.table_of(valid[-1]) if valid else empty_forest()
             scores = score_forest(gt_doc, latest, cfg)
             for p in valid:
-                s = score_forest(gt_doc, inbox.table_of(p), cfg)
+                s = scores if p is valid[-1] else score_forest(gt_doc, inbox.table_of(p), cfg)
                 timeline.append({"n": p.n, "arrival_s": round(p.arrival_s, 3),
                                  "objects": p.objects,
                                  "wc_all": s.all.metrics["evaluation_score_percent"],
@@ -474,16 +519,20 @@ class RunSession:
         write_json_atomic(out / "score.json", score_doc)
         result = RunResult(out, status, message, scores, manifest, rc, len(inbox.items),
                            len(inbox.invalid), timeline)
-        if scores is not None:
-            write_report(out / "report.html", result)
+        if scores is not None and gt_doc is not None:  # the report takes it as scored here
+            latest_doc = (read_json(out / "sic" / valid[-1].file) if valid
+                          else {"objects": []})
+            write_report(out / "report.html", out, manifest.to_dict(), scored=ScoredForest(
+                scores, latest, latest_doc, gt_doc, cfg or EvalConfig()))
         return result
 
 
 def _bands(out: Path, scores: Scores, latest: Any) -> dict[str, Any] | None:
     """score.json's ``by_distance``: the scoring of all trees per band of distance from the
     recorded track (none where the run has no sensor_poses.csv)."""
-    from tcf_hil.export import distance_to_track, track_xy
-    from tcf_hil.recorder import by_distance
+    from tcf_hil.evaluation.scoring import by_distance
+    from tcf_hil.results.export import track_xy
+    from tcf_hil.world.track import distance_to_track
 
     track = track_xy(out)
     if not len(track):

@@ -20,7 +20,7 @@ from emulators.harvester import BusSpec
 from emulators.lidar import SensorApi
 from protocols.harvester import eds_path
 from protocols.ouster import SensorMetadata
-from tcf_hil.recorder import MAX_PUBLICATION_BYTES, Inbox
+from tcf_hil.run.recorder import MAX_PUBLICATION_BYTES, Inbox
 
 ENV_DOC: tuple[tuple[str, str], ...] = (
     ("TCF_RUN_DIR", "the run directory"),

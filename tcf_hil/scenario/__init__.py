@@ -1,4 +1,6 @@
-"""Scenarios: TOML files validated into frozen objects, and the paper's Forest I–X presets."""
+"""Scenarios: TOML files validated into frozen objects, and the paper's Forest I–X and natural-stand
+presets. May import protocols, emulators' tables and the errors; every other subsystem reads a
+scenario through this package."""
 
 from protocols.stems import CLASSES
 from tcf_hil.scenario._load import (

@@ -28,7 +28,7 @@ class Circle(NamedTuple):
     arc_deg: float  # angular coverage of the points around the centre
 
 
-def _arc_coverage(ang: NDArray[np.float64]) -> float:
+def arc_coverage(ang: NDArray[np.float64]) -> float:
     if len(ang) < 2:
         return 0.0
     a = np.sort(np.mod(ang, 2.0 * math.pi))
@@ -54,7 +54,7 @@ def fit_circle_algebraic(xy: NDArray[np.float64]) -> Circle | None:
     r = math.sqrt(r2)
     d = np.hypot(p[:, 0] - cx, p[:, 1] - cy)
     rms = float(np.sqrt(np.mean((d - r) ** 2)))
-    arc = _arc_coverage(np.arctan2(p[:, 1] - cy, p[:, 0] - cx))
+    arc = arc_coverage(np.arctan2(p[:, 1] - cy, p[:, 0] - cx))
     return Circle(float(cx + m[0]), float(cy + m[1]), r, rms, arc)
 
 
@@ -96,7 +96,7 @@ def fit_circle(xy: NDArray[np.float64], r_min: float = 0.01, r_max: float = 1.0,
     rms = float(np.sqrt(np.mean((d - r) ** 2)))
     if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(r)):
         return None
-    arc = _arc_coverage(np.arctan2(p[:, 1] - cy, p[:, 0] - cx))
+    arc = arc_coverage(np.arctan2(p[:, 1] - cy, p[:, 0] - cx))
     return Circle(float(cx + m[0]), float(cy + m[1]), float(r), rms, arc)
 
 

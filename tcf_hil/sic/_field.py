@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from tcf_hil.sic._circle import Circle, _arc_coverage
+from tcf_hil.sic._circle import Circle, arc_coverage
 from tcf_hil.sic._fast import column_max, column_min, unique_first
 from tcf_hil.sic._params import StemParams
 
@@ -283,7 +283,7 @@ def refine_circle(q: FloatArray, cx: float, cy: float, r: float, *, huber_m: flo
 
 def arc_deg(xy: FloatArray, cx: float, cy: float) -> float:
     """The angle around (cx, cy) that the points cover (360 less the largest gap)."""
-    return _arc_coverage(np.arctan2(xy[:, 1] - cy, xy[:, 0] - cx))
+    return arc_coverage(np.arctan2(xy[:, 1] - cy, xy[:, 0] - cx))
 
 
 def stem_circle(xy: FloatArray, width: FloatArray, *, r_max: float, tol: float,

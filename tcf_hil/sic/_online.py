@@ -49,12 +49,12 @@ from protocols.ouster import (
     decode_lidar_packets,
 )
 from tcf_hil._crc import fast_crc_rows
+from tcf_hil._rotations import rotation_ypr
 from tcf_hil.errors import SicError
 from tcf_hil.sic._field import divergence_of, edge_widths
 from tcf_hil.sic._map import StemMap
 from tcf_hil.sic._stems import StemParams, stem_params
 from tcf_hil.sic._voxelset import warm as warm_voxel_sets
-from tcf_hil.trajectory import rotation_ypr
 
 FloatArray = NDArray[np.float64]
 _Columns = tuple[NDArray[np.uint32], NDArray[np.int64], FloatArray]

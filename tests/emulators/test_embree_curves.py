@@ -41,7 +41,7 @@ def _far_triangle() -> tuple[np.ndarray, np.ndarray]:
 @given(x=st.floats(3.0, 40.0), r=st.floats(0.02, 0.4), z=st.floats(0.0, 4.0))
 def test_a_round_curve_is_hit_on_its_exact_cylinder(x: float, r: float, z: float) -> None:
     """A vertical tube of radius r at distance x, in segments of 1.75 m as stems are cut
-    (:func:`tcf_hil.forest.mesh.stem_curves`: 2 m at most): every hit within 0.15 mm of
+    (:func:`tcf_hil.world.forest.mesh.stem_curves`: 2 m at most): every hit within 0.15 mm of
     the analytic cylinder where the ray is not grazing (Embree's float32 intersector: 0.1
     mm at worst on a 2 cm tube 3.6 m away, measured), and its |cos incidence| that of the
     cylinder's normal."""

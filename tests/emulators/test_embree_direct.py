@@ -10,10 +10,11 @@ import pytest
 from emulators.jit import jit_enabled
 from emulators.lidar import Os0Emulator, ReturnModel
 from protocols.ouster import os0_64_metadata
-from tcf_hil.forest import generate_forest
 from tcf_hil.scenario import scenario_from_dict
-from tcf_hil.scene import EmbreeCaster, Scene
-from tcf_hil.trajectory import Trajectory
+from tcf_hil.world.forest import generate_forest
+from tcf_hil.world.scene import Scene
+from tcf_hil.world.scene.embree import EmbreeCaster
+from tcf_hil.world.track import Trajectory
 
 pytestmark = pytest.mark.skipif(not jit_enabled(), reason="compiled kernels are off here "
                                 "(TCF_HIL_NO_JIT or no numba): embreex alone is used")

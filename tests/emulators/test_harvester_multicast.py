@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from tcf_hil.forest import generate_forest
-from tcf_hil.harvester import HarvesterModel, heading_error_deg
+from tcf_hil.devices.harvester import HarvesterModel, heading_error_deg
 from tcf_hil.scenario import load_scenario
+from tcf_hil.world.forest import generate_forest
 
 GROUP = "239.74.163.2"
 SCENARIO = "forest-ii"

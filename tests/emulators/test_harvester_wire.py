@@ -25,10 +25,10 @@ import pytest
 from emulators.canbus import SocketcandServer
 from emulators.harvester import BusSpec, CanLog, HarvesterNode, NodeConfig, SimClock
 from protocols.harvester import Pose, PoseAssembler, eds_path, render_dbc
-from tcf_hil.forest import generate_forest
-from tcf_hil.harvester import HarvesterModel, heading_error_deg
+from tcf_hil._rotations import rotation_ypr
+from tcf_hil.devices.harvester import HarvesterModel, heading_error_deg
 from tcf_hil.scenario import load_scenario
-from tcf_hil.trajectory import rotation_ypr
+from tcf_hil.world.forest import generate_forest
 
 SCENARIO = "forest-iv"  # rolling terrain: pitch and roll are not zero
 
@@ -45,6 +45,7 @@ def spec_of(srv: SocketcandServer) -> str:
     return f"socketcand:127.0.0.1:{srv.port}:vcan0"
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_remote_node_decodes_every_pose_and_logs_agree(server: SocketcandServer,
                                                        tmp_path: Path) -> None:
     log = tmp_path / "can.log"

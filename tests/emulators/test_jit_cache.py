@@ -1,5 +1,5 @@
 """The compiled kernels' cache directory is named after every kernel source: emulators'
-own, and those modules elsewhere register (tcf_hil.trajectory), whenever they register."""
+own, and those modules elsewhere register (tcf_hil.world.track), whenever they register."""
 
 from __future__ import annotations
 
@@ -12,13 +12,13 @@ from emulators import jit as _jit
 
 def test_kernel_sources_are_emulators_own_and_the_registered(
         monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    import tcf_hil.trajectory
+    import tcf_hil.world.track
 
     sources = _jit.kernel_sources()
     package = Path(_jit.__file__).resolve().parent
     assert {package / name for name in _jit.KERNEL_SOURCES} <= sources
     assert all(p.exists() for p in sources)
-    assert Path(tcf_hil.trajectory.__file__).resolve() in sources
+    assert Path(tcf_hil.world.track.__file__).resolve() in sources
     assert not any("tcf_hil" in name for name in _jit.KERNEL_SOURCES)  # no layer leak
 
     numba = _jit.numba_module()

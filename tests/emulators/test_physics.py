@@ -15,8 +15,8 @@ import trimesh
 
 from emulators.lidar import SENSOR_PRESETS, Os0Emulator, SensorModel
 from protocols.ouster import os0_64_metadata
-from tcf_hil.scene import Scene, make_caster
 from tcf_hil.sic import fit_circle
+from tcf_hil.world.scene import Scene, make_caster
 
 REV7 = SENSOR_PRESETS["os0-64-rev7"]
 H = 1.0  # the lidar's height above the stem base
@@ -298,9 +298,9 @@ def _every_path(forest_name: str, sensor: SensorModel, k: int) -> list:
     """Frame k of the forest from its track, DUAL at 512x10, through the fused compiled
     cast (2 threads), the numpy path (1 thread) and the numpy path (2 threads): all three
     write the same packets and stem ids (asserted here); the frames."""
-    from tcf_hil.forest import generate_forest
     from tcf_hil.scenario import load_scenario
-    from tcf_hil.trajectory import Trajectory
+    from tcf_hil.world.forest import generate_forest
+    from tcf_hil.world.track import Trajectory
 
     forest = generate_forest(load_scenario(forest_name))
     track = Trajectory.from_config(forest.scenario.track, forest.terrain)
@@ -336,9 +336,9 @@ def test_the_grid_at_every_edge_is_the_full_footprint_in_a_forest() -> None:
     can straddle an edge) returns what ``full`` (the grid at every pixel) returns, within
     the range quantum, for a fraction of its rays; ``adaptive`` (the row at a vertical
     edge) differs at a few stem flanks (the README's table)."""
-    from tcf_hil.forest import generate_forest
     from tcf_hil.scenario import load_scenario
-    from tcf_hil.trajectory import Trajectory
+    from tcf_hil.world.forest import generate_forest
+    from tcf_hil.world.track import Trajectory
 
     forest = generate_forest(load_scenario("forest-v"))
     track = Trajectory.from_config(forest.scenario.track, forest.terrain)

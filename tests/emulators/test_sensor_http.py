@@ -99,7 +99,7 @@ def test_bad_requests(api: SensorApi) -> None:
 
 
 def _port_80_free() -> str | None:
-    from tcf_hil.endpoints import claim_sensor_host
+    from tcf_hil.devices.endpoints import claim_sensor_host
 
     with claim_sensor_host() as host:
         return None if host.http_port == 80 else host.note
@@ -170,7 +170,7 @@ def test_a_reinit_during_a_recorded_stream_starts_a_new_recording(tmp_path: Path
 
     from ouster.sdk import pcap as opcap
 
-    from tcf_hil.lidar import serve_sensor
+    from tcf_hil.devices.lidar import serve_sensor
     from tcf_hil.scenario import load_scenario
 
     with socket.socket() as s:

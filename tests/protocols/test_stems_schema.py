@@ -6,7 +6,7 @@ import jsonschema
 import pytest
 
 from protocols.stems import CLASS_BY_QUALITY, QUALITY_BY_CLASS, SCHEMA_NAMES, load_schema
-from tcf_hil.forest import Forest, ground_truth
+from tcf_hil.world.forest import Forest, ground_truth
 
 
 @pytest.mark.parametrize("name", SCHEMA_NAMES)

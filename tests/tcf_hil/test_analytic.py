@@ -7,11 +7,11 @@ import pytest
 
 from emulators.lidar import Os0Emulator
 from protocols.ouster import os0_64_metadata
-from tcf_hil.analytic import refine_hits
-from tcf_hil.forest import generate_forest
 from tcf_hil.scenario import scenario_from_dict
-from tcf_hil.scene import Scene
-from tcf_hil.trajectory import Trajectory
+from tcf_hil.world.analytic import refine_hits
+from tcf_hil.world.forest import generate_forest
+from tcf_hil.world.scene import Scene
+from tcf_hil.world.track import Trajectory
 
 SCN = scenario_from_dict({
     "plot": {"size_m": [20.0, 30.0]}, "stems": {"count": 25, "lean_deg": [0.0, 6.0]},

@@ -80,6 +80,7 @@ def reference_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_a_run_in_a_terminal_shows_its_progress_live(reference_run: Path) -> None:
     """While it runs: the simulation time, frames sent, CAN poses, publications and the
     live score of the SIC's latest forest, each growing; the live score is the score of
@@ -116,6 +117,7 @@ def test_a_run_in_a_terminal_shows_its_progress_live(reference_run: Path) -> Non
     assert any("Evaluation score (wc)" in x for x in screen[-30:])  # then the score table
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_reference_sic_scores_above_the_floor(reference_run: Path) -> None:
     rec = assert_valid_recording(reference_run, frames_at_least=400)
     man, score = rec["manifest"], rec["score"]
@@ -151,6 +153,7 @@ def _chromium() -> str | None:
 
 @pytest.mark.skipif(_chromium() is None, reason="no Chromium here (Debian: apt-get install "
                     "chromium; .ci/run installs it)")
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_report_draws_in_a_real_browser(reference_run: Path, tmp_path: Path) -> None:
     """Headless Chromium opens the report: no console message at all (an error, an uncaught
     exception, a refused fetch would all be one), and the map and the 3D view drew: their
@@ -187,6 +190,7 @@ def test_report_draws_in_a_real_browser(reference_run: Path, tmp_path: Path) -> 
     assert n_3d > 8 and busy_3d > 0.02, (n_3d, busy_3d)
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_export_of_a_live_run(reference_run: Path, tmp_path: Path) -> None:
     """The live run's producer wrote the labels beside the capture: every return of the
     exported cloud is labelled as the ground truth counted it, and the stems carry the
@@ -226,6 +230,7 @@ def test_export_of_a_live_run(reference_run: Path, tmp_path: Path) -> None:
         assert b["trees"] == len(near)
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_replay_reproduces_the_score(reference_run: Path, tmp_path: Path) -> None:
     """In a terminal: its live display shows the recording's time, frames and CAN frames."""
     out = tmp_path / "replayed"
@@ -247,6 +252,7 @@ def test_replay_reproduces_the_score(reference_run: Path, tmp_path: Path) -> Non
     assert (out / "lidar.pcap").read_bytes() == (reference_run / "lidar.pcap").read_bytes()
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_a_field_recording_scores_against_a_field_inventory(reference_run: Path,
                                                             tmp_path: Path) -> None:
     """The reference run made into what a harvester team brings from the field: the pcap

@@ -110,16 +110,17 @@ def test_detect_rejects_a_cloud_without_z(tmp_path: Path,
 
 def test_internal_errors_exit_4_not_0(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
                                       capsys: pytest.CaptureFixture[str]) -> None:
-    import tcf_hil.forest
+    import tcf_hil.world.forest
 
     def boom(*_a: object, **_k: object) -> None:
         raise RuntimeError("synthetic bug")
 
-    monkeypatch.setattr(tcf_hil.forest, "generate_forest", boom)
+    monkeypatch.setattr(tcf_hil.world.forest, "generate_forest", boom)
     code, _, err = run(["forest", "generate", "forest-i", "--out", str(tmp_path)], capsys)
     assert code == 4 and "synthetic bug" in err and "--traceback" in err
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_demo_through_the_console_script(tmp_path: Path) -> None:
     """The README's main command, as installed: the real `tcf-hil` script in a new process,
     Forest V at 1024x10 on the wire with the reference SIC as its own process."""

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from emulators.jit import jit_enabled
-from tcf_hil.analytic import refine_hits
 from tcf_hil.errors import ConfigError
-from tcf_hil.forest import generate_forest
-from tcf_hil.forest.mesh import stem_curves
 from tcf_hil.scenario import load_scenario, scenario_from_dict
-from tcf_hil.scene import Scene
+from tcf_hil.world.analytic import refine_hits
+from tcf_hil.world.forest import generate_forest
+from tcf_hil.world.forest.mesh import stem_curves
+from tcf_hil.world.scene import Scene
 
 needs_jit = pytest.mark.skipif(not jit_enabled(), reason="compiled kernels are off here "
                                "(TCF_HIL_NO_JIT or no numba): no curves")
@@ -108,7 +108,7 @@ def test_joint_spheres_lie_inside_the_true_surface(name: str) -> None:
     last joint, each stem's first at the ground, and 400 more; the cross-section found
     between samples of the centre line 0.1 mm apart). The joints below the ground are left
     out: their spheres may reach past the buried end, into the curve's round bottom."""
-    from tcf_hil.forest.mesh import CURVE_REACH_M, CURVE_TOLERANCE_M, all_ring_positions
+    from tcf_hil.world.forest.mesh import CURVE_REACH_M, CURVE_TOLERANCE_M, all_ring_positions
 
     forest = generate_forest(scenario_from_dict(NATURAL) if name == "natural"
                              else load_scenario(name))
@@ -183,7 +183,7 @@ def test_stems_as_curves_return_as_brightly_as_their_meshes() -> None:
     the stems' median SIGNAL through the realistic sensor agrees within 2 %."""
     from emulators.lidar import SENSOR_PRESETS, Os0Emulator
     from protocols.ouster import os0_64_metadata
-    from tcf_hil.trajectory import Trajectory
+    from tcf_hil.world.track import Trajectory
 
     forest = generate_forest(scenario_from_dict(NATURAL))
     track = Trajectory.from_config(forest.scenario.track, forest.terrain)

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from tcf_hil.cli import main
 from tcf_hil.errors import InputError
 from tcf_hil.evaluation import LABELS, EvalConfig, Evaluation, evaluate, match
-from tcf_hil.stems_json import load_stems, stem_table
+from tcf_hil.recording.stems_json import load_stems, stem_table
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 QUALITY = {"S": 1, "C": 2, "X": 3}

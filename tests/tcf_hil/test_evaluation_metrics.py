@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from tcf_hil.cli import main
 from tcf_hil.errors import InputError
 from tcf_hil.evaluation import EvalConfig, evaluate, evaluation_matrix, weighted_score
-from tcf_hil.stems_json import stem_table
+from tcf_hil.recording.stems_json import stem_table
 
 
 def doc(rows: list[tuple[Any, float, float, str]], **extra: list[float]) -> dict[str, Any]:
@@ -324,7 +324,7 @@ def test_objects_without_ids_do_not_make_order_matter(method: str) -> None:
 
 
 def test_absurd_numbers_and_nesting_are_input_errors(tmp_path: Path) -> None:
-    from tcf_hil.stems_json import load_stems
+    from tcf_hil.recording.stems_json import load_stems
 
     for bad in ('{"objects": [{"cp": [' + "9" * 401 + ', 0, 0], "class": "S"}]}',
                 '{"objects": [{"cp": [0, 0, 0], "class": "S", "h": 1e200}]}',

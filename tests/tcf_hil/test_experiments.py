@@ -172,6 +172,7 @@ def test_poses_reach_the_sic_through_the_can_frames() -> None:
     assert r0.frames == 60 and r0.packets == 60 * 512 // 16
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_multi_pass_sees_more_of_the_same_forest(tmp_path: Path) -> None:
     """A 90 m wide stand with two strip roads 44 m apart: from one road the far edge lies
     beyond the 50 m range; the second pass, on the other road, brings it in."""
@@ -263,6 +264,7 @@ def test_cli_paper_writes_tables_figures_and_refuses_bad_forests(tmp_path: Path)
     assert not (tmp_path / "b").exists()
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_bench_quick(tmp_path: Path) -> None:
     p = subprocess.run([*TCF, "bench", "--quick", "--out", str(tmp_path)], capture_output=True,
                        text=True, env=ENV, timeout=600)
@@ -312,8 +314,8 @@ def test_bench_footprint_axis(tmp_path: Path) -> None:
 
 def test_strip_road_forest_does_not_depend_on_the_pass_count() -> None:
     from tcf_hil.experiments.cells import with_passes
-    from tcf_hil.forest import generate_forest
-    from tcf_hil.forest.placement import region_for
+    from tcf_hil.world.forest import generate_forest
+    from tcf_hil.world.forest.placement import region_for
 
     scn = load_scenario("strip-road")
     bases = [generate_forest(with_passes(scn, n, None, 3)).stems.base for n in (1, 2, 3)]

@@ -29,15 +29,15 @@ from protocols.labels import (
     read_labels,
 )
 from tcf_hil.cli import main
-from tcf_hil.export import (
+from tcf_hil.devices.lidar import record_pcap
+from tcf_hil.results.export import (
     GPS_MINUS_UNIX_S,
     PCD_DTYPE,
     _rotations,
-    distance_to_track,
     export,
 )
-from tcf_hil.lidar import record_pcap
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
+from tcf_hil.world.track import distance_to_track
 
 UTM = (512_345.0, 6_912_345.0, 120.0)
 
@@ -362,7 +362,7 @@ def test_sampled_frames_are_the_captures_own(tmp_path: Path) -> None:
     """``run_cloud(sample=...)`` reads frames from windows of the capture (a resync on the
     record boundaries, the poses found by bisection, the labels skipped uninflated): every
     frame it gives is one the full read gives, point for point, label for label."""
-    from tcf_hil.export import run_cloud
+    from tcf_hil.results.export import run_cloud
 
     d = _natural()
     d["stems"] = {**d["stems"], "count": 40}

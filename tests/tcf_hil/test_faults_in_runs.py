@@ -21,11 +21,12 @@ from ouster.sdk import pcap as opcap
 from protocols.harvester import Pose, encode_pose
 from protocols.ouster import SensorMetadata, decode_lidar_packet
 from protocols.pcap import read_udp
+from tcf_hil.devices.faults import apply_fault_options, read_fault_log
+from tcf_hil.devices.lidar import record_pcap
 from tcf_hil.errors import ConfigError
-from tcf_hil.faults import apply_fault_options, faults_active, read_fault_log
-from tcf_hil.lidar import record_pcap
 from tcf_hil.run._live import LOSSES
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_toml
+from tcf_hil.world.faults import faults_active
 
 TCF = [sys.executable, "-m", "tcf_hil.cli"]
 ENV = dict(os.environ, COLUMNS="200", PYTHONUNBUFFERED="1")
@@ -107,6 +108,7 @@ def test_pcap_with_faults_holds_exactly_what_was_sent(tmp_path: Path) -> None:
     assert n_clean == 25 * fmt.packets_per_frame
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_the_reference_sic_survives_every_fault_at_once(tmp_path: Path) -> None:
     """A live run, the SIC its own process: UDP loss, bursts, duplicates, reordering and
     jitter; frame dropouts and a re-initialised sensor; CAN loss, late poses, a bus-off and

@@ -13,10 +13,10 @@ from hypothesis import strategies as hs
 from scipy.spatial import cKDTree
 
 from tcf_hil.errors import ConfigError
-from tcf_hil.forest import Forest, Terrain, class_counts, generate_forest, ground_truth
-from tcf_hil.forest.output import FILES, write_forest
-from tcf_hil.forest.placement import region_for
 from tcf_hil.scenario import load_scenario, scenario_from_dict
+from tcf_hil.world.forest import Forest, Terrain, class_counts, generate_forest, ground_truth
+from tcf_hil.world.forest.output import FILES, write_forest
+from tcf_hil.world.forest.placement import region_for
 
 STRESS = {
     "name": "stress", "plot": {"size_m": [20.0, 20.0]},
@@ -71,7 +71,7 @@ def test_reach_bounds_every_surface_point() -> None:
 def test_stress_scenario_needed_fixing() -> None:
     """The stress scene is dense enough that unconstrained bends would collide, so the check
     above is not vacuous: with the bends before fixing, some gaps are negative."""
-    from tcf_hil.forest.generate import _conflicts
+    from tcf_hil.world.forest.generate import _conflicts
 
     f = generate_forest(scenario_from_dict(STRESS))
     assert _conflicts(f.stems) == []
@@ -272,7 +272,7 @@ def test_centre_line_has_no_kink_at_the_base(forest_iv: Forest) -> None:
 
 
 def test_too_fine_a_terrain_tolerance_is_a_config_error() -> None:
-    from tcf_hil.forest import terrain_mesh
+    from tcf_hil.world.forest import terrain_mesh
 
     f = generate_forest(load_scenario("forest-x"))
     with pytest.raises(ConfigError, match=r"terrain\.tolerance_mm"):
@@ -291,7 +291,7 @@ def test_no_meshes_removes_another_forests_meshes(tmp_path: Path) -> None:
 @settings(max_examples=200, deadline=None)
 def test_axial_samples_are_each_rows_arange(rows: list[tuple[float, float]],
                                             step: float) -> None:
-    from tcf_hil.forest.stems import axial_samples
+    from tcf_hil.world.forest.stems import axial_samples
 
     lo = np.array([r[0] for r in rows])
     hi = np.array([r[1] for r in rows])
@@ -322,7 +322,7 @@ def test_ring_positions_of_all_stems_at_once_are_each_stems_own() -> None:
     """The rings found for stems probed together (batched by length) are those the old
     stem-by-stem loop found, bit for bit, on a natural stand (crooks, species taper) and a
     paper one, at the curves' 1 cm probes and the meshes' 5 cm."""
-    from tcf_hil.forest.mesh import all_ring_positions
+    from tcf_hil.world.forest.mesh import all_ring_positions
 
     for name in ("forest-x", "pine-thinning"):
         st = generate_forest(load_scenario(name)).stems

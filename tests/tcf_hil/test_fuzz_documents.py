@@ -25,10 +25,10 @@ from protocols.ouster import SensorMetadata, os0_64_metadata
 from protocols.stems import QUALITY_BY_CLASS
 from tcf_hil._io import loads_json
 from tcf_hil.errors import ConfigError, InputError
-from tcf_hil.recorder import Inbox
+from tcf_hil.recording.stems_json import stem_table
+from tcf_hil.run.recorder import Inbox
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
 from tcf_hil.scenario._load import scenario_to_toml
-from tcf_hil.stems_json import stem_table
 
 FUZZ = fuzz_settings(200)
 
@@ -58,8 +58,8 @@ OBSERVED_PATHS = paths(OBSERVED, 2)
 
 @cache
 def _ground_truth() -> dict[str, Any]:
-    from tcf_hil.forest import generate_forest
-    from tcf_hil.forest.generate import ground_truth
+    from tcf_hil.world.forest import generate_forest
+    from tcf_hil.world.forest.generate import ground_truth
 
     doc = ground_truth(generate_forest(load_scenario("forest-ii")))
     doc["objects"] = doc["objects"][:2]

@@ -20,19 +20,19 @@ from scipy.spatial import cKDTree
 from emulators.jit import jit_enabled
 from protocols.harvester._codec import encode_pose
 from protocols.ouster import decode_lidar_packet
+from tcf_hil.devices.harvester import HarvesterModel
+from tcf_hil.devices.lidar import LidarRun, record_pcap, sensor_metadata
 from tcf_hil.experiments.offline import OfflineSic, run_offline
-from tcf_hil.forest import Forest, generate_forest, ground_truth
-from tcf_hil.forest.generate import classify
-from tcf_hil.forest.sampling import sample_surfaces
-from tcf_hil.forest.stems import StemSet
-from tcf_hil.forest.terrain import Terrain
-from tcf_hil.harvester import HarvesterModel
-from tcf_hil.lidar import LidarRun, record_pcap, sensor_metadata
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
-from tcf_hil.scene import Scene
 from tcf_hil.sic import identify_stems
 from tcf_hil.sic._circle import fit_circle
-from tcf_hil.trajectory import Trajectory
+from tcf_hil.world.forest import Forest, generate_forest, ground_truth
+from tcf_hil.world.forest.generate import classify
+from tcf_hil.world.forest.sampling import sample_surfaces
+from tcf_hil.world.forest.stems import StemSet
+from tcf_hil.world.scene import Scene
+from tcf_hil.world.terrain import Terrain
+from tcf_hil.world.track import Trajectory
 
 BACKENDS = ["embree", "open3d"]
 UTM = (500_000.0, 6_900_000.0, 120.0)
@@ -54,6 +54,7 @@ def _small(extra: dict | None = None) -> dict:
 
 
 # ----------------------------------------------------------------- geographic origin (UTM)
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_utm_origin_scores_the_same_through_the_whole_wire_path() -> None:
     """Forest II at (0, 0) and at UTM easting 500 000 m, northing 6 900 000 m: the packets,
     the CAN poses (int32 mm relative to the node's datum), the SIC's map and its JSON keep
@@ -131,9 +132,9 @@ def _terrain_edge_rays(scene: Scene, forest: Forest, rng: np.random.Generator, n
                        depth_m: float = 2e-4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rays at 2-6 degrees below the horizontal aimed just under the terrain mesh's shared
     edges and vertices (where a caster that is not watertight lets rays slip through): the
-    terrain as :func:`~tcf_hil.forest.terrain_mesh` triangulates it, which the scene's
+    terrain as :func:`~tcf_hil.world.forest.terrain_mesh` triangulates it, which the scene's
     triangles or (round curves beside it) its Embree grid follow."""
-    from tcf_hil.forest import terrain_mesh
+    from tcf_hil.world.forest import terrain_mesh
 
     tm = terrain_mesh(forest.terrain, forest.bounds(),
                       forest.scenario.terrain.tolerance_mm / 1000.0)
@@ -315,6 +316,7 @@ def test_a_sensor_inside_stem_bounding_boxes_and_inside_a_stem(backend: str) -> 
 
 
 # --------------------------------------------------------------------------- 30 degree slope
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_stems_on_a_30_degree_slope_are_found_with_bounded_error() -> None:
     """A 30 degree hillside (rising to the east; the track runs along the contour, so the
     machine rolls 30 degrees): the ground filter must not eat the uphill side of the stems or
@@ -444,6 +446,7 @@ def test_dbh_from_a_short_arc_has_bounded_error(arc_deg: float) -> None:
     ("west", [40.0, 20.0], {"start_m": [25.0, 1.0, 2.0], "end_m": [-25.0, 1.0, 2.0],
                             "waypoints_m": [[0.0, -1.0]]}),
 ])
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_heading_wraps_keep_every_stem_sharp(where: str, plot: list[float],
                                              track: dict) -> None:
     """The machine drives a kinked track whose heading crosses a wrap of the bus encoding
@@ -488,6 +491,7 @@ def test_heading_wraps_keep_every_stem_sharp(where: str, plot: list[float],
 
 
 # ------------------------------------------------------- 32-bit CAN time, 16-bit frame_id
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_can_time_and_frame_id_wrap_mid_run() -> None:
     """The CAN pose time (32-bit microseconds) wraps 20 s into the track and the lidar's
     16-bit frame_id wraps 5 frames in: the SIC unwraps both and scores as without wraps."""
@@ -518,6 +522,7 @@ def test_frame_id_wrap_reaches_ouster_sdk_without_a_dropped_frame(tmp_path: Path
     assert [int(f.frame_id) for f in frames] == [65533, 65534, 65535, 0, 1, 2]
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_frame_id_wrap_at_the_sics_receiver_over_udp() -> None:
     """The reference SIC's receiver on a real UDP socket gets frames 65533..65535, 0, 1, 2
     and then, after a real gap, frame 4, with duplicated packets and each frame's last packet

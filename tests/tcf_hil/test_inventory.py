@@ -16,9 +16,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tcf_hil.errors import InputError
-from tcf_hil.inventory import read_inventory
-from tcf_hil.recorder import score_forest
-from tcf_hil.stems_json import stem_table
+from tcf_hil.evaluation.scoring import score_forest
+from tcf_hil.recording.inventory import read_inventory
+from tcf_hil.recording.stems_json import stem_table
 
 UTM = (425_000.0, 6_950_000.0)  # a projected frame's size of coordinates (UTM zone 35N)
 trees = st.lists(st.tuples(st.floats(-500, 500), st.floats(-500, 500),

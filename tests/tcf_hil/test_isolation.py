@@ -24,7 +24,7 @@ import pytest
 
 from protocols.ouster import SensorMetadata
 from protocols.pcap import read_udp
-from tcf_hil.endpoints import claim_sensor_host, reserve_udp_ports
+from tcf_hil.devices.endpoints import claim_sensor_host, reserve_udp_ports
 
 TCF = [sys.executable, "-m", "tcf_hil.cli"]
 ENV = dict(os.environ, COLUMNS="200", PYTHONUNBUFFERED="1")
@@ -63,7 +63,7 @@ def test_claims_are_exclusive_between_processes_and_released_on_exit() -> None:
         assert host.address.startswith("127.0.0.") and host.address != "127.0.0.1"
         assert len(set(ports.ports)) == 2
         code = textwrap.dedent(f"""
-            from tcf_hil.endpoints import claim_sensor_host, reserve_udp_ports
+            from tcf_hil.devices.endpoints import claim_sensor_host, reserve_udp_ports
             h = claim_sensor_host()
             p = reserve_udp_ports("127.0.0.1", {ports.ports!r})
             print(h.address, *p.ports)
@@ -76,6 +76,7 @@ def test_claims_are_exclusive_between_processes_and_released_on_exit() -> None:
     again.release()
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_two_runs_at_once_score_as_each_does_alone(tmp_path: Path) -> None:
     code, _out, err = _finish(_start([*RUN, "--out", str(tmp_path / "alone")]))
     assert code == 0, err
@@ -129,6 +130,7 @@ def _foreign_harvester(tmp_path: Path) -> Iterator[str]:
                     p.communicate()
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_a_run_beside_a_foreign_harvester_is_undisturbed_and_refuses_to_join_it(
         tmp_path: Path) -> None:
     with _foreign_harvester(tmp_path) as spec:
@@ -187,6 +189,7 @@ SDK_SIC = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 @pytest.mark.parametrize("ports", ["sensor-ports", "own-ports"])
 def test_a_sic_that_opens_the_sensor_by_host_name_gets_whole_frames(tmp_path: Path,
                                                                     ports: str) -> None:
@@ -216,7 +219,7 @@ def test_a_sic_that_opens_the_sensor_by_host_name_gets_whole_frames(tmp_path: Pa
         # metadata.json describes lidar.pcap, recorded with the ports the run was made with,
         # so the run replays
         assert meta.udp_port_lidar == int(man["endpoints"]["TCF_LIDAR_PORT"])
-        from tcf_hil.replay import Recording
+        from tcf_hil.recording.reader import Recording
 
         assert Recording.load(tmp_path / "run").counts["lidar"] >= 40 * 32
     else:
@@ -226,6 +229,7 @@ def test_a_sic_that_opens_the_sensor_by_host_name_gets_whole_frames(tmp_path: Pa
     assert code == 0, err
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_the_fallback_without_port_80_says_why_once(tmp_path: Path) -> None:
     """Without the privilege to bind port 80 (really: CAP_NET_BIND_SERVICE taken away with
     util-linux's setpriv) a run still gets a sensor address of its own, its API goes to a
@@ -237,7 +241,7 @@ def test_the_fallback_without_port_80_says_why_once(tmp_path: Path) -> None:
         pytest.skip("needs root and util-linux's setpriv to take the capability away")
     drop = [setpriv, "--bounding-set", "-net_bind_service"]
     probe = subprocess.run([*drop, sys.executable, "-c", textwrap.dedent("""
-        from tcf_hil.endpoints import claim_sensor_host
+        from tcf_hil.devices.endpoints import claim_sensor_host
         said = []
         a = claim_sensor_host(said.append)
         b = claim_sensor_host(said.append)

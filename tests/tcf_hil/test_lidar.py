@@ -16,9 +16,9 @@ from scipy.spatial import cKDTree
 
 from emulators.lidar import ReturnModel
 from tcf_hil.cli import main
-from tcf_hil.forest import Forest, generate_forest
-from tcf_hil.lidar import record_pcap
+from tcf_hil.devices.lidar import record_pcap
 from tcf_hil.scenario import Scenario, load_scenario, scenario_from_dict, with_sensor
+from tcf_hil.world.forest import Forest, generate_forest
 
 ROLLING = {"name": "rolling-small", "plot": {"size_m": [20.0, 30.0]},
            "terrain": {"kind": "rolling", "amplitude_m": 0.6, "wavelength_m": 15.0,
@@ -155,8 +155,8 @@ _CLAIMS: list[object] = []  # held for the session: a tcf-hil run beside us will
 
 
 def _free_udp_port() -> int:
-    """A free UDP port, claimed as tcf-hil's runs claim theirs (tcf_hil.endpoints)."""
-    from tcf_hil.endpoints import reserve_udp_ports
+    """A free UDP port, claimed as tcf-hil's runs claim theirs (tcf_hil.devices.endpoints)."""
+    from tcf_hil.devices.endpoints import reserve_udp_ports
 
     claim = reserve_udp_ports("127.0.0.1", [0])
     _CLAIMS.append(claim)
@@ -177,7 +177,7 @@ def test_live_stream_read_by_ouster_sdk(tmp_path: Path, profile: str, mode: str)
 
     from ouster.sdk import sensor
 
-    from tcf_hil.lidar import LidarRun, stream_lidar
+    from tcf_hil.devices.lidar import LidarRun, stream_lidar
 
     lp, ip = _free_udp_port(), _free_udp_port()
     scn = load_scenario("forest-ii")
@@ -217,7 +217,7 @@ def test_a_stopped_stream_records_exactly_the_frames_it_sent(tmp_path: Path) -> 
     the sender: frames produced but never sent must not reach it."""
     import threading
 
-    from tcf_hil.lidar import stream_lidar
+    from tcf_hil.devices.lidar import stream_lidar
 
     stop = threading.Event()
 
@@ -244,7 +244,7 @@ def test_a_stopped_stream_records_exactly_the_frames_it_sent(tmp_path: Path) -> 
 
 def test_refusing_destination_does_not_stop_the_stream() -> None:
     """Nobody listens on the ports: the kernel refuses (ICMP port unreachable), we go on."""
-    from tcf_hil.lidar import stream_lidar
+    from tcf_hil.devices.lidar import stream_lidar
 
     r = stream_lidar(load_scenario("forest-ii"), mode="512x20", max_frames=6, speed=0.0,
                      udp_port_lidar=_free_udp_port(), udp_port_imu=_free_udp_port())
@@ -281,7 +281,7 @@ def test_dual_second_return_lies_behind_the_first(tmp_path: Path) -> None:
         assert np.all(err <= model.divergence_rad * r2[m] / 1000 * 1.01 + 0.003)
     assert seconds > 200
     # Single-return profiles never compute it.
-    from tcf_hil.lidar import LidarRun
+    from tcf_hil.devices.lidar import LidarRun
 
     run = LidarRun(scn, mode="512x10", max_frames=1)
     assert run.emu.frame(0).stem_id2 is None
@@ -292,7 +292,7 @@ def test_imu_packets_carry_the_trajectory_specific_force_and_rate(tmp_path: Path
     IMU fixed to the sensor would read, gravity included."""
     from protocols.ouster import decode_imu_packet
     from protocols.pcap import read_udp
-    from tcf_hil.trajectory import Trajectory
+    from tcf_hil.world.track import Trajectory
 
     scn = scenario_from_dict({**ROLLING, "track": {
         "start_m": [0.0, -5.0, 2.0], "end_m": [0.0, 5.0, 2.0], "speed_m_s": 3.0,
@@ -357,8 +357,8 @@ def test_frames_sent_counts_only_the_frames_that_left(tmp_path: Path) -> None:
     nothing, and the run's "frames sent" must not count them (it said 500 where 490 left)."""
     from protocols.ouster import SensorMetadata
     from protocols.pcap import read_udp
-    from tcf_hil.faults import apply_fault_options
-    from tcf_hil.lidar import stream_lidar
+    from tcf_hil.devices.faults import apply_fault_options
+    from tcf_hil.devices.lidar import stream_lidar
 
     scn = apply_fault_options(load_scenario("forest-ii"),
                               ["lidar.reinit_at_s=[1.0]", "lidar.reinit_gap_s=1.0"])

@@ -9,10 +9,10 @@ import pytest
 
 from emulators.lidar import Os0Emulator, ReturnModel
 from protocols.ouster import os0_64_metadata
-from tcf_hil.forest import Terrain, generate_forest
 from tcf_hil.scenario import TerrainConfig, TrackConfig, load_scenario, scenario_from_dict
-from tcf_hil.scene import Scene
-from tcf_hil.trajectory import Trajectory
+from tcf_hil.world.forest import Terrain, generate_forest
+from tcf_hil.world.scene import Scene
+from tcf_hil.world.track import Trajectory
 
 T0 = 1_000_000_000
 ROLLING = Terrain.generate(TerrainConfig(kind="rolling", amplitude_m=0.8, wavelength_m=15.0),
@@ -293,7 +293,7 @@ def test_compiled_pose_pieces_are_numpys(world: tuple[Scene, Trajectory],
                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """The pieces are evaluated by a numba kernel where numba is installed: the same bits as
     the numpy evaluation, in order or not."""
-    import tcf_hil.trajectory as trajectory
+    import tcf_hil.world.track as trajectory
 
     _, track = world
     if trajectory._pieces_kernel() is None:

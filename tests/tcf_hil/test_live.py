@@ -14,11 +14,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tcf_hil.forest import Forest, ground_truth
-from tcf_hil.recorder import score_forest
+from tcf_hil.evaluation.scoring import score_forest
+from tcf_hil.recording.stems_json import stem_table
 from tcf_hil.run import LiveFigures
 from tcf_hil.run._figures import LiveScore
-from tcf_hil.stems_json import stem_table
+from tcf_hil.world.forest import Forest, ground_truth
 
 
 def test_the_line_names_every_figure_known() -> None:

@@ -10,8 +10,8 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from tcf_hil.forest import Forest, sides_for, stem_mesh, terrain_mesh
-from tcf_hil.forest.output import mesh_ply
+from tcf_hil.world.forest import Forest, sides_for, stem_mesh, terrain_mesh
+from tcf_hil.world.forest.output import mesh_ply
 
 
 @pytest.mark.parametrize(("r", "tol"), [(0.15, 0.002), (0.3, 0.0005), (0.05, 0.001),

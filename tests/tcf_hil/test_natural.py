@@ -17,12 +17,6 @@ from hypothesis import strategies as hs
 from scipy.spatial import cKDTree
 
 from tcf_hil.errors import ConfigError
-from tcf_hil.forest import generate_forest, ground_truth, stem_mesh
-from tcf_hil.forest.dbh import draw_dbh, weibull_shape
-from tcf_hil.forest.mesh import terrain_grid
-from tcf_hil.forest.natural import DEFECT_KINDS, classify_defects
-from tcf_hil.forest.output import write_forest
-from tcf_hil.forest.species import SPECIES, mean_height, taper_poly
 from tcf_hil.scenario import (
     NATURAL_VARIANTS,
     PRESET_NAMES,
@@ -31,6 +25,12 @@ from tcf_hil.scenario import (
     load_scenario,
     scenario_from_dict,
 )
+from tcf_hil.world.forest import generate_forest, ground_truth, stem_mesh
+from tcf_hil.world.forest.dbh import draw_dbh, weibull_shape
+from tcf_hil.world.forest.mesh import terrain_grid
+from tcf_hil.world.forest.natural import DEFECT_KINDS, classify_defects
+from tcf_hil.world.forest.output import write_forest
+from tcf_hil.world.forest.species import SPECIES, mean_height, taper_poly
 
 # Laasasenaho 1982 basic taper coefficients, typed here again from the published table
 # (as lukefi/metsi crk.py CRKPK and dmela/Laasasenaho code them): d/d20 on x, x^2, x^3, x^5,
@@ -122,7 +122,7 @@ def test_the_taper_polynomial_and_its_derivatives_by_products_match_the_powers(
         rows: list[tuple[int, float]]) -> None:
     """P, P' and P'' (the powers as products of the two before them) against the sums of
     c p x^(p-1) written out with ``**``, mixed species and one species alike."""
-    from tcf_hil.forest.species import TAPER_COEFFS, TAPER_POWERS
+    from tcf_hil.world.forest.species import TAPER_COEFFS, TAPER_POWERS
 
     sp = np.array([r[0] for r in rows])
     x = np.array([r[1] for r in rows])
@@ -215,7 +215,7 @@ def test_stand_statistics_per_preset(name: str) -> None:
 
 @pytest.mark.parametrize("name", [*STAND_PRESETS, "forest-v-natural"])
 def test_no_stem_or_part_intersects_another_tree_in_the_presets(name: str) -> None:
-    from tcf_hil.forest.generate import _conflicts
+    from tcf_hil.world.forest.generate import _conflicts
 
     f = generate_forest(load_scenario(name))
     tubes, ids = f.tubes()
@@ -378,7 +378,7 @@ def test_bad_stand_input_names_the_key(patch: dict, key: str) -> None:
 
 # --- branches, foliage, understory, dead wood, stumps, boulders -------------------------
 
-FOLIAGE_CODE = 3  # tcf_hil.forest.scenery.FOLIAGE
+FOLIAGE_CODE = 3  # tcf_hil.world.forest.scenery.FOLIAGE
 
 SCENERY = {**NATURAL_STRESS, "name": "natural-scenery",
            "terrain": {"kind": "flat", "roughness_m": 0.03},
@@ -398,8 +398,8 @@ def scenery_forest():  # type: ignore[no-untyped-def]
 def test_foliage_facets_stop_a_beam_as_beer_lambert_says(sigma: float) -> None:
     """Parallel rays through a slab of facets: the share that passes a depth L is
     exp(-sigma L) within its sampling error."""
-    from tcf_hil.forest.scenery import _facets, facet_density
-    from tcf_hil.scene import make_caster
+    from tcf_hil.world.forest.scenery import _facets, facet_density
+    from tcf_hil.world.scene import make_caster
 
     rng = np.random.default_rng(5)
     edge, depth, side = 0.1, 4.0, 3.0
@@ -468,8 +468,8 @@ def test_ground_objects_are_drawn_clear_of_stems_and_recorded(scenery_forest) ->
 
 
 def test_micro_relief_has_the_rms_height_asked_for() -> None:
-    from tcf_hil.forest import Terrain
     from tcf_hil.scenario import TerrainConfig
+    from tcf_hil.world.forest import Terrain
 
     rough = Terrain.generate(TerrainConfig(kind="flat", roughness_m=0.03),
                              np.random.default_rng(2))
@@ -484,7 +484,7 @@ def test_micro_relief_has_the_rms_height_asked_for() -> None:
 
 
 def test_returns_are_counted_by_component(tmp_path: Path) -> None:
-    from tcf_hil.lidar import record_pcap
+    from tcf_hil.devices.lidar import record_pcap
 
     scn = scenario_from_dict({**SCENERY, "track": {"start_m": [0.0, -14.0, 2.0],
                                                    "end_m": [0.0, 14.0, 2.0]}})
@@ -539,7 +539,7 @@ def test_every_backend_sees_the_same_natural_stand(scenery_forest) -> None:  # t
     """Meshed (``stems.geometry = "mesh"``, the foliage then as facets), branches, foliage
     and ground objects are triangles: Embree and open3d (and trimesh, the numpy fallback)
     cast them all; none needs a primitive another lacks."""
-    from tcf_hil.scene import Scene, backend_unavailable
+    from tcf_hil.world.scene import Scene, backend_unavailable
 
     rng = np.random.default_rng(3)
     m = 3000
@@ -563,7 +563,7 @@ def test_a_crooked_stem_is_meshed_round_within_the_tolerance() -> None:
     """A crook bends the stem out of its bow's plane: the mesh's rings stay perpendicular to
     the centre line with the stem's radius (every vertex's distance from the centre line is
     its radius within the tolerance), the worst case a crook across the bow's plane."""
-    from tcf_hil.forest.stems import StemSet
+    from tcf_hil.world.forest.stems import StemSet
 
     one = np.ones(1)
     st = StemSet(base=np.zeros((1, 3)), axis=np.array([[0.0, 0.0, 1.0]]),
@@ -598,6 +598,7 @@ def test_culling_by_the_track_changes_nothing_of_what_it_keeps() -> None:
         assert np.array_equal(a, b), oid
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_culling_beyond_the_sensors_reach_changes_no_return() -> None:
     """A stand culled to ``stand.detail_range_m`` of the track gives the returns the whole
     stand gives (range, signal, reflectivity and the object of every pixel), where nothing
@@ -609,7 +610,7 @@ def test_culling_beyond_the_sensors_reach_changes_no_return() -> None:
     far out of reach and the sky behind it can sample a pixel differently (the README
     gives what that changes). Culled to 5 m, returns do change (what the test would
     see)."""
-    from tcf_hil.lidar import LidarRun
+    from tcf_hil.devices.lidar import LidarRun
 
     scn = {**SCENERY, "name": "natural-culling", "plot": {"size_m": [80.0, 80.0]},
            "stems": {**SCENERY["stems"], "count": 1100},
@@ -641,7 +642,7 @@ def test_foliage_as_crowns_and_as_facets_stop_the_same_rays(scenery_forest) -> N
     at the same extinction, give a stand the same look: the share of rays each component
     stops and how far the foliage stops them, within their sampling error (200,000 rays
     from inside the stand, in every direction)."""
-    from tcf_hil.scene import Scene
+    from tcf_hil.world.scene import Scene
 
     f = scenery_forest
     try:
@@ -670,7 +671,7 @@ def test_foliage_as_crowns_and_as_facets_stop_the_same_rays(scenery_forest) -> N
 
 
 def test_porous_crowns_need_round_curves() -> None:
-    from tcf_hil.scene import Scene
+    from tcf_hil.world.scene import Scene
 
     f = generate_forest(scenario_from_dict(SCENERY))
     with pytest.raises(ConfigError) as ei:

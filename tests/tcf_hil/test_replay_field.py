@@ -29,7 +29,7 @@ import protocols.ouster as o
 from emulators.canbus import SocketcandServer
 from protocols.pcap import PcapWriter, UdpDatagram
 from tcf_hil.errors import InputError
-from tcf_hil.replay import Recording, events
+from tcf_hil.recording.reader import Recording, events
 from tcf_hil.run import replay_run
 
 TCF = [sys.executable, "-m", "tcf_hil.cli"]
@@ -317,8 +317,8 @@ def test_a_pcap_inside_a_run_directory_finds_its_metadata(tmp_path: Path) -> Non
 def test_a_scenario_runs_older_firmware_and_says_which_profiles_it_had() -> None:
     import dataclasses
 
+    from tcf_hil.devices.lidar import sensor_metadata
     from tcf_hil.errors import ConfigError
-    from tcf_hil.lidar import sensor_metadata
     from tcf_hil.scenario import load_scenario
 
     base = load_scenario("forest-ii")

@@ -15,8 +15,8 @@ import pytest
 from emulators.canbus import SocketcandServer
 from emulators.lidar import SensorApi
 from protocols.ouster import os0_64_metadata
-from tcf_hil.recorder import MAX_PUBLICATION_BYTES, FileWatcher, Inbox, PublishServer
 from tcf_hil.run import SicProcess, sic_command
+from tcf_hil.run.recorder import MAX_PUBLICATION_BYTES, FileWatcher, Inbox, PublishServer
 
 DOC = {"timestamp": "20250213_035113", "total_objects_count": 1, "objects": [
     {"id": 1, "name": "tree_1", "cp": [1.0, 2.0, 0.0], "d": 2.24, "height": 15.0,

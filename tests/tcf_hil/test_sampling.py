@@ -8,9 +8,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from protocols.pcd import decode_pcd
-from tcf_hil.forest import Forest, generate_forest
-from tcf_hil.forest.sampling import sample_surfaces
 from tcf_hil.scenario import scenario_from_dict
+from tcf_hil.world.forest import Forest, generate_forest
+from tcf_hil.world.forest.sampling import sample_surfaces
 
 
 def test_counts_and_ids(forest_iv: Forest) -> None:

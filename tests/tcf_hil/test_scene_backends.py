@@ -1,4 +1,4 @@
-"""Ray backends by name and ``auto`` (tcf_hil.scene.resolve_backend): Embree where embreex
+"""Ray backends by name and ``auto`` (tcf_hil.world.scene.resolve_backend): Embree where embreex
 imports, else open3d, else trimesh's numpy ray-triangle tests, which find Embree's first
 hits. The fallbacks are forced by making the imports fail."""
 
@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 from tcf_hil.errors import ConfigError
-from tcf_hil.forest import generate_forest
 from tcf_hil.scenario import scenario_from_dict
-from tcf_hil.scene import BACKENDS, Scene, TrimeshCaster, make_caster, resolve_backend
+from tcf_hil.world.forest import generate_forest
+from tcf_hil.world.scene import BACKENDS, Scene, make_caster, resolve_backend
+from tcf_hil.world.scene.trimesh import TrimeshCaster
 
 SCN = scenario_from_dict({
     "plot": {"size_m": [8.0, 8.0]}, "stems": {"count": 5},

@@ -10,8 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tcf_hil.evaluation import evaluate
-from tcf_hil.forest import Forest, generate_forest, ground_truth
-from tcf_hil.forest.sampling import sample_surfaces
+from tcf_hil.recording.stems_json import stem_table
 from tcf_hil.scenario import scenario_from_dict
 from tcf_hil.sic import (
     cluster_points,
@@ -21,7 +20,8 @@ from tcf_hil.sic import (
     remove_ground,
     stem_params,
 )
-from tcf_hil.stems_json import stem_table
+from tcf_hil.world.forest import Forest, generate_forest, ground_truth
+from tcf_hil.world.forest.sampling import sample_surfaces
 
 
 def _arc(cx: float, cy: float, r: float, deg: float, n: int, noise: float,

@@ -27,12 +27,12 @@ from protocols.ouster import (
     encode_lidar_frame,
     os0_64_metadata,
 )
-from tcf_hil.recorder import FileWatcher, Inbox, PublishServer
+from tcf_hil._rotations import rotation_ypr
 from tcf_hil.run import sic_command
+from tcf_hil.run.recorder import FileWatcher, Inbox, PublishServer
 from tcf_hil.sic import identify_stems, stem_params
 from tcf_hil.sic._map import StemMap
 from tcf_hil.sic._online import OnboardSic, PoseTrack
-from tcf_hil.trajectory import rotation_ypr
 
 
 @settings(max_examples=25, deadline=None)

@@ -17,9 +17,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from emulators.lidar import SendStats
+from tcf_hil.run.soak import RssTrace, process_rss_kb, soak_scenario
 from tcf_hil.scenario import load_scenario
-from tcf_hil.soak import RssTrace, process_rss_kb, soak_scenario
-from tcf_hil.trajectory import Trajectory
+from tcf_hil.world.track import Trajectory
 
 ENV = dict(os.environ, COLUMNS="200", PYTHONUNBUFFERED="1")
 
@@ -31,7 +31,7 @@ def test_the_soak_track_drives_a_stretch_back_and_forth_long_enough(seconds: flo
     tr = soak.track
     assert tr.passes >= 4 or seconds > 1000
     assert tr.pass_offset_m == 0.0 and tr.start_m == scn.track.start_m
-    from tcf_hil.forest import generate_forest
+    from tcf_hil.world.forest import generate_forest
 
     traj = Trajectory.from_config(tr, generate_forest(soak).terrain, 0)
     assert traj.duration_ns / 1e9 >= seconds
@@ -67,6 +67,7 @@ def test_memory_growth_uses_medians_after_the_warm_up() -> None:
     assert process_rss_kb(2**22 + 12345) is None
 
 
+@pytest.mark.slow  # the second lane (.ci/run): an end-to-end run
 def test_a_one_minute_soak_at_2048x10(tmp_path: Path) -> None:
     """In a terminal, as a person runs it: the live display follows the minute."""
     out = tmp_path / "soak"

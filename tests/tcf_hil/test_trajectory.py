@@ -11,10 +11,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as hs
 
+from tcf_hil._rotations import rotation_ypr
 from tcf_hil.errors import ConfigError
-from tcf_hil.forest import Terrain
 from tcf_hil.scenario import PoseErrorConfig, TrackConfig
-from tcf_hil.trajectory import GRAVITY_M_S2, PoseError, Trajectory, rotation_ypr
+from tcf_hil.world.forest import Terrain
+from tcf_hil.world.track import GRAVITY_M_S2, PoseError, Trajectory
 
 T0 = 1_000_000_000
 FLAT = Terrain.flat(3.0)
@@ -212,9 +213,9 @@ def test_a_pointwise_height_has_the_bits_of_the_point_asked_alone(seed: int, n: 
 
 def test_bus_poses_together_are_the_bus_poses_one_by_one() -> None:
     """An offline run evaluates a frame's poses together; the TPDOs must be the node's."""
-    from tcf_hil.forest import generate_forest
-    from tcf_hil.harvester import HarvesterModel
+    from tcf_hil.devices.harvester import HarvesterModel
     from tcf_hil.scenario import load_scenario
+    from tcf_hil.world.forest import generate_forest
 
     scn = load_scenario("forest-iv-natural")
     scn = dataclasses.replace(scn, harvester=dataclasses.replace(

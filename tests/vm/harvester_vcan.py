@@ -80,9 +80,9 @@ def main() -> None:
     import json
 
     from emulators.harvester import kernel_has_vcan
-    from tcf_hil.forest import generate_forest
-    from tcf_hil.harvester import HarvesterModel, heading_error_deg
+    from tcf_hil.devices.harvester import HarvesterModel, heading_error_deg
     from tcf_hil.scenario import load_scenario
+    from tcf_hil.world.forest import generate_forest
 
     assert kernel_has_vcan("vcan0")
     lines = [ln for ln in out_text.splitlines() if ln.startswith("{")]

@@ -27,9 +27,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from emulators.jit import compiled, register_kernel_source
+from tcf_hil._rotations import rotation_ypr
 from tcf_hil.errors import ConfigError
-from tcf_hil.forest import Terrain
 from tcf_hil.scenario import PoseErrorConfig, TrackConfig
+from tcf_hil.world.terrain import Terrain
 
 register_kernel_source(__file__)  # _eval_pieces is a kernel (see emulators.jit)
 
@@ -43,33 +44,6 @@ _CUSP_RAD = math.pi - 1e-6
 # that no wave or turn the pose follows advances more than this phase between two.
 DENSE_KNOT_NS = 6_400_000
 DENSE_PHASE_RAD = 0.03
-
-
-def rot_z(a: FloatArray) -> FloatArray:
-    c, s = np.cos(a), np.sin(a)
-    o, z = np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1),
-                     np.stack([z, z, o], -1)], -2)
-
-
-def rot_y(a: FloatArray) -> FloatArray:
-    c, s = np.cos(a), np.sin(a)
-    o, z = np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1),
-                     np.stack([-s, z, c], -1)], -2)
-
-
-def rot_x(a: FloatArray) -> FloatArray:
-    c, s = np.cos(a), np.sin(a)
-    o, z = np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1),
-                     np.stack([z, s, c], -1)], -2)
-
-
-def rotation_ypr(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:
-    """R = Rz(yaw) Ry(pitch) Rx(roll), radians, arrays of rotations (n, 3, 3)."""
-    result: FloatArray = rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
-    return result
 
 
 @dataclass(frozen=True)
@@ -592,16 +566,30 @@ class PoseError:
         return pos, hd
 
 
-def quaternions(rot: FloatArray) -> FloatArray:
-    """(n, 4) unit quaternions (w, x, y, z), w >= 0, from rotation matrices (n, 3, 3)."""
-    r = np.asarray(rot, dtype=np.float64)
-    tr = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
-    q = np.empty((len(r), 4))
-    q[:, 0] = np.sqrt(np.maximum(0.0, 1.0 + tr)) / 2.0
-    q[:, 1] = np.copysign(np.sqrt(np.maximum(0.0, 1.0 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2]))
-                          / 2.0, r[:, 2, 1] - r[:, 1, 2])
-    q[:, 2] = np.copysign(np.sqrt(np.maximum(0.0, 1.0 - r[:, 0, 0] + r[:, 1, 1] - r[:, 2, 2]))
-                          / 2.0, r[:, 0, 2] - r[:, 2, 0])
-    q[:, 3] = np.copysign(np.sqrt(np.maximum(0.0, 1.0 - r[:, 0, 0] - r[:, 1, 1] + r[:, 2, 2]))
-                          / 2.0, r[:, 1, 0] - r[:, 0, 1])
-    return q / np.linalg.norm(q, axis=1)[:, None]
+def distance_to_track(xy: NDArray[np.float64], track: NDArray[np.float64]
+                       ) -> NDArray[np.float64]:
+    """Horizontal distance of each point from the polyline ``track`` (exact: only segments
+    with an end within the nearest vertex's distance plus the longest segment can be
+    nearer, and those are all checked)."""
+    if not len(track) or not len(xy):
+        return np.full(len(xy), np.nan)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(track)
+    d_v, _ = tree.query(xy)
+    if len(track) == 1:
+        return np.asarray(d_v, np.float64)
+    a, ab = track[:-1], np.diff(track, axis=0)
+    reach = d_v + float(np.sqrt(np.sum(ab * ab, 1)).max()) + 1e-9
+    near = tree.query_ball_point(xy, reach)
+    pt = np.repeat(np.arange(len(xy)), [len(c) for c in near])
+    v = np.concatenate([np.asarray(c, np.int64) for c in near])
+    pt, seg = np.concatenate([pt, pt]), np.concatenate([v, v - 1])  # the vertex's two segments
+    ok = (seg >= 0) & (seg < len(ab))
+    pt, seg = pt[ok], seg[ok]
+    ap = xy[pt] - a[seg]
+    u = np.clip(np.sum(ap * ab[seg], 1) / np.maximum(np.sum(ab[seg] ** 2, 1), 1e-300), 0, 1)
+    d = np.sqrt(np.sum((ap - u[:, None] * ab[seg]) ** 2, 1))
+    best = np.asarray(d_v, np.float64).copy()
+    np.minimum.at(best, pt, d)
+    return best

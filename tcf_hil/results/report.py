@@ -5,7 +5,7 @@ of every scored run):
 
 - a map: the terrain shaded with contour lines (from the ground truth's closed formula), the
   cloud's top view, the track with its direction, every ground-truth stem coloured by its
-  outcome (:func:`tcf_hil.export.stem_outcomes`: correct, misclassified, missed though seen,
+  outcome (:func:`tcf_hil.results.export.stem_outcomes`: correct, misclassified, missed though seen,
   missed and unseen) and the SIC's stems (false positives marked); hover for a stem's facts,
   click to pin them and find its row; wheel to zoom, drag to pan, layers to switch;
 - the accumulated cloud in 3D (a decimated sample of every k-th frame, stems coloured by id):
@@ -41,13 +41,13 @@ from tcf_hil.errors import InputError
 from tcf_hil.evaluation import LABELS, ROWS, show_metric
 
 if TYPE_CHECKING:
-    from tcf_hil.run import RunResult
+    from tcf_hil.evaluation.scoring import ScoredForest
 
 __all__ = ["CLOUD_POINTS", "OUTCOMES", "build_report", "write_report"]
 
 CLOUD_FRAMES = 40
 """The 3D view and the top view read about this many frames, spread evenly over the run,
-each from its own window of the capture (:func:`tcf_hil.export.run_cloud`'s ``sample``):
+each from its own window of the capture (:func:`tcf_hil.results.export.run_cloud`'s ``sample``):
 the cost is these frames', whatever the run's length."""
 CLOUD_POINTS = 120_000
 """At most this many points in the 3D view (two thirds for what is not ground), 9 bytes
@@ -69,15 +69,17 @@ Say = Callable[[str], None]
 
 # ---------------------------------------------------------------------------- entry points
 
-def write_report(path: Path, result: RunResult, say: Say | None = None) -> None:
-    """The report of a finished run (its directory holds score.json and the recording)."""
-    assert result.out is not None
-    doc = build_report(result.out, result.manifest.to_dict(), say=say)
+def write_report(path: Path, run_dir: str | Path, manifest: dict[str, Any] | None = None,
+                 say: Say | None = None, scored: ScoredForest | None = None) -> None:
+    """The report of a finished run (its directory holds score.json and the recording),
+    written to ``path`` under a temporary name, then renamed. ``scored``: the final forest
+    as the run scored it (else scored again from the directory)."""
+    doc = build_report(run_dir, manifest, say=say, scored=scored)
     write_bytes_atomic(path, doc.encode("utf-8"))
 
 
 def build_report(run_dir: str | Path, manifest: dict[str, Any] | None = None,
-                 say: Say | None = None) -> str:
+                 say: Say | None = None, scored: ScoredForest | None = None) -> str:
     """The report of the run in ``run_dir`` as one HTML document."""
     run = Path(run_dir)
     score_path = run / "score.json"
@@ -86,12 +88,12 @@ def build_report(run_dir: str | Path, manifest: dict[str, Any] | None = None,
     score = read_json(score_path)
     if manifest is None:
         manifest = read_json(run / "manifest.json") if (run / "manifest.json").exists() else {}
-    from tcf_hil.export import STEM_COLUMNS, stem_outcomes, track_xy
+    from tcf_hil.results.export import STEM_COLUMNS, stem_outcomes, track_xy
 
     gt_doc = read_json(run / "ground_truth.json") if (run / "ground_truth.json").exists() \
         else None
     track = track_xy(run)  # (every 64th column: millimetres apart, fine for drawing too)
-    gts, obs = stem_outcomes(run, gt_doc, track)
+    gts, obs = stem_outcomes(run, gt_doc, track, scored)
     frame = _Frame.around(gts, obs, track)
     cloud = _cloud(run, frame, manifest, say)
     terrain = _terrain((gt_doc or {}).get("terrain"), frame)
@@ -195,7 +197,7 @@ def _terrain(doc: dict[str, Any] | None, fr: _Frame) -> dict[str, Any] | None:
     at 45 degrees, the cartographic convention."""
     if not isinstance(doc, dict) or "elevation_m" not in doc:
         return None
-    from tcf_hil.forest.terrain import Terrain
+    from tcf_hil.world.terrain import Terrain
 
     ter = Terrain.from_doc(doc)
     ox, oy, oz = (float(v) for v in doc.get("origin", (0.0, 0.0, 0.0)))
@@ -240,7 +242,7 @@ def _cloud(run: Path, fr: _Frame, manifest: dict[str, Any], say: Say | None
     """The top view (PNG over the map's frame) and the 3D view's sample of the cloud as the
     sensor saw it, from every k-th frame of the capture; None with the reason when the run
     has no capture (a soak) or it cannot be read."""
-    from tcf_hil.export import run_cloud
+    from tcf_hil.results.export import run_cloud
 
     if not (run / "lidar.pcap").exists():
         return {"reason": "This run did not record its lidar traffic (a soak run keeps "
@@ -301,7 +303,7 @@ def _cloud(run: Path, fr: _Frame, manifest: dict[str, Any], say: Say | None
 # ---------------------------------------------------------------------------- faults
 
 def _fault_events(run: Path) -> list[dict[str, Any]]:
-    from tcf_hil.faults import read_fault_log
+    from tcf_hil.devices.faults import read_fault_log
 
     try:
         return read_fault_log(run / "faults.jsonl")

@@ -11,11 +11,7 @@ import csv
 import gc
 import io
 import math
-import multiprocessing as mp
-import os
-import signal
 import threading
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +21,6 @@ import numpy as np
 
 from emulators.faults import FaultEvent
 from emulators.lidar import (
-    IMU_PERIOD_NS,
     Datagram,
     FrameResult,
     Os0Emulator,
@@ -40,21 +35,21 @@ from emulators.lidar import (
 from emulators.lidar import warm_up as warm_up_kernels
 from protocols.labels import encode_labels_header, encode_labels_record
 from protocols.ouster import (
-    IMU_PACKET_BYTES,
     MetadataError,
     SensorMetadata,
     os0_64_metadata,
 )
-from protocols.pcap import PcapWriter, UdpDatagram
+from protocols.pcap import PcapWriter
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil._io import atomic_path, ensure_dir, write_bytes_atomic, write_json_atomic
+from tcf_hil._rotations import quaternions
+from tcf_hil.devices._ring import FrameRing, PcapTarget, pcap_records
+from tcf_hil.devices.faults import FaultLog
 from tcf_hil.errors import ConfigError
-from tcf_hil.faults import FaultLog, fault_plans, faults_active
-from tcf_hil.forest import Forest, generate_forest, ground_truth
 from tcf_hil.scenario import Scenario
-from tcf_hil.scene import Scene
-from tcf_hil.trajectory import Trajectory, quaternions
-from tcf_hil.trajectory import warm_up as warm_up_poses
+from tcf_hil.world import World
+from tcf_hil.world.forest import Forest, ground_truth
+from tcf_hil.world.track import warm_up as warm_up_poses
 
 
 @dataclass(frozen=True)
@@ -100,17 +95,25 @@ class LidarRun:
                  udp_port_lidar: int = 7502, udp_port_imu: int = 7503,
                  meta: SensorMetadata | None = None, t0_ns: int = 1_000_000_000,
                  faults: bool = True, keep_poses: bool = True, forest: Forest | None = None,
-                 first_frame_id: int = 0) -> None:
+                 first_frame_id: int = 0, world: World | None = None) -> None:
         """``faults``: inject the scenario's ``[faults]`` (UDP and lidar) into the datagrams;
         each frame's fault events are in :attr:`last_events` after it is yielded.
         ``keep_poses``: keep every column's sensor pose for ``sensor_poses.csv`` (about
         100 bytes per column: off for long live runs that need no such file).
         ``forest``: a forest built by the caller (hand-placed stems, say) instead of the one
         ``scn`` generates. ``first_frame_id``: the frame_id of the first frame, as of a sensor
-        that has been running a while (frame_id is 16 bits: 65536 frames wrap it)."""
-        self.forest: Forest = forest if forest is not None else generate_forest(scn, seed)
-        self.scene = Scene.from_forest(self.forest, backend=backend)
-        self.track = Trajectory.from_config(scn.track, self.forest.terrain, t0_ns)
+        that has been running a while (frame_id is 16 bits: 65536 frames wrap it).
+        ``world``: the run's world, resolved once (:class:`~tcf_hil.world.World`), whose
+        forest, track, scene and fault plans the sensor takes; without it the sensor resolves
+        one of its own from ``scn``, ``seed``, ``t0_ns``, ``forest`` and its ports."""
+        if world is None:
+            ports = ((meta.udp_port_lidar, meta.udp_port_imu) if meta is not None
+                     else (udp_port_lidar, udp_port_imu))
+            world = World.build(scn, seed=seed, t0_ns=t0_ns, forest=forest, lidar_ports=ports)
+        self.world = world
+        self.forest: Forest = world.forest
+        self.scene = world.scene(backend)
+        self.track = world.track
         self.meta: SensorMetadata = meta or sensor_metadata(
             scn, mode=mode, profile=profile, seed=self.forest.seed, udp_dest=udp_dest,
             udp_port_lidar=udp_port_lidar, udp_port_imu=udp_port_imu)
@@ -137,9 +140,7 @@ class LidarRun:
         self._poses = io.StringIO()
         self._pw = csv.writer(self._poses, lineterminator="\n")
         self._pw.writerow(["time_ns", "x", "y", "z", "qw", "qx", "qy", "qz"])
-        plans = fault_plans(scn.faults, self.forest.seed, self.track.t0_ns,
-                            self.meta.udp_port_lidar, self.meta.udp_port_imu) if faults \
-            and faults_active(scn.faults) else None
+        plans = world.faults if faults else None
         self.keep_poses = keep_poses
         self.first_frame_id = first_frame_id
         self.udp_faults = plans.udp if plans else None
@@ -221,7 +222,7 @@ class LidarRun:
     def returns_by_component(self) -> dict[str, int]:
         """Returns so far by what they hit (ground, stem, and in natural stands branch,
         foliage, understory, dead wood, stump, boulder)."""
-        from tcf_hil.forest.scenery import COMPONENTS
+        from tcf_hil.world.forest.scenery import COMPONENTS
 
         sc = self.forest.scenery()
         if sc is None:
@@ -279,13 +280,6 @@ class LidarRun:
                             self.stems_seen(), self.backend, **kw)
 
 
-def _pcap_records(writer: PcapWriter, dgs: list[Datagram], sensor_ip: str, dest: str
-                  ) -> bytes:
-    """One frame's datagrams as pcap records, each at its simulation time."""
-    return writer.records_many([UdpDatagram(d.t_ns, sensor_ip, dest, d.port, d.port,
-                                            bytes(d.payload)) for d in dgs])
-
-
 def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
                 sensor_ip: str = "127.0.0.1",
                 progress: Callable[[int, int], None] | None = None,
@@ -308,7 +302,7 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
             fh.write(writer.header())
             lh.write(run.labels_header())
             for k, (fr, dgs) in enumerate(run.datagrams()):
-                fh.write(_pcap_records(writer, dgs, sensor_ip, dest))
+                fh.write(pcap_records(writer, dgs, sensor_ip, dest))
                 lh.write(run.labels_record(fr))
                 if flog is not None:
                     for ev in run.last_events:
@@ -322,130 +316,7 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
     return run.result(out)
 
 
-_SLOTS = 4  # frames produced ahead of the pacing loop
 LABELS = "lidar_labels.bin"  # what each return hit (protocols.labels), beside lidar.pcap
-
-
-def _slot_bytes(run: LidarRun) -> int:
-    """Upper bound of one frame's datagram bytes (lidar packets plus IMU packets)."""
-    fmt = run.meta.packet_format
-    packets = fmt.columns_per_frame // fmt.columns_per_packet
-    imu = run.emu.period_ns // IMU_PERIOD_NS + 2
-    dup = 2 if run.udp_faults is not None and run.udp_faults.duplicate else 1
-    return dup * (packets * fmt.packet_bytes + imu * IMU_PACKET_BYTES)
-
-
-@dataclass
-class _Recording:
-    """The pcap of a live stream, written by the producer process (off the pacing loop):
-    a frame's records go to the file once the sender has counted it sent."""
-
-    path: str
-    sensor_ip: str
-    dest: str
-    labels: str  # lidar_labels.bin, beside it
-
-
-def _produce(run: LidarRun, conn: Any, free: Any, shm: Any, slot_bytes: int,
-             stop: Any, sent: Any, rec: _Recording | None = None,
-             parent_end: Any = None) -> None:
-    """Producer process: writes each frame's datagrams into a shared-memory slot and sends
-    only (slot, [(t_ns, port, length)]) down the pipe, then ("done", None) after the last.
-    ``sent`` (shared) counts the frames the sender has finished. When the sender sets
-    ``stop``, answers ("final", bookkeeping) as of exactly those frames (it runs a few frames
-    ahead), and with ``rec`` the pcap holds exactly those frames too."""
-    parent = os.getppid()  # a producer whose sender was killed must not live on
-    # a terminal's Ctrl-C reaches the whole process group: the sender decides when to stop
-    # (and the sender's own handlers, inherited through the fork, are not this process's)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    if parent_end is not None:
-        parent_end.close()  # the fork's copy of the reading end: a dead reader breaks the pipe
-    with contextlib.suppress(OSError):
-        os.nice(19)  # the pacing loop, not the frame factory, gets the CPU when both want it
-    with contextlib.suppress(Exception):  # one core stays free for the pacing loop
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(1)
-    caster = run.scene.caster
-    if caster.threads is not None:  # the same for a ray caster that splits casts itself
-        caster.threads = max(1, caster.threads - 1)
-    run.emu.threads = max(1, run.emu.threads - 1)  # and for the emulator's column chunks
-    fh = open(rec.path, "wb") if rec is not None else None  # closed in the finally below
-    lh = open(rec.labels, "wb") if rec is not None else None
-    writer = PcapWriter()
-    pending: collections.deque[tuple[bytes, bytes]] = collections.deque()
-    written = 0
-    # bookkeeping after each produced frame, back as far as the sender can be behind
-    marks: collections.deque[tuple[int, tuple[np.ndarray, int, int]]] = collections.deque(
-        [(0, run.mark())], maxlen=_SLOTS + 2)
-
-    def flush() -> None:
-        nonlocal written
-        if fh is None or lh is None:
-            return
-        n = written
-        while written < sent.value and pending:
-            records, labels = pending.popleft()
-            fh.write(records)
-            lh.write(labels)
-            written += 1
-        if written != n:
-            fh.flush()  # whole frames reach the file: a crash leaves a readable capture
-            lh.flush()
-
-    slot = produced = 0
-    try:
-        if fh is not None and lh is not None:
-            fh.write(writer.header())
-            lh.write(run.labels_header())
-        for fr, dgs in run.datagrams():
-            while not free.acquire(timeout=0.2):
-                flush()
-                if stop.is_set() or os.getppid() != parent:
-                    stop.set()
-                    break
-            flush()
-            if stop.is_set():
-                break
-            pos = slot * slot_bytes
-            for d in dgs:
-                n = len(d.payload)
-                shm.buf[pos:pos + n] = d.payload
-                pos += n
-            meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs],
-                            dtype=np.int64).reshape(-1, 3)
-            conn.send(("frame", (slot, meta, run.last_events)))
-            if rec is not None:  # exactly what goes out, at its simulation time
-                pending.append((_pcap_records(writer, dgs, rec.sensor_ip, rec.dest),
-                                run.labels_record(fr)))
-            produced += 1
-            marks.append((produced, run.mark()))
-            slot = (slot + 1) % _SLOTS
-        else:
-            conn.send(("done", None))
-        while not stop.wait(0.05):  # the last frames are still going out
-            flush()
-            if os.getppid() != parent:
-                break
-        flush()
-        n_sent = int(sent.value)
-        counts, length, packets = next((m for n, m in marks if n == n_sent), marks[-1][1])
-        conn.send(("final", (counts, run.poses_csv(length), packets)))
-    except BaseException as err:  # reported by the sending side
-        with contextlib.suppress(Exception):
-            conn.send(("error", f"{type(err).__name__}: {err}"))
-    finally:
-        if fh is not None:
-            fh.close()
-        if lh is not None:
-            lh.close()
-
-
-def _release(dgs: list[Datagram]) -> None:
-    for d in dgs:
-        if isinstance(d.payload, memoryview):
-            d.payload.release()
 
 
 def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "127.0.0.1",
@@ -482,8 +353,6 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     The result's ``frames`` counts the frames that left with lidar packets (a
     re-initialisation's silence and dropped frames are not sent).
     """
-    from multiprocessing.shared_memory import SharedMemory
-
     run_kw.setdefault("udp_dest", dest)
     run = run or LidarRun(scn, **run_kw)
     # compiled before the fork: the first frame is not late (the first run on a machine
@@ -491,60 +360,18 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     warm_up_kernels(run.meta, run.emu.model, run.emu.sensor)
     warm_up_poses()
     dest = run.meta.udp_dest
-    ctx = mp.get_context("fork")
-    slot_bytes = _slot_bytes(run)
-    shm = SharedMemory(create=True, size=slot_bytes * _SLOTS)
-    rx, tx = ctx.Pipe(duplex=False)
-    free = ctx.Semaphore(_SLOTS)
-    child_stop = ctx.Event()
-    sent = ctx.RawValue("q", 0)  # frames finished by the sender, read by the producer
     stop = stop or threading.Event()
     out = Path(record) if record is not None else None
-    outputs = contextlib.ExitStack()
-    child: Any = None
-    dgs: list[Datagram] = []
+    ring: FrameRing | None = None
     frozen = False
-    done = 0
-    on_wire = 0  # frames that left with lidar packets
     error: str | None = None
     try:
-        with outputs:  # the pcap is renamed into place only if all below succeeds
-            rec: _Recording | None = None
-            if out is not None:
-                ensure_dir(out)
-            if out is not None and pcap:
-                path = out / "lidar.pcap" if pcap_in_place else \
-                    outputs.enter_context(atomic_path(out / "lidar.pcap"))
-                lpath = out / LABELS if pcap_in_place else \
-                    outputs.enter_context(atomic_path(out / LABELS))
-                rec = _Recording(str(path), sensor_ip, dest, str(lpath))
-            child = ctx.Process(target=_produce, args=(run, tx, free, shm, slot_bytes,
-                                                       child_stop, sent, rec, rx),
-                                name="lidar-frames", daemon=True)
-            child.start()
+        with contextlib.ExitStack() as outputs:  # the pcap renamed into place only if all
+            rec = _pcap_target(out, pcap, pcap_in_place, outputs, sensor_ip, dest)  # succeeds
+            ring = FrameRing(run, rec)
             if forked is not None:
                 forked.set()
-            tx.close()
-            ready: collections.deque[tuple[str, Any]] = collections.deque()
-
-            def receive(timeout: float) -> tuple[str, Any] | None:
-                try:
-                    if rx.poll(timeout):
-                        item: tuple[str, Any] = rx.recv()
-                        return item
-                except (EOFError, OSError):
-                    return ("error", "the frame producer died")
-                if not child.is_alive():
-                    return ("error", "the frame producer died")
-                return None
-
-            # Start sending only with frames in hand, so the first ones are not late.
-            while len(ready) < _SLOTS - 1 and not stop.is_set():
-                item = receive(0.05)
-                if item is not None:
-                    ready.append(item)
-                    if item[0] != "frame":
-                        break
+            ready = ring.prime(stop)
             # A full collection walks every object of the scene and forest: milliseconds in
             # which no packet leaves. Freeze what exists now; the loop makes little garbage.
             gc.collect()
@@ -554,83 +381,69 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                              clock=clock, route=route) as sender:
                 if on_sender is not None:
                     on_sender(sender.stats)
-                while not stop.is_set():
-                    item = ready.popleft() if ready else receive(1.0)
-                    if item is None:
-                        continue
-                    kind, body = item
-                    if kind == "error":
-                        error = body
-                        break
-                    if kind == "done":
-                        break
-                    slot, meta, events = body
-                    for ev in events:  # logged as the frame they struck goes out
-                        if ev["kind"] == "lidar_reinit":  # the sidecars: the new identity
-                            run.meta = run.meta.with_changes(init_id=ev["init_id"])
-                        if on_fault is not None:
-                            on_fault(ev)
-                    ends = (slot * slot_bytes + np.cumsum(meta[:, 2])).tolist()
-                    starts = [slot * slot_bytes, *ends[:-1]] if ends else []
-                    view = shm.buf
-                    assert view is not None
-                    dgs = [Datagram(t, port, view[a:b]) for (t, port, _n), a, b in
-                           zip(meta.tolist(), starts, ends, strict=True)]
-                    del view
-                    sender.send(dgs)
-                    on_wire += bool(len(meta)) and bool(
-                        (meta[:, 1] == run.meta.udp_port_lidar).any())
-                    sent.value = done + 1  # before the slot goes back
-                    _release(dgs)
-                    dgs = []
-                    free.release()
-                    done += 1
-                    if progress:
-                        progress(done, run.frames)
+                error, on_wire = _send_frames(run, ring, ready, sender, stop, on_fault,
+                                              progress)
                 stats = sender.stats
-            # the producer answers with the bookkeeping of exactly the frames sent, writes the
-            # pcap's last frames and closes it: only then is it renamed into place
-            child_stop.set()
-            deadline = time.monotonic() + 60.0
-            while error is None and time.monotonic() < deadline:
-                item = receive(0.2)
-                if item is None:
-                    continue
-                if item[0] == "error":
-                    error = item[1]
-                elif item[0] == "final":
-                    run.restore(*item[1])
-                    break
-            else:
-                error = error or "the frame producer did not answer"
-            child.join(timeout=30.0)
+            error = ring.finish(error)
             if error is not None:  # no pcap of a failed run
                 raise RuntimeError(f"lidar frame producer failed: {error}")
     finally:
         if frozen:
             gc.unfreeze()
-        child_stop.set()
-        _release(dgs)  # an interrupted send still holds views of the ring
-        with contextlib.suppress(Exception):
-            for _ in range(_SLOTS):
-                free.release()
-        if child is not None:
-            child.join(timeout=5.0)
-            if child.is_alive():
-                child.terminate()
-                child.join(timeout=5.0)
-        rx.close()
-        shm.unlink()
-        with contextlib.suppress(BufferError):
-            shm.close()
-    if error is not None:
-        raise RuntimeError(f"lidar frame producer failed: {error}")
+        if ring is not None:
+            ring.close()
     if out is not None:
-        run.frames = done
+        run.frames = ring.done
         run.write_sidecars(out)
     return run.result(out, frames=on_wire, pacing_us=stats.pacing_us(), refused=stats.refused,
                       realtime=stats.realtime,
                       sender_cpu_share=stats.cpu_s / stats.wall_s if stats.wall_s else 0.0)
+
+
+def _pcap_target(out: Path | None, pcap: bool, in_place: bool, outputs: contextlib.ExitStack,
+                 sensor_ip: str, dest: str) -> PcapTarget | None:
+    """Where the producer writes the pcap and the labels of what is sent (None: nowhere):
+    under their final names as frames go out (``in_place``), else temporary names that
+    ``outputs`` renames into place when it closes without an error."""
+    if out is not None:
+        ensure_dir(out)
+    if out is None or not pcap:
+        return None
+    path = out / "lidar.pcap" if in_place else \
+        outputs.enter_context(atomic_path(out / "lidar.pcap"))
+    lpath = out / LABELS if in_place else outputs.enter_context(atomic_path(out / LABELS))
+    return PcapTarget(str(path), sensor_ip, dest, str(lpath))
+
+
+def _send_frames(run: LidarRun, ring: FrameRing, ready: collections.deque[tuple[str, Any]],
+                 sender: PacedSender, stop: threading.Event,
+                 on_fault: Callable[[FaultEvent], None] | None,
+                 progress: Callable[[int, int], None] | None) -> tuple[str | None, int]:
+    """The pacing loop: each frame from the ring sent at its time, its fault events logged
+    as it goes out, until the producer is done, fails, or ``stop``. The error (or None) and
+    the frames that left with lidar packets."""
+    on_wire = 0
+    while not stop.is_set():
+        item = ready.popleft() if ready else ring.receive(1.0)
+        if item is None:
+            continue
+        kind, body = item
+        if kind == "error":
+            return body, on_wire
+        if kind == "done":
+            break
+        slot, meta, events = body
+        for ev in events:  # logged as the frame they struck goes out
+            if ev["kind"] == "lidar_reinit":  # the sidecars: the new identity
+                run.meta = run.meta.with_changes(init_id=ev["init_id"])
+            if on_fault is not None:
+                on_fault(ev)
+        sender.send(ring.frame(slot, meta))
+        on_wire += bool(len(meta)) and bool((meta[:, 1] == run.meta.udp_port_lidar).any())
+        ring.sent()
+        if progress:
+            progress(ring.done, run.frames)
+    return None, on_wire
 
 
 def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int = 80,

@@ -11,7 +11,7 @@ import numpy as np
 CLASS_COLOURS = {"S": "#2a9d3c", "C": "#e08a1e", "X": "#c0392b"}
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg", force=True)
@@ -22,7 +22,7 @@ def _pyplot() -> Any:
 
 def figure_png(fig: Any) -> bytes:
     """Render and close ``fig``; PNG metadata stripped so equal figures give equal bytes."""
-    plt = _pyplot()
+    plt = pyplot()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
     plt.close(fig)
@@ -34,7 +34,7 @@ def forest_map(xy: np.ndarray, classes: Sequence[str], dbh: np.ndarray, title: s
                track: tuple[Sequence[float], Sequence[float]] | None = None,
                terrain: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> bytes:
     """Top view of the stems coloured by class (marker area grows with DBH)."""
-    plt = _pyplot()
+    plt = pyplot()
     w = bounds[2] - bounds[0]
     h = bounds[3] - bounds[1]
     fig, ax = plt.subplots(figsize=(7.5, max(3.0, min(12.0, 7.0 * h / max(w, 1e-9)))))
@@ -65,7 +65,7 @@ def forest_map(xy: np.ndarray, classes: Sequence[str], dbh: np.ndarray, title: s
 
 def em_heatmap(em: np.ndarray, labels: Sequence[str], title: str) -> bytes:
     """Annotated evaluation-matrix heatmap (rows ground truth, columns observed)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(4.8, 4.2))
     im = ax.imshow(em, cmap="viridis")
     ax.set_xticks(range(len(labels)), labels)
@@ -88,7 +88,7 @@ def em_heatmap(em: np.ndarray, labels: Sequence[str], title: str) -> bytes:
 def matched_positions(gt_xy: np.ndarray, obs_xy: np.ndarray, pairs: np.ndarray,
                       title: str) -> bytes:
     """Ground truth in blue, observed in red, matched pairs joined (the paper's Table 5)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 6.5))
     if len(gt_xy):
         ax.scatter(gt_xy[:, 0], gt_xy[:, 1], s=14, c="#1f5fbf",

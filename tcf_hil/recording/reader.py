@@ -1,9 +1,9 @@
-"""Recorded traffic sent again: a tcf-hil run directory, or a field recording (an Ouster pcap
+"""Recorded traffic read back: a tcf-hil run directory, or a field recording (an Ouster pcap
 as ouster-cli or ouster-ros write it, with its metadata JSON, and optionally a CAN log in
-candump .log, .asc, .blf or .trc), read onto one time line and sent back on the wire byte
-for byte with the original relative timing (scaled by ``speed``), and the harvester node's
-SDO answers. The session that serves it (the HTTP API with the recorded metadata, the SIC,
-the score) is :class:`tcf_hil.run.ReplayTraffic`'s.
+candump .log, .asc, .blf or .trc), read onto one time line (:func:`events`), as python-can's
+``LogReader`` reads a log. Sending it again, paced, is :mod:`tcf_hil.run._send`'s; the
+session that serves it (the HTTP API with the recorded metadata, the SIC, the score) is
+:class:`tcf_hil.run.ReplayTraffic`'s.
 
 Recordings are streamed from disk, never read whole: a first pass checks that every lidar
 packet fits the metadata (the first that does not is one error naming it) and counts
@@ -21,12 +21,8 @@ consumer sees one continuous drive.
 
 from __future__ import annotations
 
-import contextlib
 import heapq
 import os
-import socket
-import threading
-import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -36,8 +32,6 @@ from typing import Any
 import can
 import numpy as np
 
-from emulators.harvester import BusSpec
-from emulators.lidar import Route
 from protocols.harvester import HARVESTER_OD, POSE, TIME_WRAP_US, decode_pdo, encode_pdo
 from protocols.ouster import (
     IMU_PACKET_BYTES,
@@ -53,6 +47,7 @@ from protocols.pcap import PcapError, UdpReader
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil._io import read_json
 from tcf_hil.errors import InputError
+from tcf_hil.recording.rundir import RunDir
 
 _TIME_KEY = (POSE, 8)
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc")
@@ -146,12 +141,7 @@ class Recording:
 
     @classmethod
     def _run_dir(cls, run_dir: Path, meta: Path | None, can_log: Path | None) -> Recording:
-        for name in ("lidar.pcap", "metadata.json", "manifest.json"):
-            if not (run_dir / name).exists():
-                why = "missing: not a tcf-hil run directory"
-                if name == "lidar.pcap" and (run_dir / "manifest.json").exists():
-                    why = "missing: this run did not record its lidar traffic (a soak run)"
-                raise InputError(str(run_dir / name), "", why)
+        RunDir(run_dir).require(RunDir.LIDAR, RunDir.METADATA, RunDir.MANIFEST)
         man = read_json(run_dir / "manifest.json")
         try:
             clock = man["clock"]
@@ -425,64 +415,6 @@ def events(rec: Recording, loop: bool, node_id: int | None, *, answered: bool = 
         k += 1
 
 
-def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
-           sensor_ip: str = "127.0.0.1", dest: str | None = None,
-           spec: BusSpec | None = None, node_id: int | None = 10, answered: bool = True,
-           stop: threading.Event | None = None,
-           on_progress: Callable[[int, int], None] | None = None,
-           rec: Recording | None = None, route: Route | None = None,
-           sent: dict[str, int] | None = None) -> dict[str, int]:
-    """Send the recording until it ends (or forever with ``loop``) or ``stop``. ``route``:
-    where datagrams go now (a client of the sensor's HTTP API may move them). ``sent``: the
-    counters to keep up to date as it goes (``udp``, ``lidar``, ``can``, ``refused``, and
-    ``at_ns``: the recording's time of the latest event); returned."""
-    rec = rec or Recording.load(run_dir)
-    stop = stop or threading.Event()
-    dest = dest or rec.meta.udp_dest
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
-    sock.bind((sensor_ip, 0))
-    bus = spec.open() if spec is not None and rec.can_frames else None
-    sent = sent if sent is not None else {}
-    sent.update(udp=0, lidar=0, can=0, refused=0, at_ns=0)
-    lidar_port = rec.port_map.get(rec.meta.udp_port_lidar, rec.meta.udp_port_lidar)
-    total = rec.counts["lidar"] + rec.counts["imu"] + rec.can_frames
-    start: tuple[int, float] | None = None
-    try:
-        for n, (t, kind, item) in enumerate(events(rec, loop, node_id, answered=answered)):
-            if stop.is_set():
-                break
-            if start is None:
-                start = (t, time.perf_counter())
-            due = start[1] + (t - start[0]) / 1e9 / speed
-            wait = due - time.perf_counter()
-            if wait > 0.0005:
-                time.sleep(wait - 0.0003)
-            while time.perf_counter() < due:
-                pass
-            sent["at_ns"] = t
-            if kind == "udp":
-                port, payload = item
-                try:
-                    sock.sendto(payload, route.address(port) if route is not None
-                                else (dest, port))
-                    sent["udp"] += 1
-                    sent["lidar"] += port == lidar_port and len(payload) != IMU_PACKET_BYTES
-                except OSError:
-                    sent["refused"] += 1
-            elif bus is not None:
-                with contextlib.suppress(can.CanError):
-                    bus.send(item)
-                    sent["can"] += 1
-            if on_progress is not None and n % 256 == 0:
-                on_progress(n % total if total else 0, total)
-    finally:
-        sock.close()
-        if bus is not None:
-            bus.shutdown()
-    return sent
-
-
 def recorded_sdo(messages: Iterator[can.Message]) -> tuple[int | None,
                                                           dict[tuple[int, int], bytes]]:
     """The SDO uploads a CAN log recorded a node answering (expedited and segmented, as
@@ -514,36 +446,3 @@ def recorded_sdo(messages: Iterator[can.Message]) -> tuple[int | None,
         return None, {}
     node = max(values, key=lambda k: len(values[k]))
     return node, values[node]
-
-
-class SdoResponder:
-    """The harvester node's SDO server alone (datum and lidar mount as recorded), for
-    consumers that read them at start: the recorded TPDOs carry the poses. ``node``: a run
-    manifest's ``can_node`` (node_id, datum_mm, mount_mm, mount_cdeg); ``recorded``: the
-    object values a field CAN log shows the node answering (:func:`recorded_sdo`), put in
-    where the harvester's object dictionary has them."""
-
-    def __init__(self, spec: BusSpec, node: dict[str, Any],
-                 recorded: dict[tuple[int, int], bytes] | None = None) -> None:
-        import canopen
-
-        from protocols.harvester import DATUM, MOUNT, eds_path
-
-        self.network = canopen.Network()
-        self.node = canopen.LocalNode(int(node.get("node_id", 10)), str(eds_path()))
-        self.network.add_node(self.node)
-        od: Any = self.node.sdo
-        for i, v in enumerate(node.get("datum_mm", (0, 0, 0)), 1):
-            od[DATUM][i].raw = int(v)
-        for i, v in enumerate((*node.get("mount_mm", (0, 0, 2000)),
-                               *node.get("mount_cdeg", (0, 0, 0))), 1):
-            od[MOUNT][i].raw = int(v)
-        for (index, sub), data in (recorded or {}).items():
-            with contextlib.suppress(KeyError, ValueError, TypeError):
-                self.node.set_data(index, sub, data, check_writable=False)
-        self.network.NOTIFIER_CYCLE = 0.1
-        self.network.connect(**spec.kwargs())
-
-    def close(self) -> None:
-        with contextlib.suppress(Exception):
-            self.network.disconnect()

@@ -1,5 +1,6 @@
-"""Faults of a live run: the scenario's ``[faults]`` section (or ``--fault KEY=VALUE``) turned
-into the emulators' fault plans, and the log the recorder keeps of every fault injected.
+"""Faults of a live run: ``--fault KEY=VALUE`` applied to the scenario's ``[faults]`` section,
+and the log the recorder keeps of every fault injected. The plans themselves are built once
+per run, in its world (:mod:`tcf_hil.world.faults`).
 
 Times in the scenario are seconds after the track starts; the plans work in simulation ns.
 The draws are seeded from ``faults.seed`` (0: the run's seed), so a faulty run repeats
@@ -13,50 +14,14 @@ import json
 import threading
 import tomllib
 from collections.abc import Iterable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from emulators.faults import CanFaultPlan, FaultEvent, LidarFaultPlan, UdpFaults
+from emulators.faults import FaultEvent
 from tcf_hil.errors import ConfigError
-from tcf_hil.scenario import FaultsConfig, Scenario
+from tcf_hil.scenario import Scenario
 
-__all__ = ["FaultLog", "FaultPlans", "apply_fault_options", "fault_plans", "faults_active"]
-
-
-def faults_active(cfg: FaultsConfig) -> bool:
-    """Whether the section asks for any fault."""
-    return cfg != FaultsConfig(seed=cfg.seed)
-
-
-@dataclass
-class FaultPlans:
-    udp: UdpFaults | None
-    lidar: LidarFaultPlan | None
-    can: CanFaultPlan | None
-
-
-def fault_plans(cfg: FaultsConfig, run_seed: int, track_t0_ns: int, lidar_port: int = 7502,
-                imu_port: int = 7503) -> FaultPlans:
-    """The plans of a run whose track starts at ``track_t0_ns`` (None where nothing is asked)."""
-    seed = cfg.seed or run_seed
-
-    def at(seconds: Iterable[float]) -> tuple[int, ...]:
-        return tuple(track_t0_ns + round(s * 1e9) for s in sorted(seconds))
-
-    u = cfg.udp
-    ports = {"both": (), "lidar": (lidar_port,), "imu": (imu_port,)}[u.ports]
-    udp = UdpFaults(u.loss, u.burst_rate, u.burst_packets, u.duplicate, u.reorder, u.jitter_us,
-                    ports, seed)
-    li = cfg.lidar
-    lidar = LidarFaultPlan(li.dropout, at(li.dropout_at_s), li.dropout_frames,
-                           at(li.reinit_at_s), round(li.reinit_gap_s * 1e9), seed)
-    c = cfg.can
-    can = CanFaultPlan(c.loss, round(c.pose_delay_ms * 1e6), at(c.bus_off_at_s),
-                       round(c.bus_off_s * 1e9), at(c.nmt_reset_at_s),
-                       round(c.nmt_restart_s * 1e9), seed)
-    return FaultPlans(udp if udp.active else None, lidar if lidar.active else None,
-                      can if can.active else None)
+__all__ = ["FaultLog", "apply_fault_options", "read_fault_log"]
 
 
 def apply_fault_options(scn: Scenario, options: Iterable[str]) -> Scenario:

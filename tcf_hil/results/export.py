@@ -52,7 +52,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
 from numpy.typing import NDArray
@@ -69,6 +69,12 @@ from protocols.ouster import (
 from protocols.pcap import LIBPCAP_MAGICS, PcapError, UdpReader, libpcap_resync
 from tcf_hil._io import atomic_path, read_json
 from tcf_hil.errors import InputError
+from tcf_hil.recording.rundir import RunDir
+from tcf_hil.world.track import distance_to_track
+
+if TYPE_CHECKING:
+    from tcf_hil.evaluation import EvalConfig
+    from tcf_hil.evaluation.scoring import ScoredForest
 
 __all__ = ["CLOUD_DTYPE", "CLOUD_SUFFIXES", "STEM_SUFFIXES", "export", "run_cloud",
            "stem_outcomes"]
@@ -76,7 +82,7 @@ __all__ = ["CLOUD_DTYPE", "CLOUD_SUFFIXES", "STEM_SUFFIXES", "export", "run_clou
 CLOUD_SUFFIXES = (".las", ".laz", ".ply", ".pcd")
 STEM_SUFFIXES = (".geojson", ".csv")
 
-# COMPONENTS codes (tcf_hil.forest.scenery) -> ASPRS class (see the module docstring)
+# COMPONENTS codes (tcf_hil.world.forest.scenery) -> ASPRS class (see the module docstring)
 _COMPONENT_CLASS = np.array([2, 64, 5, 5, 3, 1, 1, 1], np.uint8)
 NO_OBJECT = 255  # component of a return that hit nothing (classification 7, noise)
 GPS_MINUS_UNIX_S = 315_964_800 - 18  # Unix seconds at the GPS epoch, less the leap seconds
@@ -318,14 +324,8 @@ def _clock(run_dir: Path) -> tuple[int, int] | None:
 
 
 def _check_run(run_dir: Path) -> None:
-    if not run_dir.is_dir():
-        raise InputError(str(run_dir), "", "not a directory (a run directory is expected)")
-    for name in ("lidar.pcap", "metadata.json", "sensor_poses.csv"):
-        if not (run_dir / name).exists():
-            why = "missing: not a run directory with its lidar recorded"
-            if name == "lidar.pcap" and (run_dir / "manifest.json").exists():
-                why = "missing: this run did not record its lidar traffic (a soak run)"
-            raise InputError(str(run_dir / name), "", why)
+    RunDir(run_dir).require(RunDir.LIDAR, RunDir.METADATA, RunDir.POSES,
+                            missing="not a run directory with its lidar recorded")
 
 
 def run_cloud(run_dir: str | Path, *, every: int = 1,
@@ -647,37 +647,8 @@ def track_xy(run: Path, step: int = 64) -> NDArray[np.float64]:
     return np.array(xy).reshape(-1, 2)
 
 
-def distance_to_track(xy: NDArray[np.float64], track: NDArray[np.float64]
-                       ) -> NDArray[np.float64]:
-    """Horizontal distance of each point from the polyline ``track`` (exact: only segments
-    with an end within the nearest vertex's distance plus the longest segment can be
-    nearer, and those are all checked)."""
-    if not len(track) or not len(xy):
-        return np.full(len(xy), np.nan)
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(track)
-    d_v, _ = tree.query(xy)
-    if len(track) == 1:
-        return np.asarray(d_v, np.float64)
-    a, ab = track[:-1], np.diff(track, axis=0)
-    reach = d_v + float(np.sqrt(np.sum(ab * ab, 1)).max()) + 1e-9
-    near = tree.query_ball_point(xy, reach)
-    pt = np.repeat(np.arange(len(xy)), [len(c) for c in near])
-    v = np.concatenate([np.asarray(c, np.int64) for c in near])
-    pt, seg = np.concatenate([pt, pt]), np.concatenate([v, v - 1])  # the vertex's two segments
-    ok = (seg >= 0) & (seg < len(ab))
-    pt, seg = pt[ok], seg[ok]
-    ap = xy[pt] - a[seg]
-    u = np.clip(np.sum(ap * ab[seg], 1) / np.maximum(np.sum(ab[seg] ** 2, 1), 1e-300), 0, 1)
-    d = np.sqrt(np.sum((ap - u[:, None] * ab[seg]) ** 2, 1))
-    best = np.asarray(d_v, np.float64).copy()
-    np.minimum.at(best, pt, d)
-    return best
-
-
 def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
-                  track: NDArray[np.float64] | None = None
+                  track: NDArray[np.float64] | None = None, scored: ScoredForest | None = None
                   ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Every ground-truth stem and every stem of the SIC's scored forest with the outcome
     of scoring (the run's own configuration from ``score.json``): a ground-truth stem is
@@ -689,36 +660,30 @@ def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
     than the 10th percentile of the returns of the stems the SIC found: the run's own
     yardstick, not a fixed count) or ``seen, not found``. The truth is the run's
     ``ground_truth.json`` or, for a field recording, its ``inventory.csv`` (``gt_doc``,
-    ``track``: the truth and :func:`track_xy` when the caller has read them already)."""
-    from tcf_hil.evaluation import EvalConfig
-    from tcf_hil.recorder import empty_forest, score_forest
-    from tcf_hil.stems_json import stem_table
-
+    ``track``: the truth and :func:`track_xy` when the caller has read them already).
+    ``scored``: the final forest as the run scored it (a run hands it over, so that a
+    forest is scored once); without it, it is scored again from the run directory."""
     run = Path(run_dir)
     if not run.is_dir():
         raise InputError(str(run), "", "not a directory (a run directory is expected)")
-    gt_path = run / "ground_truth.json"
-    if gt_doc is not None:
-        gt_path = gt_path if gt_path.exists() else run / "inventory.csv"
-    elif gt_path.exists():
-        gt_doc = read_json(gt_path)
-    elif (run / "inventory.csv").exists():
-        from tcf_hil.inventory import read_inventory
+    if scored is None:
+        scored = scored_forest(run, gt_doc)
+    if track is None:
+        track = track_xy(run)
+    return _truth_rows(scored, track), _sic_rows(scored, track)
 
-        gt_path = run / "inventory.csv"
-        gt_doc = read_inventory(gt_path)
-    else:
-        raise InputError(str(gt_path), "", "missing (and no inventory.csv): not a run "
-                         "directory")
+
+def scored_forest(run_dir: str | Path, gt_doc: dict[str, Any] | None = None) -> ScoredForest:
+    """The final forest of the run in ``run_dir`` scored again from its files: the truth
+    (``gt_doc``, else ground_truth.json or inventory.csv), the publication ``score.json``
+    names and the configuration it was scored with."""
+    from tcf_hil.evaluation.scoring import ScoredForest, empty_forest, score_forest
+    from tcf_hil.recording.stems_json import stem_table
+
+    run = Path(run_dir)
+    gt_doc, gt_path = _truth(run, gt_doc)
     score = read_json(run / "score.json") if (run / "score.json").exists() else {}
-    cfg = EvalConfig()
-    conf = (score.get("all_trees") or {}).get("config")
-    if isinstance(conf, dict):
-        try:
-            cfg = EvalConfig(match=conf["match"], max_distance_m=float(conf["max_distance_m"]),
-                             weights=tuple(conf["weights"]), credits=tuple(conf["credits"]))
-        except (KeyError, TypeError, ValueError) as err:
-            raise InputError(str(run / "score.json"), "all_trees.config", str(err)) from err
+    cfg = _eval_config(score, run / "score.json")
     n_pub = score.get("scored_publication")
     obs = empty_forest()
     obs_doc: dict[str, Any] = {"objects": []}
@@ -730,16 +695,63 @@ def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
                              f"{n_pub}: no such file under sic/")
         obs_doc = read_json(pub)
         obs = stem_table(obs_doc, str(pub), "observed")
-    sc = score_forest(gt_doc, obs, cfg, str(gt_path))
-    ev, gt = sc.all, sc.gt_all
+    return ScoredForest(score_forest(gt_doc, obs, cfg, str(gt_path)), obs, obs_doc, gt_doc,
+                        cfg)
+
+
+def _truth(run: Path, gt_doc: dict[str, Any] | None) -> tuple[dict[str, Any], Path]:
+    """The run's truth document and its file: ground_truth.json, else a field recording's
+    inventory.csv."""
+    gt_path = run / "ground_truth.json"
+    if gt_doc is not None:
+        return gt_doc, gt_path if gt_path.exists() else run / "inventory.csv"
+    if gt_path.exists():
+        return read_json(gt_path), gt_path
+    if (run / "inventory.csv").exists():
+        from tcf_hil.recording.inventory import read_inventory
+
+        return read_inventory(run / "inventory.csv"), run / "inventory.csv"
+    raise InputError(str(gt_path), "", "missing (and no inventory.csv): not a run directory")
+
+
+def _eval_config(score: dict[str, Any], path: Path) -> EvalConfig:
+    """The configuration a run was scored with (``score.json``'s ``all_trees.config``)."""
+    from tcf_hil.evaluation import EvalConfig
+
+    conf = (score.get("all_trees") or {}).get("config")
+    if not isinstance(conf, dict):
+        return EvalConfig()
+    try:
+        return EvalConfig(match=conf["match"], max_distance_m=float(conf["max_distance_m"]),
+                          weights=tuple(conf["weights"]), credits=tuple(conf["credits"]))
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(str(path), "all_trees.config", str(err)) from err
+
+
+def _missed_why(i: int, returns: Any, scored: ScoredForest, match_of_obs: dict[int, int],
+                near_obs: Any, few: float) -> str:
+    """Why ground-truth stem ``i`` was missed (see :func:`stem_outcomes`)."""
+    gt, obs = scored.scores.gt_all, scored.forest
+    if returns == 0:
+        return "not seen"
+    taken = [] if near_obs is None else [
+        k for k in near_obs.query_ball_point(gt.xyz[i, :2], scored.config.max_distance_m)
+        if k in match_of_obs]
+    if taken:
+        k = min(taken, key=lambda k: float(np.hypot(*(obs.xyz[k, :2] - gt.xyz[i, :2]))))
+        return (f"merged with a neighbour (SIC stem {obs.ids[k]} went to tree "
+                f"{gt.ids[match_of_obs[k]]})")
+    if isinstance(returns, int) and returns < few:
+        return "few returns"
+    return "not found" if returns is None else "seen, not found"
+
+
+def _truth_rows(scored: ScoredForest, track: NDArray[np.float64]) -> list[dict[str, Any]]:
+    ev, gt, obs = scored.scores.all, scored.scores.gt_all, scored.forest
     match_of_gt = dict(zip(ev.pairs[:, 0].tolist(), ev.pairs[:, 1].tolist(), strict=True))
     match_of_obs = {o: g for g, o in match_of_gt.items()}
-    if track is None:
-        track = track_xy(run)
-    g_objs = gt_doc.get("objects", [])
-    o_objs = obs_doc.get("objects", [])
+    g_objs = scored.truth_doc.get("objects", [])
     gd = distance_to_track(gt.xyz[:, :2], track)
-    od = distance_to_track(obs.xyz[:, :2], track)
     found = [g_objs[i].get("returns") for i in match_of_gt]
     found = [r for r in found if isinstance(r, int)]
     few = float(np.percentile(found, 10)) if found else 0.0
@@ -748,30 +760,17 @@ def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
         from scipy.spatial import cKDTree
 
         near_obs = cKDTree(obs.xyz[:, :2])
-    gts = []
+    rows = []
     for i, o in enumerate(g_objs):
         j = match_of_gt.get(i)
         returns = o.get("returns")
-        why = ""
         if j is not None:
-            outcome = "correct" if gt.classes[i] == obs.classes[j] else "misclassified"
+            outcome, why = ("correct" if gt.classes[i] == obs.classes[j]
+                            else "misclassified"), ""
         else:
             outcome = "missed_unseen" if returns == 0 else "missed_seen"
-            taken = [] if near_obs is None else [
-                k for k in near_obs.query_ball_point(gt.xyz[i, :2], cfg.max_distance_m)
-                if k in match_of_obs]
-            if returns == 0:
-                why = "not seen"
-            elif taken:
-                k = min(taken, key=lambda k: float(np.hypot(*(obs.xyz[k, :2]
-                                                              - gt.xyz[i, :2]))))
-                why = (f"merged with a neighbour (SIC stem {obs.ids[k]} went to tree "
-                       f"{gt.ids[match_of_obs[k]]})")
-            elif isinstance(returns, int) and returns < few:
-                why = "few returns"
-            else:
-                why = "not found" if returns is None else "seen, not found"
-        gts.append({
+            why = _missed_why(i, returns, scored, match_of_obs, near_obs, few)
+        rows.append({
             "source": "truth", "id": o.get("id"), "class": o.get("class"),
             "x": gt.xyz[i, 0], "y": gt.xyz[i, 1], "z": gt.xyz[i, 2],
             "dbh_m": o.get("dbh"), "height_m": o.get("h"), "species": o.get("species"),
@@ -785,10 +784,17 @@ def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
             "defects": ";".join(d.get("type", "") for d in o.get("defects", []) or []),
             "why": why,
         })
-    obs_rows = []
-    for j, _o in enumerate(o_objs):
+    return rows
+
+
+def _sic_rows(scored: ScoredForest, track: NDArray[np.float64]) -> list[dict[str, Any]]:
+    ev, gt, obs = scored.scores.all, scored.scores.gt_all, scored.forest
+    match_of_obs = dict(zip(ev.pairs[:, 1].tolist(), ev.pairs[:, 0].tolist(), strict=True))
+    od = distance_to_track(obs.xyz[:, :2], track)
+    rows = []
+    for j, _o in enumerate(scored.forest_doc.get("objects", [])):
         g = match_of_obs.get(j)
-        obs_rows.append({
+        rows.append({
             "source": "sic", "id": obs.ids[j], "class": str(obs.classes[j]),
             "x": obs.xyz[j, 0], "y": obs.xyz[j, 1], "z": obs.xyz[j, 2],
             "dbh_m": _num(obs.dbh[j]), "height_m": _num(obs.h[j]), "species": None,
@@ -800,7 +806,7 @@ def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
                 float(np.hypot(*(gt.xyz[g, :2] - obs.xyz[j, :2])))),
             "defects": "", "why": "",
         })
-    return gts, obs_rows
+    return rows
 
 
 def _num(v: Any) -> float | None:
@@ -843,6 +849,47 @@ def _stems_geojson(rows: list[dict[str, Any]], epsg: int | None) -> bytes:
 # ---------------------------------------------------------------- entry
 
 
+def _las_writer(laz: bool) -> CloudWriter:
+    def write(path: Path, info: CloudInfo, frames: Iterator[NDArray[np.void]],
+              epsg: int | None, _run_name: str) -> int:
+        return _write_las(path, info, frames, laz, epsg)
+
+    return write
+
+
+def _write_ply(path: Path, info: CloudInfo, frames: Iterator[NDArray[np.void]],
+               _epsg: int | None, run_name: str) -> int:
+    from protocols.ply import ply_vertex_header
+    from tcf_hil import __version__
+
+    comments = [f"tcf-hil {__version__} export of {run_name}",
+                "gps_time: " + ("adjusted standard GPS time (GPS s - 1e9)"
+                                if info.gps_adjusted else "simulation seconds")]
+    return _write_headed(path, frames, lambda c: ply_vertex_header(CLOUD_DTYPE, c, comments))
+
+
+def _write_pcd(path: Path, info: CloudInfo, frames: Iterator[NDArray[np.void]],
+               _epsg: int | None, _run_name: str) -> int:
+    from protocols.pcd import pcd_header
+
+    off = _offset(info)
+    comments = [f"tcf-hil offset {off[0]:.3f} {off[1]:.3f} {off[2]:.3f} "
+                "(world = x, y, z + offset)"]
+    return _write_headed(path, (_local32(p, off) for p in frames),
+                         lambda c: pcd_header(PCD_DTYPE, c, comments))
+
+
+CloudWriter = Callable[[Path, CloudInfo, Iterator[NDArray[np.void]], "int | None", str], int]
+CLOUD_WRITERS: dict[str, CloudWriter] = {
+    ".las": _las_writer(False), ".laz": _las_writer(True), ".ply": _write_ply,
+    ".pcd": _write_pcd}
+"""The cloud's writer for each suffix (the file, the run's cloud, its frames, the EPSG code,
+the run's name) -> points written."""
+STEM_WRITERS: dict[str, Callable[[list[dict[str, Any]], int | None], bytes]] = {
+    ".csv": lambda rows, _epsg: _stems_csv(rows), ".geojson": _stems_geojson}
+"""The stems' writer for each suffix (rows, EPSG code) -> the file's bytes."""
+
+
 @dataclass(frozen=True)
 class ExportResult:
     path: Path
@@ -877,28 +924,9 @@ def export(run_dir: str | Path, out: str | Path, *, every: int = 1,
     if suffix in STEM_SUFFIXES:
         gts, obs = stem_outcomes(run_dir)
         rows = {"truth": gts, "sic": obs, "both": gts + obs}[stems]
-        data = _stems_csv(rows) if suffix == ".csv" else _stems_geojson(rows, epsg)
-        write_bytes_atomic(path, data)
+        write_bytes_atomic(path, STEM_WRITERS[suffix](rows, epsg))
         return ExportResult(path, "stems", len(rows))
     info, frames = run_cloud(run_dir, every=every, progress=progress)
-    if suffix in (".las", ".laz"):
-        n = _write_las(path, info, frames, suffix == ".laz", epsg)
-    elif suffix == ".ply":
-        from protocols.ply import ply_vertex_header
-        from tcf_hil import __version__
-
-        comments = [f"tcf-hil {__version__} export of {Path(run_dir).name}",
-                    "gps_time: " + ("adjusted standard GPS time (GPS s - 1e9)"
-                                    if info.gps_adjusted else "simulation seconds")]
-        n = _write_headed(path, frames,
-                          lambda c: ply_vertex_header(CLOUD_DTYPE, c, comments))
-    else:
-        from protocols.pcd import pcd_header
-
-        off = _offset(info)
-        comments = [f"tcf-hil offset {off[0]:.3f} {off[1]:.3f} {off[2]:.3f} "
-                    "(world = x, y, z + offset)"]
-        n = _write_headed(path, (_local32(p, off) for p in frames),
-                          lambda c: pcd_header(PCD_DTYPE, c, comments))
+    n = CLOUD_WRITERS[suffix](path, info, frames, epsg, Path(run_dir).name)
     return ExportResult(path, "cloud", n, info.labelled, info.gps_adjusted,
                         info.labels.missing if info.labels is not None else 0)

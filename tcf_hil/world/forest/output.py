@@ -10,10 +10,10 @@ import trimesh
 
 from protocols.ply import encode_ply
 from tcf_hil._io import ensure_dir, write_bytes_atomic, write_json_atomic
-from tcf_hil.forest.generate import Forest, ground_truth
-from tcf_hil.forest.mesh import stem_mesh, terrain_mesh
-from tcf_hil.forest.scenery import scenery_mesh
-from tcf_hil.plots import forest_map
+from tcf_hil._plots import forest_map
+from tcf_hil.world.forest.generate import Forest, ground_truth
+from tcf_hil.world.forest.mesh import stem_mesh, terrain_mesh
+from tcf_hil.world.forest.scenery import scenery_mesh
 
 
 def mesh_ply(mesh: trimesh.Trimesh) -> bytes:

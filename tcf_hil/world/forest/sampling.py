@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from protocols.pcd import encode_pcd
-from tcf_hil.forest.generate import Forest
+from tcf_hil.world.forest.generate import Forest
 
 FloatArray = NDArray[np.float64]
 _STREAM_SAMPLE = 10

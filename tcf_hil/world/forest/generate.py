@@ -12,16 +12,25 @@ from scipy.spatial import cKDTree
 
 from protocols.stems import QUALITY_BY_CLASS
 from tcf_hil.errors import ConfigError
-from tcf_hil.forest.dbh import draw_dbh
-from tcf_hil.forest.placement import place_stems
-from tcf_hil.forest.species import SPECIES
-from tcf_hil.forest.stems import BREAST_HEIGHT_M, StemSet, axial_samples, concat_stems
-from tcf_hil.forest.terrain import Terrain
 from tcf_hil.scenario import CLASSES, Scenario
+from tcf_hil.world.forest.classes import class_counts, classify
+from tcf_hil.world.forest.dbh import draw_dbh
+from tcf_hil.world.forest.placement import place_stems
+from tcf_hil.world.forest.species import SPECIES
+from tcf_hil.world.forest.stems import (
+    BREAST_HEIGHT_M,
+    StemSet,
+    axial_samples,
+    concat_stems,
+    lean_axes,
+    unit_perp,
+)
+from tcf_hil.world.terrain import Terrain
+from tcf_hil.world.track import Trajectory
 
 if TYPE_CHECKING:
-    from tcf_hil.forest.natural import Natural
-    from tcf_hil.forest.scenery import GroundObjects, Scenery
+    from tcf_hil.world.forest.natural import Natural
+    from tcf_hil.world.forest.scenery import GroundObjects, Scenery
 
 FloatArray = NDArray[np.float64]
 
@@ -60,42 +69,6 @@ def _rng(seed: int, stream: int) -> np.random.Generator:
     return np.random.default_rng([seed, stream])
 
 
-def class_counts(mix: dict[str, float], n: int) -> dict[str, int]:
-    """Split ``n`` stems by the shares in ``mix`` (largest remainder; exact total)."""
-    total = sum(mix.values())
-    if n == 0 or total <= 0:
-        return {c: 0 for c in mix}
-    raw = {c: n * v / total for c, v in mix.items()}
-    out = {c: math.floor(v) for c, v in raw.items()}
-    rest = n - sum(out.values())
-    for c in sorted(raw, key=lambda c: (-(raw[c] - out[c]), list(mix).index(c)))[:rest]:
-        out[c] += 1
-    return out
-
-
-def classify(maxcurve: Any, curve_threshold_m: float, other_threshold_m: float) -> Any:
-    """Class labels from maxcurve: S below the curve threshold, X at or above the other
-    threshold, C between. Works on scalars and arrays."""
-    mc = np.asarray(maxcurve, dtype=np.float64)
-    out = np.where(mc >= other_threshold_m, "X", np.where(mc >= curve_threshold_m, "C", "S"))
-    return str(out) if out.ndim == 0 else out
-
-
-def _unit_perp(axis: FloatArray, angle: FloatArray) -> FloatArray:
-    """Unit vectors perpendicular to ``axis`` at azimuth-like ``angle`` around it."""
-    ref = np.where(np.abs(axis[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-    e1 = np.cross(ref, axis)
-    e1 /= np.linalg.norm(e1, axis=1)[:, None]
-    e2 = np.cross(axis, e1)
-    return np.cos(angle)[:, None] * e1 + np.sin(angle)[:, None] * e2
-
-
-def _axes(lean_deg: FloatArray, azimuth: FloatArray) -> FloatArray:
-    lean = np.radians(lean_deg)
-    return np.stack([np.sin(lean) * np.cos(azimuth), np.sin(lean) * np.sin(azimuth),
-                     np.cos(lean)], axis=1)
-
-
 @dataclass
 class Forest:
     """A generated forest in local coordinates (world = local + ``scenario.plot.origin_m``)."""
@@ -111,12 +84,20 @@ class Forest:
     _scenery: Scenery | None = field(default=None, repr=False)
     _ground: GroundObjects | None = field(default=None, repr=False)
     _obstacles: Any = field(default=None, repr=False)
+    _track: Trajectory | None = field(default=None, repr=False)
+
+    def track(self) -> Trajectory:
+        """The scenario's track over this terrain (built once, when first asked for: the
+        scenery of a natural stand is detailed near it)."""
+        if self._track is None:
+            self._track = Trajectory.from_config(self.scenario.track, self.terrain)
+        return self._track
 
     def obstacles(self) -> Any:
         """The index of every tube (stems and their parts) that keeps branches, foliage and
         ground objects clear of other trees (built once, when first asked for)."""
         if self._obstacles is None:
-            from tcf_hil.forest.scenery import Obstacles
+            from tcf_hil.world.forest.scenery import Obstacles
 
             tubes, owner = self.tubes()
             self._obstacles = Obstacles(tubes, owner)
@@ -129,7 +110,7 @@ class Forest:
         if self.natural is None:
             return None
         if self._ground is None:
-            from tcf_hil.forest.scenery import ground_objects
+            from tcf_hil.world.forest.scenery import ground_objects
 
             self._ground = ground_objects(self, obstacles if obstacles is not None
                                           else self.obstacles())
@@ -141,7 +122,7 @@ class Forest:
         if self.natural is None:
             return None
         if self._scenery is None:
-            from tcf_hil.forest.scenery import build_scenery
+            from tcf_hil.world.forest.scenery import build_scenery
 
             self._scenery = build_scenery(self)
         return self._scenery
@@ -273,9 +254,9 @@ def generate_forest(scn: Scenario, seed: int | None = None) -> Forest:
     bend_ang = rng.uniform(0.0, 2.0 * math.pi, n)
 
     base = np.column_stack([xy, terrain.height(xy[:, 0], xy[:, 1])]) if n else np.zeros((0, 3))
-    axis = _axes(lean, lean_az)
+    axis = lean_axes(lean, lean_az)
     stems = StemSet(
-        base=base, axis=axis, bend=_unit_perp(axis, bend_ang),
+        base=base, axis=axis, bend=unit_perp(axis, bend_ang),
         length=height / axis[:, 2], sweep=sweep, peak=peak, r_bh=dbh / 2.0,
         r_top=np.full(n, st.top_diameter_m / 2.0), taper=np.full(n, st.taper_exponent),
         below=np.full(n, st.below_ground_m))
@@ -290,8 +271,8 @@ def generate_forest(scn: Scenario, seed: int | None = None) -> Forest:
             break
         ix = changed = np.asarray(bad)
         lean_az[ix] = fix.uniform(0.0, 2.0 * math.pi, len(ix))
-        axis[ix] = _axes(lean[ix], lean_az[ix])
-        stems.bend[ix] = _unit_perp(axis[ix], fix.uniform(0.0, 2.0 * math.pi, len(ix)))
+        axis[ix] = lean_axes(lean[ix], lean_az[ix])
+        stems.bend[ix] = unit_perp(axis[ix], fix.uniform(0.0, 2.0 * math.pi, len(ix)))
         stems.length[ix] = height[ix] / axis[ix, 2]
         reach[ix] = stems.max_reach(ix)  # the others' stay as they were
     else:
@@ -308,8 +289,8 @@ def generate_forest(scn: Scenario, seed: int | None = None) -> Forest:
 
 
 def _natural_forest(scn: Scenario, seed: int, terrain: Terrain, xy: FloatArray) -> Forest:
-    """A natural stand (:mod:`tcf_hil.forest.natural`) on the placed bases."""
-    from tcf_hil.forest import natural
+    """A natural stand (:mod:`tcf_hil.world.forest.natural`) on the placed bases."""
+    from tcf_hil.world.forest import natural
 
     n = len(xy)
     base = np.column_stack([xy, terrain.height(xy[:, 0], xy[:, 1])]) if n else np.zeros((0, 3))
@@ -378,7 +359,7 @@ def ground_truth(forest: Forest) -> dict[str, Any]:
         for i in np.flatnonzero(flip).tolist():
             mc[i] = float(st.sweep[i])
     else:  # measured on the centre line: a crook adds to the bow
-        from tcf_hil.forest.natural import maxcurve
+        from tcf_hil.world.forest.natural import maxcurve
 
         mc = r4(maxcurve(st))
     cp, base = r4(pos + origin), r4(st.base + origin)

@@ -14,7 +14,7 @@ tapers from the breast-height value r_bh at s = 1.3 m to r_top at the top::
 
 Below the base (s < 0) the tube continues straight along A so no gap opens on slopes.
 
-Natural stems (:mod:`tcf_hil.forest.natural`) add three things, each only where it is set
+Natural stems (:mod:`tcf_hil.world.forest.natural`) add three things, each only where it is set
 (the paper's stems leave them None and are evaluated exactly as before):
 
 - ``species`` >= 0: the radius follows the species' taper curve (:mod:`~.species`) scaled
@@ -198,7 +198,7 @@ class StemSet:
     def _taper_curve(self, idx: IntArray, s: FloatArray, derivative: int) -> FloatArray:
         """The species taper curve's radius (or its derivatives in s) at ``s``; rows whose
         species is -1 get the pine curve (callers take the power law there)."""
-        from tcf_hil.forest.species import taper_poly
+        from tcf_hil.world.forest.species import taper_poly
 
         assert self.species is not None and self.taper_length is not None
         sp = np.maximum(self.species[idx], 0)
@@ -218,7 +218,7 @@ class StemSet:
     @cached_property
     def _taper_scale(self) -> FloatArray:
         """Each stem's r_bh / P(1 - 1.3/T): its taper curve's radius per unit of P."""
-        from tcf_hil.forest.species import taper_poly
+        from tcf_hil.world.forest.species import taper_poly
 
         assert self.species is not None and self.taper_length is not None
         out: FloatArray = self.r_bh / taper_poly(
@@ -316,3 +316,19 @@ def concat_stems(a: StemSet, b: StemSet) -> StemSet:
         crook=opt("crook", lambda s: np.zeros((len(s), 3))),
         crook_s=opt("crook_s", lambda s: np.ones(len(s))),
         crook_w=opt("crook_w", lambda s: np.ones(len(s))))
+
+
+def unit_perp(axis: FloatArray, angle: FloatArray) -> FloatArray:
+    """Unit vectors perpendicular to ``axis`` at azimuth-like ``angle`` around it."""
+    ref = np.where(np.abs(axis[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(ref, axis)
+    e1 /= np.linalg.norm(e1, axis=1)[:, None]
+    e2 = np.cross(axis, e1)
+    return np.cos(angle)[:, None] * e1 + np.sin(angle)[:, None] * e2
+
+
+def lean_axes(lean_deg: FloatArray, azimuth: FloatArray) -> FloatArray:
+    """Unit stem axes leaning ``lean_deg`` from the vertical towards ``azimuth`` (radians)."""
+    lean = np.radians(lean_deg)
+    return np.stack([np.sin(lean) * np.cos(azimuth), np.sin(lean) * np.sin(azimuth),
+                     np.cos(lean)], axis=1)

@@ -20,8 +20,8 @@ from numpy.typing import NDArray
 from scipy.ndimage import maximum_filter1d
 
 from tcf_hil.errors import ConfigError
-from tcf_hil.forest.stems import StemSet
-from tcf_hil.forest.terrain import Terrain
+from tcf_hil.world.forest.stems import StemSet
+from tcf_hil.world.terrain import Terrain
 
 FloatArray = NDArray[np.float64]
 

@@ -42,11 +42,12 @@ import trimesh
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from tcf_hil.forest import species as sp
-from tcf_hil.forest.stems import StemSet
+from tcf_hil.world.forest import species as sp
+from tcf_hil.world.forest.stems import StemSet, unit_perp
 
 if TYPE_CHECKING:
     from emulators.media import Crowns
+    from tcf_hil.world.forest.generate import Forest
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -266,15 +267,6 @@ def cones(base: FloatArray, axis: FloatArray, length: FloatArray, r0: FloatArray
     return v.reshape(-1, 3), faces.astype(np.int64)
 
 
-def _perp(axis: FloatArray, angle: FloatArray) -> FloatArray:
-    ref = np.where(np.abs(axis[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-    e1 = np.cross(ref, axis)
-    e1 /= np.linalg.norm(e1, axis=1)[:, None]
-    e2 = np.cross(axis, e1)
-    out: FloatArray = np.cos(angle)[:, None] * e1 + np.sin(angle)[:, None] * e2
-    return out
-
-
 class Obstacles:
     """Other trees' tubes, sampled along their centre lines, to keep branches, foliage and
     ground objects clear of them."""
@@ -325,14 +317,14 @@ class Obstacles:
         return out
 
 
-def track_distance(forest: object, xy: FloatArray) -> FloatArray:
+def track_distance(forest: Forest, xy: FloatArray) -> FloatArray:
     """Horizontal distance of points ``xy`` from the scenario's track (every pass), from
-    its path sampled every 0.25 s."""
-    from tcf_hil.forest.generate import Forest
-    from tcf_hil.trajectory import Trajectory
-
-    assert isinstance(forest, Forest)
-    tr = Trajectory.from_config(forest.scenario.track, forest.terrain)
+    its path sampled every 0.25 s: the nearest sample, which over-states the distance from
+    a straight stretch by at most s^2 / (8 d) for samples s apart at distance d. It decides
+    which trees get their detail and is kept as it is, so that the natural stands stay as
+    they were built; a stem's exact distance from a run's driven path is
+    :func:`tcf_hil.world.track.distance_to_track`'s."""
+    tr = forest.track()
     t = np.arange(tr.t0_ns, tr.end_ns + 1, 250_000_000, dtype=np.int64)
     pos, _ = tr.sensor_pose(t)
     d, _ = cKDTree(pos[:, :2]).query(xy)
@@ -340,12 +332,10 @@ def track_distance(forest: object, xy: FloatArray) -> FloatArray:
     return out
 
 
-def _near_track(forest: object, xy: FloatArray, reach: FloatArray | float) -> NDArray[np.bool_]:
+def _near_track(forest: Forest, xy: FloatArray, reach: FloatArray | float) -> NDArray[np.bool_]:
     """Which of ``xy`` (objects reaching ``reach`` from there) ``stand.detail_range_m``
     keeps."""
-    from tcf_hil.forest.generate import Forest
 
-    assert isinstance(forest, Forest)
     rng_m = forest.scenario.stand.detail_range_m
     if rng_m <= 0.0 or len(xy) == 0:
         return np.ones(len(xy), dtype=bool)
@@ -360,10 +350,9 @@ def _object_rng(seed: int, part: int, k: int) -> np.random.Generator:
     return np.random.default_rng([seed, _STREAM_SCENERY, part, k])
 
 
-def _branches(forest: object, obstacles: Obstacles, counts: dict[str, int]) -> Rods:
-    from tcf_hil.forest.generate import Forest
+def _branches(forest: Forest, obstacles: Obstacles, counts: dict[str, int]) -> Rods:
 
-    assert isinstance(forest, Forest) and forest.natural is not None
+    assert forest.natural is not None
     st, nat = forest.stems, forest.natural
     n = len(st)
     spc = nat.species
@@ -419,7 +408,7 @@ def _branches(forest: object, obstacles: Obstacles, counts: dict[str, int]) -> R
     az = np.concatenate(rows_az)
     m = len(idx)
     tangent = st.tangent(idx, s)
-    direction = np.cos(ang)[:, None] * tangent + np.sin(ang)[:, None] * _perp(tangent, az)
+    direction = np.cos(ang)[:, None] * tangent + np.sin(ang)[:, None] * unit_perp(tangent, az)
     base = st.centre(idx, s)
     r_stem = st.radius(idx, s)
     r0 = np.minimum(sp.BRANCH_DIAMETER_SHARE * r_stem, sp.BRANCH_DIAMETER_MAX_M / 2.0)
@@ -449,7 +438,7 @@ def _facets(centres: FloatArray, edge: float, rng: np.random.Generator
     m = len(centres)
     nrm = rng.normal(size=(m, 3))
     nrm /= np.linalg.norm(nrm, axis=1)[:, None]
-    u = _perp(nrm, rng.uniform(0.0, 2.0 * math.pi, m))
+    u = unit_perp(nrm, rng.uniform(0.0, 2.0 * math.pi, m))
     w = np.cross(nrm, u)
     rad = edge / math.sqrt(3.0)
     v = np.stack([centres + rad * (math.cos(a) * u + math.sin(a) * w)
@@ -470,7 +459,7 @@ def crown_points(rng: np.random.Generator, apex: FloatArray, axis: FloatArray,
     (widest at its base) or an ellipsoid."""
     out = np.zeros((0, 3))
     need = count
-    e1 = _perp(axis[None, :], np.zeros(1))[0]
+    e1 = unit_perp(axis[None, :], np.zeros(1))[0]
     e2 = np.cross(axis, e1)
     while need > 0:
         m = max(64, int(need * 2.2))
@@ -488,12 +477,11 @@ def crown_points(rng: np.random.Generator, apex: FloatArray, axis: FloatArray,
     return out
 
 
-def _foliage(forest: object, counts: dict[str, int], edge: float) -> Foliage:
+def _foliage(forest: Forest, counts: dict[str, int], edge: float) -> Foliage:
     """The trees' crowns near the track (``stand.detail_range_m``), with their extinction."""
     from emulators.media import CONE, ELLIPSOID, Crowns
-    from tcf_hil.forest.generate import Forest
 
-    assert isinstance(forest, Forest) and forest.natural is not None
+    assert forest.natural is not None
     st, nat = forest.stems, forest.natural
     n = len(st)
     spc = nat.species
@@ -529,14 +517,12 @@ def _foliage(forest: object, counts: dict[str, int], edge: float) -> Foliage:
                    idx.astype(np.int64), want[idx], idx.astype(np.int64))
 
 
-def _facet_maker(forest: object, edge: float) -> Any:
+def _facet_maker(forest: Forest, edge: float) -> Any:
     """The function that draws a scenery's foliage as facets: each crown's own stream
     draws ``count`` points in its whole envelope and a facet about each; a tree's facets
     above its broken top or within ``edge``/2 of another tree's tubes are dropped."""
     from emulators.media import ELLIPSOID
-    from tcf_hil.forest.generate import Forest
 
-    assert isinstance(forest, Forest)
 
     def make(sc: Scenery) -> tuple[FloatArray, IntArray, NDArray[np.int32]]:
         fol, st = sc.foliage, forest.stems
@@ -613,12 +599,10 @@ class GroundObjects:
         return out
 
 
-def _road_test(forest: object) -> Any:
+def _road_test(forest: Forest) -> Any:
     """A test of (x, y) points: on a strip road (within half a metre of its edge)."""
-    from tcf_hil.forest.generate import Forest
-    from tcf_hil.forest.placement import region_for
+    from tcf_hil.world.forest.placement import region_for
 
-    assert isinstance(forest, Forest)
     reg = region_for(forest.scenario)
 
     def on_road(xy: FloatArray) -> NDArray[np.bool_]:
@@ -630,13 +614,11 @@ def _road_test(forest: object) -> Any:
     return on_road
 
 
-def _free_spots(forest: object, rng: np.random.Generator, count: int, clearance: float,
+def _free_spots(forest: Forest, rng: np.random.Generator, count: int, clearance: float,
                 obstacles: Obstacles, off_roads: bool) -> FloatArray:
     """Up to ``count`` (x, y) uniform in the plot, clear of every stem by ``clearance`` (and
     of the strip roads, ``off_roads``)."""
-    from tcf_hil.forest.generate import Forest
 
-    assert isinstance(forest, Forest)
     w, h = forest.scenario.plot.size_m
     road = _road_test(forest)
     out = np.zeros((0, 2))
@@ -654,11 +636,10 @@ def _free_spots(forest: object, rng: np.random.Generator, count: int, clearance:
     return out
 
 
-def ground_objects(forest: object, obstacles: Obstacles | None = None) -> GroundObjects:
+def ground_objects(forest: Forest, obstacles: Obstacles | None = None) -> GroundObjects:
     """Draw the stand's understory, dead wood, stumps and boulders (own random stream)."""
-    from tcf_hil.forest.generate import Forest
 
-    assert isinstance(forest, Forest) and forest.natural is not None
+    assert forest.natural is not None
     cfg = forest.scenario.stand
     rng = np.random.default_rng([forest.seed, _STREAM_SCENERY, 3])
     w, h = forest.scenario.plot.size_m
@@ -727,7 +708,7 @@ def ground_objects(forest: object, obstacles: Obstacles | None = None) -> Ground
     # stumps: stump diameter 2 + 1.25 DBH cm (Laasasenaho 1975), DBH as the stand's
     xy = _free_spots(forest, rng, round(cfg.stumps_per_ha * ha), 0.3, obstacles, False)
     g = ground(xy)
-    from tcf_hil.forest.dbh import draw_dbh
+    from tcf_hil.world.forest.dbh import draw_dbh
 
     d = draw_dbh(forest.scenario.stems.dbh, len(g), rng)
     kinds += ["stump"] * len(g)
@@ -749,15 +730,13 @@ def ground_objects(forest: object, obstacles: Obstacles | None = None) -> Ground
                          np.concatenate(spc), 3 * len(forest.stems) + 1)
 
 
-def _ground_meshes(forest: object, go: GroundObjects, parts: _Parts, comp: list[int],
+def _ground_meshes(forest: Forest, go: GroundObjects, parts: _Parts, comp: list[int],
                    counts: dict[str, int], edge: float) -> Foliage:
     """The ground objects near the track as triangles, and the saplings' and shrubs'
     crowns."""
     from emulators.media import CONE, ELLIPSOID, Crowns
-    from tcf_hil.forest.generate import Forest
-    from tcf_hil.forest.mesh import sides_for
+    from tcf_hil.world.forest.mesh import sides_for
 
-    assert isinstance(forest, Forest)
     cfg = forest.scenario.stand
     tol = forest.scenario.stems.tolerance_mm / 1000.0
     up = np.array([0.0, 0.0, 1.0])
@@ -827,11 +806,10 @@ def _ground_meshes(forest: object, go: GroundObjects, parts: _Parts, comp: list[
         np.full(k_, -1, np.int64))
 
 
-def build_scenery(forest: object) -> Scenery:
+def build_scenery(forest: Forest) -> Scenery:
     """The scenery of a natural forest (deterministic per scenario and seed)."""
-    from tcf_hil.forest.generate import Forest
 
-    assert isinstance(forest, Forest) and forest.natural is not None
+    assert forest.natural is not None
     cfg = forest.scenario.stand
     n = len(forest.stems)
     obstacles = forest.obstacles()

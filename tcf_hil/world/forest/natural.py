@@ -1,12 +1,12 @@
 """Natural stems: species, taper, height from DBH, suppressed stems and defects as shapes.
 
-Used by :func:`tcf_hil.forest.generate_forest` where ``stand.kind = "natural"``. The stems
+Used by :func:`tcf_hil.world.forest.generate_forest` where ``stand.kind = "natural"``. The stems
 keep the paper's placement, terrain, count and class shares (``stems.class_mix``); what
 changes is what a stem is:
 
 - **species** by the shares of ``[stand.pine]``, ``[stand.spruce]``, ``[stand.birch]``
   (exact counts, largest remainder), each with its taper curve and height model
-  (:mod:`tcf_hil.forest.species`: Laasasenaho 1982, Pukkala et al. 2009);
+  (:mod:`tcf_hil.world.forest.species`: Laasasenaho 1982, Pukkala et al. 2009);
 - **DBH** from ``stems.dbh`` (``weibull``, ``normal``, ...), per species where its table
   gives a mean and SD; **suppressed** stems (``stand.suppressed_share``) draw theirs
   uniformly in ``stand.suppressed_dbh_m``;
@@ -35,11 +35,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from tcf_hil.forest.dbh import draw_dbh
-from tcf_hil.forest.generate import _axes, _unit_perp, class_counts
-from tcf_hil.forest.species import HEIGHT_SD_M, SPECIES, mean_height
-from tcf_hil.forest.stems import BREAST_HEIGHT_M, StemSet
 from tcf_hil.scenario import CLASSES, Scenario
+from tcf_hil.world.forest.classes import class_counts
+from tcf_hil.world.forest.dbh import draw_dbh
+from tcf_hil.world.forest.species import HEIGHT_SD_M, SPECIES, mean_height
+from tcf_hil.world.forest.stems import BREAST_HEIGHT_M, StemSet, lean_axes, unit_perp
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -178,7 +178,7 @@ def build(scn: Scenario, dr: _Draw) -> tuple[StemSet, StemSet, IntArray, list[st
     """The stems and their parts (second leaders, second stems) from the draws."""
     st, df = scn.stems, scn.stand.defects
     n = len(dr.base)
-    axis = _axes(dr.lean, dr.lean_az)
+    axis = lean_axes(dr.lean, dr.lean_az)
     intact = dr.height / axis[:, 2]
     length = intact.copy()
     broken = dr.x_kind == "broken_top"
@@ -196,9 +196,9 @@ def build(scn: Scenario, dr: _Draw) -> tuple[StemSet, StemSet, IntArray, list[st
         lo = np.minimum(BREAST_HEIGHT_M + 0.2, hi)
         crook_s[ck] = np.clip(_lerp(df.crook_height, dr.u[ck, 0]) * intact[ck], lo, hi)
         crook[ck] = (_lerp(df.crook_offset_m, dr.u[ck, 2])[:, None]
-                     * _unit_perp(axis[ck], 2.0 * math.pi * dr.u[ck, 3]))
+                     * unit_perp(axis[ck], 2.0 * math.pi * dr.u[ck, 3]))
     stems = StemSet(
-        base=dr.base, axis=axis, bend=_unit_perp(axis, dr.bend_ang), length=length,
+        base=dr.base, axis=axis, bend=unit_perp(axis, dr.bend_ang), length=length,
         sweep=dr.sweep, peak=dr.peak, r_bh=dr.dbh / 2.0, r_top=np.zeros(n),
         taper=np.ones(n), below=np.full(n, st.below_ground_m), species=dr.species,
         taper_length=intact, crook=crook, crook_s=crook_s, crook_w=crook_w)
@@ -220,7 +220,7 @@ def build(scn: Scenario, dr: _Draw) -> tuple[StemSet, StemSet, IntArray, list[st
     r0 = stems.radius(idx, s) * np.asarray(ratio) if len(idx) else np.zeros(0)
     a = np.radians(np.asarray(ang, dtype=np.float64))
     pax = (np.cos(a)[:, None] * axis[idx]
-           + np.sin(a)[:, None] * _unit_perp(axis[idx], dr.part_az[idx])) if len(idx) \
+           + np.sin(a)[:, None] * unit_perp(axis[idx], dr.part_az[idx])) if len(idx) \
         else np.zeros((0, 3))
     # the second leader or stem reaches about as high as the stem (0.85-1 of the rest)
     plen = (intact[idx] - s) * (0.85 + 0.15 * dr.u[idx, 4]) / np.maximum(
@@ -231,7 +231,7 @@ def build(scn: Scenario, dr: _Draw) -> tuple[StemSet, StemSet, IntArray, list[st
     r_bh = r_top + (r0 - r_top) * ((plen - BREAST_HEIGHT_M) / plen) ** _PART_TAPER
     m = len(idx)
     parts = StemSet(
-        base=pbase, axis=pax, bend=_unit_perp(pax, np.zeros(m)) if m else np.zeros((0, 3)),
+        base=pbase, axis=pax, bend=unit_perp(pax, np.zeros(m)) if m else np.zeros((0, 3)),
         length=plen, sweep=np.zeros(m), peak=np.full(m, 0.5), r_bh=r_bh, r_top=r_top,
         taper=np.full(m, _PART_TAPER), below=np.zeros(m))
     return stems, parts, idx, kinds

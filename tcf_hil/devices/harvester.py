@@ -40,13 +40,14 @@ from protocols.harvester import (
     STATUS_VALID,
     Pose,
 )
-from tcf_hil.faults import fault_plans, faults_active
-from tcf_hil.forest import Terrain
 from tcf_hil.scenario import Scenario
-from tcf_hil.trajectory import PoseError, Trajectory
+from tcf_hil.world.faults import fault_plans, faults_active
+from tcf_hil.world.terrain import Terrain
+from tcf_hil.world.track import PoseError, Trajectory
 
 if TYPE_CHECKING:
     from emulators.canbus import SocketcandServer
+    from tcf_hil.world import World
 
 
 LISTEN_S = 0.5  # before a run's or `harvester run`'s node boots: see run_harvester
@@ -65,6 +66,13 @@ class HarvesterModel:
                       t0_ns: int = 1_000_000_000) -> HarvesterModel:
         traj = Trajectory.from_config(scn.track, terrain, t0_ns)
         return cls(scn, traj, PoseError(scn.harvester.pose_error, seed, t0_ns))
+
+    @classmethod
+    def from_world(cls, world: World) -> HarvesterModel:
+        """The node's model in a run's world: its track, and the pose error drawn from the
+        run's seed."""
+        return cls(world.scenario, world.track,
+                   PoseError(world.scenario.harvester.pose_error, world.seed, world.t0_ns))
 
     def truth(self, t_ns: np.ndarray, *, pointwise: bool = False
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -187,14 +195,20 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
                   faults: CanFaultPlan | None = None,
                   on_fault: Callable[[FaultEvent], None] | None = None,
                   on_conflict: Callable[[str], None] | None = None,
-                  on_node: Callable[[NodeStats], None] | None = None) -> HarvesterRunResult:
+                  on_node: Callable[[NodeStats], None] | None = None,
+                  world: World | None = None,
+                  model: HarvesterModel | None = None) -> HarvesterRunResult:
     """Drive the scenario's track in (scaled) real time with the node on ``spec`` until the
     track ends (plus one second standing), ``duration_s`` of simulation time, or ``stop``.
     ``faults``/``on_fault``: injected CAN faults and where their events go (default: the
     scenario's ``[faults.can]``, events dropped). A second node with the node's id on the
     bus stops it at once: the result's ``conflict`` says so, and ``on_conflict`` hears it.
-    ``on_node`` gets the node's live :class:`~emulators.harvester.NodeStats` as it starts."""
-    model = HarvesterModel.from_scenario(scn, terrain, seed, t0_ns)
+    ``on_node`` gets the node's live :class:`~emulators.harvester.NodeStats` as it starts.
+    ``world``: the run's world (its track, seed and fault plans), resolved once, in place of
+    ``terrain``, ``seed`` and ``t0_ns``; ``model``: the node's model built from it already."""
+    if model is None:
+        model = (HarvesterModel.from_world(world) if world is not None
+                 else HarvesterModel.from_scenario(scn, terrain, seed, t0_ns))
     clash = threading.Event()
 
     def conflicting(why: str) -> None:
@@ -219,7 +233,9 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
               else clock.t0_ns + round(duration_s * 1e9))
     stop = stop or threading.Event()
     can_log: CanLog | None = None
-    if faults is None and faults_active(scn.faults):
+    if faults is None and world is not None:
+        faults = world.faults.can if world.faults is not None else None
+    elif faults is None and faults_active(scn.faults):
         faults = fault_plans(scn.faults, seed, model.trajectory.t0_ns).can
     node = HarvesterNode(spec, model.bus_pose, clock, cfg, faults=faults, on_fault=on_fault,
                          on_conflict=conflicting)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from tcf_hil.forest import Forest
+from tcf_hil.world.forest import Forest
 
 FloatArray = NDArray[np.float64]
 

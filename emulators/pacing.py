@@ -1,0 +1,70 @@
+"""When each event of a stream is due on the wall clock, and waiting for it: the one pacer of
+the live lidar stream (:class:`emulators.lidar.PacedSender`) and of a recording sent again
+(``tcf-hil replay``, ``run --replay``).
+
+As python-can's player separates reading a log (``LogReader``), pacing it
+(``MessageSync``) and sending (the bus), a stream here is read by its source, paced by a
+:class:`Pacer` and sent by its socket or bus. The pacer sleeps until ``spin_ns`` before an
+event's due time, then yields the rest (``time.sleep(0)``): the interval error stays at tens
+of microseconds without a busy loop holding a core.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Protocol
+
+__all__ = ["Pacer", "SimClockLike"]
+
+
+class SimClockLike(Protocol):
+    """A shared simulation clock (:class:`emulators.harvester.SimClock`)."""
+
+    speed: float
+
+    def monotonic_at(self, t_sim_ns: int) -> int: ...
+
+
+class Pacer:
+    """Due times of simulation times ``t_ns`` (nanoseconds) and the waits for them.
+
+    Args:
+        speed: simulation seconds per wall second; 0: nothing waits (as fast as possible).
+            The first event is due at once; the others keep their distance from it.
+        clock: a simulation clock shared with the run's other emulators: events are due when
+            it says (its speed wins over ``speed``).
+        spin_ns: how long before a due time to stop sleeping and yield instead.
+    """
+
+    def __init__(self, speed: float = 1.0, *, clock: SimClockLike | None = None,
+                 spin_ns: int = 300_000) -> None:
+        if speed < 0:
+            raise ValueError(f"speed {speed}; expected >= 0")
+        self.clock = clock
+        self.speed = clock.speed if clock is not None else speed
+        self.spin_ns = spin_ns
+        self._t0: tuple[int, int] | None = None  # (first simulation time, its wall time)
+        self._mono_minus_perf = (time.monotonic_ns() - time.perf_counter_ns()
+                                 if clock is not None else 0)
+
+    def due(self, t_ns: int) -> int:
+        """The wall time (``time.perf_counter_ns``) at which ``t_ns`` is due."""
+        if self._t0 is None:
+            self._t0 = (t_ns, time.perf_counter_ns())
+        if self.clock is not None:
+            return self.clock.monotonic_at(t_ns) - self._mono_minus_perf
+        if self.speed == 0:
+            return self._t0[1]
+        return self._t0[1] + int((t_ns - self._t0[0]) / self.speed)
+
+    def wait(self, t_ns: int) -> int:
+        """Wait until ``t_ns`` is due; how late it was (ns; negative: early, never here)."""
+        due = self.due(t_ns)
+        if self.speed == 0:
+            return 0
+        now = time.perf_counter_ns()
+        if due - now > self.spin_ns:
+            time.sleep((due - now - self.spin_ns) / 1e9)
+        while (now := time.perf_counter_ns()) < due:
+            time.sleep(0)
+        return now - due

@@ -1,0 +1,272 @@
+"""The live stream's frame ring: frames ray-cast and encoded ahead in a separate, lower-priority
+process (forked: it shares the built scene), written into a ring of shared-memory slots; the
+sending process only waits, sends straight from shared memory and hands the slot back (one
+thread: nothing competes with the pacing loop for the interpreter lock, and no frame is
+copied through a pipe). The producer also writes the pcap of exactly what was sent."""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import multiprocessing as mp
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from emulators.lidar import IMU_PERIOD_NS, Datagram
+from protocols.ouster import IMU_PACKET_BYTES
+from protocols.pcap import PcapWriter, UdpDatagram
+
+__all__ = ["SLOTS", "FrameRing", "PcapTarget", "pcap_records", "produce", "release",
+           "slot_bytes"]
+
+
+def pcap_records(writer: PcapWriter, dgs: list[Datagram], sensor_ip: str, dest: str
+                  ) -> bytes:
+    """One frame's datagrams as pcap records, each at its simulation time."""
+    return writer.records_many([UdpDatagram(d.t_ns, sensor_ip, dest, d.port, d.port,
+                                            bytes(d.payload)) for d in dgs])
+
+
+SLOTS = 4  # frames produced ahead of the pacing loop
+
+
+def slot_bytes(run: Any) -> int:
+    """Upper bound of one frame's datagram bytes (lidar packets plus IMU packets)."""
+    fmt = run.meta.packet_format
+    packets = fmt.columns_per_frame // fmt.columns_per_packet
+    imu = run.emu.period_ns // IMU_PERIOD_NS + 2
+    dup = 2 if run.udp_faults is not None and run.udp_faults.duplicate else 1
+    return dup * (packets * fmt.packet_bytes + imu * IMU_PACKET_BYTES)
+
+
+@dataclass
+class PcapTarget:
+    """The pcap of a live stream, written by the producer process (off the pacing loop):
+    a frame's records go to the file once the sender has counted it sent."""
+
+    path: str
+    sensor_ip: str
+    dest: str
+    labels: str  # lidar_labels.bin, beside it
+
+
+def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
+             stop: Any, sent: Any, rec: PcapTarget | None = None,
+             parent_end: Any = None) -> None:
+    """Producer process: writes each frame's datagrams into a shared-memory slot and sends
+    only (slot, [(t_ns, port, length)]) down the pipe, then ("done", None) after the last.
+    ``sent`` (shared) counts the frames the sender has finished. When the sender sets
+    ``stop``, answers ("final", bookkeeping) as of exactly those frames (it runs a few frames
+    ahead), and with ``rec`` the pcap holds exactly those frames too."""
+    parent = os.getppid()  # a producer whose sender was killed must not live on
+    # a terminal's Ctrl-C reaches the whole process group: the sender decides when to stop
+    # (and the sender's own handlers, inherited through the fork, are not this process's)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if parent_end is not None:
+        parent_end.close()  # the fork's copy of the reading end: a dead reader breaks the pipe
+    with contextlib.suppress(OSError):
+        os.nice(19)  # the pacing loop, not the frame factory, gets the CPU when both want it
+    with contextlib.suppress(Exception):  # one core stays free for the pacing loop
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    caster = run.scene.caster
+    if caster.threads is not None:  # the same for a ray caster that splits casts itself
+        caster.threads = max(1, caster.threads - 1)
+    run.emu.threads = max(1, run.emu.threads - 1)  # and for the emulator's column chunks
+    fh = open(rec.path, "wb") if rec is not None else None  # closed in the finally below
+    lh = open(rec.labels, "wb") if rec is not None else None
+    writer = PcapWriter()
+    pending: collections.deque[tuple[bytes, bytes]] = collections.deque()
+    written = 0
+    # bookkeeping after each produced frame, back as far as the sender can be behind
+    marks: collections.deque[tuple[int, tuple[np.ndarray, int, int]]] = collections.deque(
+        [(0, run.mark())], maxlen=SLOTS + 2)
+
+    def flush() -> None:
+        nonlocal written
+        if fh is None or lh is None:
+            return
+        n = written
+        while written < sent.value and pending:
+            records, labels = pending.popleft()
+            fh.write(records)
+            lh.write(labels)
+            written += 1
+        if written != n:
+            fh.flush()  # whole frames reach the file: a crash leaves a readable capture
+            lh.flush()
+
+    slot = produced = 0
+    try:
+        if fh is not None and lh is not None:
+            fh.write(writer.header())
+            lh.write(run.labels_header())
+        for fr, dgs in run.datagrams():
+            while not free.acquire(timeout=0.2):
+                flush()
+                if stop.is_set() or os.getppid() != parent:
+                    stop.set()
+                    break
+            flush()
+            if stop.is_set():
+                break
+            pos = slot * slot_bytes
+            for d in dgs:
+                n = len(d.payload)
+                shm.buf[pos:pos + n] = d.payload
+                pos += n
+            meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs],
+                            dtype=np.int64).reshape(-1, 3)
+            conn.send(("frame", (slot, meta, run.last_events)))
+            if rec is not None:  # exactly what goes out, at its simulation time
+                pending.append((pcap_records(writer, dgs, rec.sensor_ip, rec.dest),
+                                run.labels_record(fr)))
+            produced += 1
+            marks.append((produced, run.mark()))
+            slot = (slot + 1) % SLOTS
+        else:
+            conn.send(("done", None))
+        while not stop.wait(0.05):  # the last frames are still going out
+            flush()
+            if os.getppid() != parent:
+                break
+        flush()
+        n_sent = int(sent.value)
+        counts, length, packets = next((m for n, m in marks if n == n_sent), marks[-1][1])
+        conn.send(("final", (counts, run.poses_csv(length), packets)))
+    except BaseException as err:  # reported by the sending side
+        with contextlib.suppress(Exception):
+            conn.send(("error", f"{type(err).__name__}: {err}"))
+    finally:
+        if fh is not None:
+            fh.close()
+        if lh is not None:
+            lh.close()
+
+
+def release(dgs: list[Datagram]) -> None:
+    for d in dgs:
+        if isinstance(d.payload, memoryview):
+            d.payload.release()
+
+
+class FrameRing:
+    """The frames of a :class:`~tcf_hil.devices.lidar.LidarRun` made ahead in a forked
+    producer process at a lower priority (:func:`produce`), each written into one of
+    :data:`SLOTS` shared-memory slots; only (slot, [(t_ns, port, length)]) crosses the pipe.
+    The sender takes a frame's datagrams as views of its slot (:meth:`frame`), sends them,
+    and hands the slot back (:meth:`sent`). With ``rec``, the producer writes the pcap of
+    exactly the frames sent."""
+
+    def __init__(self, run: Any, rec: PcapTarget | None) -> None:
+        from multiprocessing.shared_memory import SharedMemory
+
+        ctx = mp.get_context("fork")
+        self.run = run
+        self.slot_bytes = slot_bytes(run)
+        self.shm = SharedMemory(create=True, size=self.slot_bytes * SLOTS)
+        self._rx, tx = ctx.Pipe(duplex=False)
+        self._free = ctx.Semaphore(SLOTS)
+        self._stop = ctx.Event()
+        self._sent = ctx.RawValue("q", 0)  # frames finished by the sender, read by the producer
+        self._held: list[Datagram] = []  # views of the slot being sent
+        self.done = 0  # frames the sender has finished
+        self._child: Any = None
+        try:
+            self._child = ctx.Process(target=produce, args=(
+                run, tx, self._free, self.shm, self.slot_bytes, self._stop, self._sent, rec,
+                self._rx), name="lidar-frames", daemon=True)
+            self._child.start()
+        finally:
+            tx.close()
+
+    def receive(self, timeout: float) -> tuple[str, Any] | None:
+        """The producer's next message (``frame``, ``done``, ``final`` or ``error``), or
+        None after ``timeout`` s."""
+        try:
+            if self._rx.poll(timeout):
+                item: tuple[str, Any] = self._rx.recv()
+                return item
+        except (EOFError, OSError):
+            return ("error", "the frame producer died")
+        if not self._child.is_alive():
+            return ("error", "the frame producer died")
+        return None
+
+    def prime(self, stop: threading.Event) -> collections.deque[tuple[str, Any]]:
+        """Frames in hand before sending starts, so that the first ones are not late."""
+        ready: collections.deque[tuple[str, Any]] = collections.deque()
+        while len(ready) < SLOTS - 1 and not stop.is_set():
+            item = self.receive(0.05)
+            if item is not None:
+                ready.append(item)
+                if item[0] != "frame":
+                    break
+        return ready
+
+    def frame(self, slot: int, meta: np.ndarray) -> list[Datagram]:
+        """A frame's datagrams, as views of its slot (held until :meth:`sent`)."""
+        ends = (slot * self.slot_bytes + np.cumsum(meta[:, 2])).tolist()
+        starts = [slot * self.slot_bytes, *ends[:-1]] if ends else []
+        view = self.shm.buf
+        assert view is not None
+        self._held = [Datagram(t, port, view[a:b]) for (t, port, _n), a, b in
+                      zip(meta.tolist(), starts, ends, strict=True)]
+        del view
+        return self._held
+
+    def sent(self) -> None:
+        """The frame just sent: counted (before its slot goes back), its views released, its
+        slot handed back to the producer."""
+        self._sent.value = self.done + 1
+        release(self._held)
+        self._held = []
+        self._free.release()
+        self.done += 1
+
+    def finish(self, error: str | None) -> str | None:
+        """Stop the producer; it answers with the bookkeeping of exactly the frames sent
+        (restored into the run), writes the pcap's last frames and closes it. The error
+        that ended the stream, or the producer's, or None."""
+        self._stop.set()
+        deadline = time.monotonic() + 60.0
+        while error is None and time.monotonic() < deadline:
+            item = self.receive(0.2)
+            if item is None:
+                continue
+            if item[0] == "error":
+                error = item[1]
+            elif item[0] == "final":
+                self.run.restore(*item[1])
+                break
+        else:
+            error = error or "the frame producer did not answer"
+        self._child.join(timeout=30.0)
+        return error
+
+    def close(self) -> None:
+        """The producer stopped (terminated if it must be) and the ring freed. Never raises
+        for a producer already gone."""
+        self._stop.set()
+        release(self._held)  # an interrupted send still holds views of the ring
+        self._held = []
+        with contextlib.suppress(Exception):
+            for _ in range(SLOTS):
+                self._free.release()
+        if self._child is not None:
+            self._child.join(timeout=5.0)
+            if self._child.is_alive():
+                self._child.terminate()
+                self._child.join(timeout=5.0)
+        self._rx.close()
+        self.shm.unlink()
+        with contextlib.suppress(BufferError):
+            self.shm.close()
