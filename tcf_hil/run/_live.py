@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -20,10 +19,9 @@ from tcf_hil._io import write_bytes_atomic
 from tcf_hil.devices.endpoints import SensorHost
 from tcf_hil.devices.faults import FaultLog
 from tcf_hil.devices.harvester import HarvesterModel, run_harvester
-from tcf_hil.evaluation import EvalConfig
 from tcf_hil.run._figures import LiveFigures
 from tcf_hil.run._manifest import Manifest, SicRecord
-from tcf_hil.run._session import Announce, RunResult, RunSession, Wire, quiet
+from tcf_hil.run._session import Announce, Wire, quiet
 from tcf_hil.run._sic import sensor_url
 from tcf_hil.scenario import Scenario, scenario_to_dict
 
@@ -280,22 +278,3 @@ class LiveTraffic:
         if h is not None:
             manifest.can = {"bus": h.spec, "node_id": h.node_id, "frames_logged": h.log_frames,
                             "log_error": h.log_error, "conflict": h.conflict}
-
-
-def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
-               profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
-               speed: float = 1.0, can: str = "own", shell: bool = False,
-               sensor_ip: str | None = None, lead_s: float = 3.0, grace_s: float = 30.0,
-               duration_s: float | None = None, backend: str = "auto",
-               eval_cfg: EvalConfig | None = None, stop: threading.Event | None = None,
-               announce: Announce = quiet, progress: Any = None, ready_s: float = 15.0,
-               record_lidar: bool = True, on_start: Any = None,
-               watch: Callable[[LiveFigures], None] | None = None) -> RunResult:
-    """One live run of the program ``sic`` against ``scn`` into ``out``: a
-    :class:`RunSession` driving :class:`LiveTraffic` (see both)."""
-    traffic = LiveTraffic(scn, mode=mode, profile=profile, seed=seed, speed=speed,
-                          lead_s=lead_s, duration_s=duration_s, backend=backend,
-                          record_lidar=record_lidar, progress=progress, announce=announce)
-    return RunSession(traffic, sic, out, shell=shell, can=can, sensor_ip=sensor_ip,
-                      grace_s=grace_s, ready_s=ready_s, stop=stop, announce=announce,
-                      eval_cfg=eval_cfg, on_start=on_start, watch=watch).run()

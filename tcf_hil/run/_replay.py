@@ -19,7 +19,7 @@ from tcf_hil._io import write_bytes_atomic
 from tcf_hil.devices.endpoints import SensorHost
 from tcf_hil.run._figures import LiveFigures
 from tcf_hil.run._manifest import Manifest, SicRecord
-from tcf_hil.run._session import Announce, RunResult, RunSession, Wire, quiet
+from tcf_hil.run._session import Wire
 from tcf_hil.run._sic import sensor_url
 
 RECORDING_FILES = ("lidar.pcap", "can.log", "can.asc", "can.blf", "can.trc",
@@ -235,26 +235,3 @@ class ReplayTraffic:
         if self.sdo is not None:
             self.sdo.close()
         manifest.replay_sent = {k: v for k, v in self.sent.items() if k != "at_ns"}
-
-
-def replay_run(src: Path, sic: str | None, out: Path | None, *, speed: float = 1.0,
-               shell: bool = False, can_spec: str = "own", grace_s: float = 30.0,
-               lead_s: float = 3.0, ready_s: float = 15.0, sensor_ip: str | None = None,
-               http_port: int | None = 0, dest: str | None = None, loop: bool = False,
-               stop: threading.Event | None = None, announce: Announce = quiet,
-               eval_cfg: Any = None, meta: Path | None = None, can_log: Path | None = None,
-               can_offset_s: float = 0.0, ports: tuple[int | None, int | None] = (None, None),
-               progress: Callable[[int, int], None] | None = None,
-               truth: Path | None = None,
-               watch: Callable[[LiveFigures], None] | None = None) -> RunResult:
-    """``tcf-hil run --replay SRC --sic COMMAND``: another SIC scored on recorded traffic
-    (a run directory, or an Ouster pcap with ``meta`` and ``can_log``: see
-    :class:`ReplayTraffic`). The new run directory holds the same recording (replayable in
-    turn), this SIC's publications and score. With ``sic`` None (``tcf-hil replay``) the
-    traffic alone; ``progress(bytes, of bytes)`` while the recording is checked."""
-    traffic = ReplayTraffic(src, speed=speed, loop=loop, dest=dest, lead_s=lead_s, meta=meta,
-                            can_log=can_log, can_offset_s=can_offset_s, progress=progress,
-                            ports=ports, truth=truth)
-    return RunSession(traffic, sic, out, shell=shell, can=can_spec, sensor_ip=sensor_ip,
-                      http_port=http_port, grace_s=grace_s, ready_s=ready_s, stop=stop,
-                      announce=announce, eval_cfg=eval_cfg, watch=watch).run()

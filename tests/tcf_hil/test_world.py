@@ -51,3 +51,14 @@ def test_a_world_of_its_own_where_none_is_given(faulty) -> None:
 def test_the_scenery_asks_its_forest_for_the_track() -> None:
     forest = World.build(load_scenario("forest-i")).forest
     assert forest.track() is forest.track()
+
+
+def test_a_run_opens_its_traffic_from_its_source(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """A scenario is live traffic; a path is a recording, read (and checked) as it opens."""
+    from tcf_hil.errors import InputError
+    from tcf_hil.run import LiveTraffic, open_traffic
+
+    live = open_traffic(load_scenario("forest-i"), mode="512x10", speed=2.0)
+    assert isinstance(live, LiveTraffic) and live.speed == 2.0
+    with pytest.raises(InputError, match="not a tcf-hil run directory"):
+        open_traffic(tmp_path)  # an empty directory: not a recording
