@@ -51,10 +51,10 @@ class Pacer:
         """The wall time (``time.perf_counter_ns``) at which ``t_ns`` is due."""
         if self._t0 is None:
             self._t0 = (t_ns, time.perf_counter_ns())
-        if self.clock is not None:
-            return self.clock.monotonic_at(t_ns) - self._mono_minus_perf
         if self.speed == 0:
             return self._t0[1]
+        if self.clock is not None:
+            return self.clock.monotonic_at(t_ns) - self._mono_minus_perf
         return self._t0[1] + int((t_ns - self._t0[0]) / self.speed)
 
     def wait(self, t_ns: int) -> int:

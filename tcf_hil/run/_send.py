@@ -32,6 +32,7 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
     where datagrams go now (a client of the sensor's HTTP API may move them). ``sent``: the
     counters to keep up to date as it goes (``udp``, ``lidar``, ``can``, ``refused``, and
     ``at_ns``: the recording's time of the latest event); returned."""
+    pacer = Pacer(speed)  # read (events), pace (the pacer the live stream uses), send
     rec = rec or Recording.load(run_dir)
     stop = stop or threading.Event()
     dest = dest or rec.meta.udp_dest
@@ -43,7 +44,6 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
     sent.update(udp=0, lidar=0, can=0, refused=0, at_ns=0)
     lidar_port = rec.port_map.get(rec.meta.udp_port_lidar, rec.meta.udp_port_lidar)
     total = rec.counts["lidar"] + rec.counts["imu"] + rec.can_frames
-    pacer = Pacer(speed)  # read (events), pace (the pacer the live stream uses), send
     try:
         for n, (t, kind, item) in enumerate(events(rec, loop, node_id, answered=answered)):
             if stop.is_set():

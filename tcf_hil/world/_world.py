@@ -23,7 +23,9 @@ __all__ = ["World"]
 
 @dataclass(frozen=True)
 class World:
-    """What a run takes place in (:meth:`build` makes one)."""
+    """What a run takes place in (:meth:`build` makes one). One world serves one run: the
+    fault plans carry their draws' state as they are used, so a second run in the same
+    process builds a world of its own (or its faults would go on where the first left)."""
 
     scenario: Scenario
     seed: int  # the run's seed: the scenario's unless the run names one
