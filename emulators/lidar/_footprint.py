@@ -172,13 +172,18 @@ def lattice_rays(o: Any, d: Any, pix: Any, ra: Any, rb: Any, n0: int, n1: int, o
         oo[n, 0], oo[n, 1], oo[n, 2] = o[c, 0], o[c, 1], o[c, 2]
 
 
-def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
-                     grid_j: Any, grid_i: Any, S: int, V: int, pos: Any, H: int, ss: Any,
-                     r: Any, e: Any, t_sub: Any, prim_sub: Any, cn_sub: Any, dd: Any,
-                     stem_of_prim: Any, material_of_prim: Any, normals: Any, refl: Any,
-                     surf: bool, n_m: float, r_near: float, resolution: float, order: int,
-                     e1: Any, r1: Any, s1: Any, e2: Any, r2: Any, s2: Any) -> None:
-    """The two leading echoes (``order``: 0 strongest first, 1 nearest, 2 farthest) of the
+def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, grid: tuple[Any, ...],
+                     centre: tuple[Any, ...], lattice: tuple[Any, ...],
+                     surfaces: tuple[Any, ...], consts: tuple[Any, ...],
+                     out: tuple[Any, ...]) -> None:
+    """In groups (tuples, unpacked here; numba passes them as they are): ``grid`` (``wt,
+    row_j, grid_j, grid_i, S, V, pos, H``: the footprint's weights and slots, the lattice's
+    positions, the beams), ``centre`` (``ss, r, e``: the centre rays' echoes), ``lattice``
+    (``t_sub, prim_sub, cn_sub, dd``: the lattice rays cast), ``surfaces``
+    (``stem_of_prim, material_of_prim, normals, refl, surf``), ``consts`` (``n_m, r_near,
+    resolution, order``) and ``out`` (``e1, r1, s1, e2, r2, s2``).
+
+    The two leading echoes (``order``: 0 strongest first, 1 nearest, 2 farthest) of the
     flagged pixels ``idx[j0:j1]`` from their footprint's samples, in slots: the centre;
     with flag bit 1 the row's others (``row_j`` virtual columns away, ``S`` to a column);
     with bit 2 (always with bit 1) the other rows' (``grid_j`` virtual columns and
@@ -194,6 +199,12 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
     ``resolution``; an echo's range is its energy-weighted mean, its stem id that of its
     strongest sample (the nearest on a tie). Pixel ``idx[j]``'s echoes go to ``e1[j]``,
     ``r1[j]``, ``s1[j]`` (the first) and ``e2[j]``, ``r2[j]``, ``s2[j]`` (the second)."""
+    wt, row_j, grid_j, grid_i, S, V, pos, H = grid
+    ss, r, e = centre
+    t_sub, prim_sub, cn_sub, dd = lattice
+    stem_of_prim, material_of_prim, normals, refl, surf = surfaces
+    n_m, r_near, resolution, order = consts
+    e1, r1, s1, e2, r2, s2 = out
     K = wt.shape[1]
     KH = row_j.shape[0]
     W = ss.shape[0] // H
@@ -301,12 +312,14 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, wt: Any, row_j: Any,
                 e2[j], r2[j], s2[j] = eg, rg, sg
 
 
-def detect(e: Any, r: Any, sid: Any, v: Any, z: Any, i0: int, i1: int, scale: float,
-           gain: float, sg: float, width: float, s_sure: float, sigma_min: float,
-           sigma0: float, exponent: float, s_floor: float, min_r: float, max_r: float,
-           photons: float, r_near: float, q: int, w_range: Any, w_signal: Any, w_refl: Any,
-           sid_out: Any) -> None:
-    """One return for each of pixels i0 .. i1 (column-major) from its echo of energy ``e``
+def detect(echo: tuple[Any, ...], i0: int, i1: int, model: tuple[Any, ...],
+           words: tuple[Any, ...]) -> None:
+    """In groups: ``echo`` (``e, r, sid, v, z``: each pixel's echo and its two draws),
+    ``model`` (``scale, gain, sg, width, s_sure, sigma_min, sigma0, exponent, s_floor,
+    min_r, max_r, photons, r_near, q``: the return model's constants) and ``words``
+    (``w_range, w_signal, w_refl, sid_out``: written).
+
+    One return for each of pixels i0 .. i1 (column-major) from its echo of energy ``e``
     at range ``r``: detected where ``ln(s) / width`` of its signal ``s = e scale gain``
     exceeds the pixel's standard normal draw ``v`` (so with probability
     ``ndtr(ln(s) / width)``; above ``s_sure``, ``ln(s) / width`` > 9.5 and a draw under 9
@@ -314,6 +327,10 @@ def detect(e: Any, r: Any, sid: Any, v: Any, z: Any, i0: int, i1: int, scale: fl
     s^-exponent)`` (``sigma_min`` above ``s_floor``), kept within [min_r, max_r]; the
     words RANGE (mm in quanta of ``q``), SIGNAL and REFLECTIVITY and the stem id (-1
     none) into (N,) column-major arrays."""
+    e, r, sid, v, z = echo
+    (scale, gain, sg, width, s_sure, sigma_min, sigma0, exponent, s_floor, min_r, max_r,
+     photons, r_near, q) = model
+    w_range, w_signal, w_refl, sid_out = words
     for i in range(i0, i1):
         s = e[i] * scale * gain
         ok = False

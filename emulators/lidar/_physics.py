@@ -531,9 +531,10 @@ class Physics:
                                              f.k, f.run)))
         dd, ts, ps, cs = (np.concatenate([x[n] for x in lat]) if len(lat) > 1
                           else lat[0][n] for n in range(2, 6))
-        args = (g.weights, g.row_j, g.grid_j, g.grid_i, g.sub, g.rows, pos, H, ss, r, e,
-                ts, ps, cs, dd, f.sop, f.mop, f.nrm, self.refl, f.surf, f.n_m, self.R_NEAR,
-                m.range_resolution_m, self.ORDERS[m.return_order], *echoes)
+        args = ((g.weights, g.row_j, g.grid_j, g.grid_i, g.sub, g.rows, pos, H), (ss, r, e),
+                (ts, ps, cs, dd), (f.sop, f.mop, f.nrm, self.refl, f.surf),
+                (f.n_m, self.R_NEAR, m.range_resolution_m, self.ORDERS[m.return_order]),
+                echoes)
         if f.k is not None:
             f.run(f.k.footprint_echoes, [(idx, fl, a, b, *args)
                                          for a, b in _parts(len(idx), 1, 8)])
@@ -569,15 +570,16 @@ class Physics:
                 f.run(_draw, jobs)
             words = [np.empty(N, np.uint32) for _ in range(3)]
             sid_out = np.empty(N, np.int32)
-            args2 = (ee, rr, sd, u, z)
+            echo = (ee, rr, sd, u, z)
             consts: tuple[Any, ...] = (
                 self.scale, self.gain, self.sg, m.detection_width, s_sure,
                 m.range_sigma_min_m, m.range_sigma_m, m.range_sigma_exponent, s_floor,
-                m.min_range_m, self.carried_m, self.photons, self.R_NEAR, q, *words, sid_out)
+                m.min_range_m, self.carried_m, self.photons, self.R_NEAR, q)
+            out_words = (*words, sid_out)
             if f.k is not None:
-                f.run(f.k.detect, [(*args2, a, b, *consts) for a, b in f.parts])
+                f.run(f.k.detect, [(echo, a, b, consts, out_words) for a, b in f.parts])
             else:
-                self._detect_np(*args2, *consts)
+                self._detect_np(echo, consts, out_words)
             sfx = "2" if n_ret else ""
             for name, w in zip(("RANGE", "SIGNAL", "REFLECTIVITY"), words, strict=True):
                 flat[name + sfx] = w
@@ -687,14 +689,17 @@ class Physics:
         dd[:] = v / n[:, None]
         oo[:] = o[pix // (len(d) // len(o))]
 
-    def _echoes_np(self, idx: NDArray[np.intp], fl: NDArray[np.uint8], wt: FloatArray,
-                   row_j: Any, grid_j: Any, grid_i: Any, S: int, V: int, pos: Any, H: int,
-                   ss: Any, r: Any, e: Any, ts: FloatArray,
-                   ps: NDArray[np.int32], cs: NDArray[np.float32], dd: NDArray[np.float32],
-                   sop: Any, mop: Any,
-                   nrm: Any, refl: FloatArray, surf: bool, n_m: float, r_near: float,
-                   resolution: float, order: int, e1: Any, r1: Any, s1: Any, e2: Any,
-                   r2: Any, s2: Any) -> None:
+    def _echoes_np(self, idx: NDArray[np.intp], fl: NDArray[np.uint8],
+                   grid: tuple[Any, ...], centre: tuple[Any, ...], lattice: tuple[Any, ...],
+                   surfaces: tuple[Any, ...], consts: tuple[Any, ...],
+                   out: tuple[Any, ...]) -> None:
+        """:func:`~emulators.lidar._footprint.footprint_echoes` in numpy, the same groups."""
+        wt, row_j, grid_j, grid_i, S, V, pos, H = grid
+        ss, r, e = centre
+        ts, ps, cs, dd = lattice
+        sop, mop, nrm, refl, surf = surfaces
+        n_m, r_near, resolution, order = consts
+        e1, r1, s1, e2, r2, s2 = out
         K = wt.shape[1]
         M = len(idx)
         W = len(ss) // H
@@ -782,12 +787,13 @@ class Physics:
             ea[filled], ra[filled], sa[filled] = ((e[f_at], r[f_at], ss[f_at]) if n_ret == 0
                                                   else (0.0, np.inf, -1))
 
-    def _detect_np(self, e: FloatArray, r: FloatArray, sid: NDArray[np.int32], u: FloatArray,
-                   z: FloatArray, scale: float, gain: float, sg: float, width: float,
-                   s_sure: float, sigma_min: float, sigma0: float, exponent: float,
-                   s_floor: float, min_r: float, max_r: float, photons: float, r_near: float,
-                   q: int, w_range: NDArray[np.uint32], w_signal: NDArray[np.uint32],
-                   w_refl: NDArray[np.uint32], sid_out: NDArray[np.int32]) -> None:
+    def _detect_np(self, echo: tuple[Any, ...], model: tuple[Any, ...],
+                   words: tuple[Any, ...]) -> None:
+        """:func:`~emulators.lidar._footprint.detect` in numpy, the same groups."""
+        e, r, sid, u, z = echo
+        (scale, gain, sg, width, _s_sure, sigma_min, sigma0, exponent, _s_floor, min_r, max_r,
+         photons, r_near, q) = model
+        w_range, w_signal, w_refl, sid_out = words
         s = e * scale * gain
         with np.errstate(divide="ignore"):
             ls = np.log(np.where(s > 0, s, 1.0))
