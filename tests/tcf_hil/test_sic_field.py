@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from tcf_hil.sic import fit_circle, stem_params
@@ -78,6 +78,9 @@ def test_circle_fits_find_a_noisy_arc(r: float, arc: float, rel_noise: float, se
     noise = min(rel_noise * r, 0.003)
     g = np.random.default_rng(seed)
     xy = _arc(g, 3.0, -2.0, r, arc, 80, noise)
+    # 80 uniform draws can leave a hole of 60 degrees (seed 16777217 on 302): two arcs, which
+    # stem_circle rejects on purpose (one stem's bark is one arc); the claim is for one arc
+    assume(arc_fill(xy, 3.0, -2.0, r) >= 0.5)
     rs = ransac_circle(xy, r_max=0.5, tol=max(4 * noise, 0.004))
     assert rs is not None
     assert math.hypot(rs[0] - 3.0, rs[1] + 2.0) < 0.02 + 4 * noise
