@@ -66,55 +66,67 @@ def _wait_blocks(counter: Any, nb: int) -> None:
 
 
 @numba.njit(cache=True, nogil=True)
-def _open_block(a: int, b: int, template: Any, packets: Any, ts_words: Any, ts: Any,
-                beams: Any, mt: Any, oc: Any, o: Any, d: Any) -> None:
-    """Columns a .. b (whole packets) begun: their packets copied from ``template``, their
-    column times written into ``ts_words``, their rays made into ``o``/``d``."""
+def _open_block(a: int, b: int, packets: tuple[Any, ...], rays: tuple[Any, ...], o: Any,
+                d: Any) -> None:
+    """Columns a .. b (whole packets) begun: their packets copied from the template, their
+    column times written (``packets``: ``template, packets, ts_words, ts``), their rays
+    made into ``o``/``d`` (``rays``: ``beams, mt, oc``)."""
+    template, out, ts_words, ts = packets
+    beams, mt, oc = rays
     C = ts_words.shape[1]
     for p in range(a // C, b // C):  # element loops: numba's slice assignment is slower
-        for q in range(packets.shape[1]):
-            packets[p, q] = template[p, q]
+        for q in range(out.shape[1]):
+            out[p, q] = template[p, q]
     for c in range(a, b):
         ts_words[c // C, c % C] = ts[c]
     _make_rays(beams, mt, oc, a, o, d)  # type: ignore[misc]  # compiled: this module needs numba
 
 
 @numba.njit(cache=True, nogil=True)
-def _take_block(counter: Any, starts: Any, width: int, template: Any, packets: Any,
-                ts_words: Any, ts: Any, beams: Any, mt: Any, oc: Any, o: Any, d: Any) -> int:
-    """The next block this thread takes, begun (:func:`_open_block`): its first column,
-    or -1 when none is left."""
+def _take_block(blocks: tuple[Any, ...], packets: tuple[Any, ...], rays: tuple[Any, ...],
+                o: Any, d: Any) -> int:
+    """The next block this thread takes (``blocks``: ``starts, counter, wait_all,
+    width``), begun (:func:`_open_block`): its first column, or -1 when none is left."""
+    starts, counter, _, width = blocks
     a = _next_block(counter, starts)
     if a >= 0:
-        _open_block(a, a + width, template, packets, ts_words, ts, beams, mt, oc, o, d)
+        _open_block(a, a + width, packets, rays, o, d)
     return a
 
 
 @numba.njit(cache=True, nogil=True)
-def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: Any, oc: Any,
-                       starts: Any, counter: Any, wait_all: bool, width: int, o_all: Any,
-                       d_all: Any, template: Any, packets: Any, ts_words: Any, ts: Any,
-                       noise: Any, n_m: float, min_r: float, reach_ground: float, reach_bark: float,
-                       range_units: float, range_mult: int, luts: Any, signal32: Any,
-                       clamp_signal: bool, w_range: Any, w_refl: Any, w_nir: Any,
-                       w_signal: Any, refl_in_range: bool, sid_out: Any, t_out: Any,
-                       ok_out: Any) -> None:
-    """The blocks of ``width`` columns starting at ``starts`` of a frame, as many as this
-    thread takes: several threads run this call on the same frame at once, each taking the
-    next block when done. ``counter`` (int64, shared): the next block; 0 while the caller
-    still makes ``mt``/``oc`` (this call waits), 1 to go, 2 to stop at once; the blocks
-    done (``wait_all``: return only once all are, not just those this call took).
+def cast_answer_blocks(direct: tuple[Any, ...], rays: tuple[Any, ...],
+                       blocks: tuple[Any, ...], packets: tuple[Any, ...],
+                       kept: tuple[Any, ...], noise: Any, enc: tuple[Any, ...],
+                       words: tuple[Any, ...], out: tuple[Any, ...]) -> None:
+    """The blocks of columns of a frame, as many as this thread takes: several threads run
+    this call on the same frame at once, each taking the next block when done. In groups
+    (tuples, unpacked here; numba passes them as they are):
 
-    Each block: its packets copied from ``template`` (the frame's packets with every
-    column encoded at time 0, :func:`protocols.ouster.encode_lidar_columns`) and its column
-    times written into ``ts_words`` (:meth:`protocols.ouster.PacketFormat.column_timestamps`);
-    its rays (into ``o_all``/``d_all`` (W, H, 3) where they are kept, DUAL; else (0, 0, 0))
-    from the frame's factors ``mt`` (3, W, 3) and origins ``oc`` (W, 3); each cast (``fn``
-    is ``rtcIntersect1``, ``scene`` its handles, ``stem_of_prim`` the stem id by primitive
-    with -1 last for a miss); then :func:`~emulators.lidar._kernel.answer_chunk` with the
-    rest of the arguments, which are whole-frame too (the word views (P, C, H), ``noise``
-    (W, H) or (0, 0))."""
-    H = beams.shape[0]
+    - ``direct`` (``fn, scene, stem_of_prim``): ``fn`` is ``rtcIntersect1``, ``scene`` its
+      handles, ``stem_of_prim`` the stem id by primitive with -1 last for a miss;
+    - ``rays`` (``beams, mt, oc``): the beams' unit vectors and the frame's factors ``mt``
+      (3, W, 3) and origins ``oc`` (W, 3);
+    - ``blocks`` (``starts, counter, wait_all, width``): the blocks of ``width`` columns
+      starting at ``starts``; ``counter`` (int64, shared): the next block; 0 while the
+      caller still makes ``mt``/``oc`` (this call waits), 1 to go, 2 to stop at once; the
+      blocks done (``wait_all``: return only once all are, not just those this call took);
+    - ``packets`` (``template, packets, ts_words, ts``): the frame's packets with every
+      column encoded at time 0 (:func:`protocols.ouster.encode_lidar_columns`), the frame's
+      packets, their column time words
+      (:meth:`protocols.ouster.PacketFormat.column_timestamps`) and the column times;
+    - ``kept`` (``o_all, d_all``): (W, H, 3) where the rays are kept (DUAL), else (0, 0, 0);
+    - ``noise`` (W, H) or (0, 0), and ``enc``, ``words`` (whole-frame word views (P, C,
+      H); each block slices its own) and ``out``:
+      :func:`~emulators.lidar._kernel.answer_chunk`'s.
+
+    Each block: its packets copied from the template and its column times written, its rays
+    made and each cast, then :func:`~emulators.lidar._kernel.answer_chunk`."""
+    fn, scene, stem_of_prim = direct
+    starts, counter, wait_all, width = blocks
+    o_all, d_all = kept
+    w_range, w_refl, w_nir, w_signal = words
+    H = rays[0].shape[0]
     C = w_range.shape[1]
     keep = o_all.shape[0] > 0
     o = np.empty((width, H, 3), np.float32)
@@ -124,8 +136,7 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
     rf, ru, addr = new_rayhit()
     go = _wait_go(counter)
     while go:
-        a = _take_block(counter, starts, width, template, packets, ts_words, ts, beams, mt,
-                        oc, o, d)
+        a = _take_block(blocks, packets, rays, o, d)
         if a < 0:
             break
         b = a + width
@@ -141,41 +152,45 @@ def cast_answer_blocks(fn: int, scene: int, stem_of_prim: Any, beams: Any, mt: A
                         o_all[a + c, h, q] = o[c, h, q]
                         d_all[a + c, h, q] = d[c, h, q]
         _answer_chunk(  # type: ignore[misc]  # compiled: this module needs numba
-            t, sid, noise[a:b] if noise.shape[0] > 0 else noise[:0], a, n_m, min_r,
-            reach_ground, reach_bark, range_units, range_mult, luts, signal32, clamp_signal,
-            w_range[p0:p1], w_refl[p0:p1], w_nir[p0:p1],
-            w_signal[p0:p1] if w_signal.shape[0] > 0 else w_signal[:0], refl_in_range,
-            sid_out, t_out, ok_out)
+            t, sid, noise[a:b] if noise.shape[0] > 0 else noise[:0], a, enc,
+            (w_range[p0:p1], w_refl[p0:p1], w_nir[p0:p1],
+             w_signal[p0:p1] if w_signal.shape[0] > 0 else w_signal[:0]), out)
         _fetch_add(counter, 2, 1)  # type: ignore[call-arg]
     if wait_all and go:
         _wait_blocks(counter, starts.shape[0])
 
 
 @numba.njit(cache=True, nogil=True)
-def cast_centre_blocks(fn: int, scene: int, beams: Any, mt: Any, oc: Any, starts: Any,
-                       counter: Any, wait_all: bool, width: int, o_all: Any, d_all: Any,
-                       template: Any, packets: Any, ts_words: Any, ts: Any, n_m: float,
-                       reach: float, prim_all: Any, cn_all: Any, t_all: Any, stem_of_prim: Any,
-                       material_of_prim: Any, normals: Any, refl: Any, r_near: float,
-                       ambient: float, ss: Any, r: Any, e: Any, nir: Any) -> None:
+def cast_centre_blocks(direct: tuple[Any, ...], rays: tuple[Any, ...],
+                       blocks: tuple[Any, ...], packets: tuple[Any, ...],
+                       kept: tuple[Any, ...], consts: tuple[Any, ...], hits: tuple[Any, ...],
+                       surfaces: tuple[Any, ...], echoes: tuple[Any, ...]) -> None:
     """:func:`cast_answer_blocks` for the physical sensor model: each block's packets
-    copied from ``template`` and its column times written, its rays made (directions into
-    ``d_all`` (W, H, 3), each column's origin into ``o_all[:, 0]``) and cast, and instead
-    of the ideal answer the centre rays' echoes
-    (:func:`~emulators.lidar._footprint.centre_echoes`, whole-frame (N,) column-major
-    arrays from ``ss`` on) from the primitives hit (``prim_all``, -1 none; a curve's |cos
-    incidence| into ``cn_all``) and distances
-    (``t_all``, inf none or beyond ``reach`` from the lidar axis): the pixel words are the
-    physics' to write."""
-    H = beams.shape[0]
+    copied from the template and its column times written, its rays made (directions into
+    ``d_all`` (W, H, 3), each column's origin into ``o_all[:, 0]``; ``kept``: ``o_all,
+    d_all``) and cast, and instead of the ideal answer the centre rays' echoes
+    (:func:`~emulators.lidar._footprint.centre_echoes`). ``direct`` (``fn, scene``),
+    ``rays``, ``blocks`` and ``packets`` as :func:`cast_answer_blocks`'; ``consts``
+    (``n_m, reach, r_near, ambient``); ``hits`` (``prim_all, cn_all, t_all``, whole-frame
+    (N,) column-major: the primitives hit, -1 none; a curve's |cos incidence|; the
+    distances, inf none or beyond ``reach`` from the lidar axis); ``surfaces``
+    (``stem_of_prim, material_of_prim, normals, refl``) and ``echoes`` (``ss, r, e, nir``,
+    (N,)): the pixel words are the physics' to write."""
+    fn, scene = direct
+    starts, counter, wait_all, width = blocks
+    o_all, d_all = kept
+    n_m, reach, r_near, ambient = consts
+    prim_all, cn_all, t_all = hits
+    stem_of_prim, material_of_prim, normals, refl = surfaces
+    ss, r, e, nir = echoes
+    H = rays[0].shape[0]
     o = np.empty((width, H, 3), np.float32)
     d = np.empty((width, H, 3), np.float32)
     d_flat = d_all.reshape(-1, 3)
     rf, ru, addr = new_rayhit()
     go = _wait_go(counter)
     while go:
-        a = _take_block(counter, starts, width, template, packets, ts_words, ts, beams, mt,
-                        oc, o, d)
+        a = _take_block(blocks, packets, rays, o, d)
         if a < 0:
             break
         b = a + width

@@ -21,18 +21,22 @@ def answer_kernel() -> Callable[..., None] | None:
     return compiled(answer_chunk)
 
 
-def answer_chunk(t: Any, sid: Any, noise: Any, col0: int, n_m: float, min_r: float,
-                  reach_ground: float, reach_bark: float, range_units: float,
-                  range_mult: int, luts: Any, signal32: Any, clamp_signal: bool,
-                  w_range: Any, w_refl: Any, w_nir: Any, w_signal: Any,
-                  refl_in_range: bool, sid_out: Any, t_out: Any, ok_out: Any) -> None:
+def answer_chunk(t: Any, sid: Any, noise: Any, col0: int, enc: tuple[Any, ...],
+                 words: tuple[Any, ...], out: tuple[Any, ...]) -> None:
     """Columns col0 .. col0 + n of a frame. ``t``/``sid`` (n, H): the cast, column-major;
-    ``noise`` (n, H) or (0, 0); ``w_*`` (packets, columns, H): the pixel words of
-    RANGE, REFLECTIVITY, NEAR_IR and SIGNAL in the chunk's zeroed packets (SIGNAL
-    (0, 0, 0) where the profile has none; ``refl_in_range``: REFLECTIVITY shares
-    RANGE's word, and is or-ed in); ``luts`` (2, 3) the REFLECTIVITY and NEAR_IR words
-    by class; ``sid_out`` (W, H); ``t_out``/``ok_out`` (W, H) or (0, 0): the first return
-    for DUAL."""
+    ``noise`` (n, H) or (0, 0). In groups (tuples, unpacked here; numba passes them as they
+    are): ``enc`` (``n_m, min_r, reach_ground, reach_bark, range_units, range_mult, luts,
+    signal32, clamp_signal, refl_in_range``: the encoding's constants; ``luts`` (2, 3) the
+    REFLECTIVITY and NEAR_IR words by class; ``refl_in_range``: REFLECTIVITY shares RANGE's
+    word, and is or-ed in), ``words`` (``w_range, w_refl, w_nir, w_signal``, each
+    (packets, columns, H): the pixel words of RANGE, REFLECTIVITY, NEAR_IR and SIGNAL in
+    the chunk's zeroed packets, SIGNAL (0, 0, 0) where the profile has none) and ``out``
+    (``sid_out`` (W, H); ``t_out``/``ok_out`` (W, H) or (0, 0): the first return for
+    DUAL)."""
+    (n_m, min_r, reach_ground, reach_bark, range_units, range_mult, luts, signal32,
+     clamp_signal, refl_in_range) = enc
+    w_range, w_refl, w_nir, w_signal = words
+    sid_out, t_out, ok_out = out
     n, H = t.shape
     C = w_range.shape[1]
     noisy = noise.shape[0] > 0

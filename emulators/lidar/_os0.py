@@ -621,13 +621,11 @@ class Os0Emulator:
             N = W * H
             centre = (np.empty(N, np.int32), np.empty(N), np.empty(N), np.empty(N, np.uint32))
             prim_all, t_phys = np.empty(N, np.int32), np.empty(N)
-            tail = (o_all, d_all, self._template_here(), job.packets, job.views[-1], job.ts,
-                    self.n_m, float(self._reach[0]), prim_all, job.cn_all.reshape(-1), t_phys,
-                    surfaces.stem_of_prim,
-                    surfaces.material_of_prim, surfaces.normals, physics.refl,
-                    physics.R_NEAR, physics.model.ambient, *centre)
-            pos, rot = self._fused_frame(cast_centre_blocks, (*direct[:2], self._beams32),
-                                         job, pieces, tail)
+            tail = ((self.n_m, float(self._reach[0]), physics.R_NEAR, physics.model.ambient),
+                    (prim_all, job.cn_all.reshape(-1), t_phys),
+                    (surfaces.stem_of_prim, surfaces.material_of_prim, surfaces.normals,
+                     physics.refl), centre)
+            pos, rot = self._fused_frame(cast_centre_blocks, direct[:2], job, pieces, tail)
         elif direct is not None and fused is not None:
             pos, rot = self._fused_frame(fused, direct, job, pieces)
         else:
@@ -741,20 +739,19 @@ class Os0Emulator:
         fmt, W = self._fmt, self.meta.columns
         width = math.lcm(math.gcd(W, self.FUSED_BLOCK_COLUMNS), fmt.columns_per_packet)
         none3 = np.zeros((0, 0, 0), np.float32)
-        if tail is not None:  # another fused kernel's: its own head and tail
-            head = (*direct, job.mt, job.oc)
-            tail = (width, *tail)
-        else:
-            head = (*direct, self._beams32, job.mt, job.oc)
-            answer = self._answer_args(job, 0, W)  # whole-frame; each block slices its own
-            tail = (width, job.o_all if job.o_all is not None else none3,
-                    job.d_all if job.d_all is not None else none3, self._template_here(),
-                    job.packets, job.views[-1], job.ts, answer[0], *answer[2:])
+        rays = (self._beams32, job.mt, job.oc)
+        packets = (self._template_here(), job.packets, job.views[-1], job.ts)
+        kept = (job.o_all if job.o_all is not None else none3,
+                job.d_all if job.d_all is not None else none3)
+        if tail is None:  # the ideal answer's: answer_chunk's, whole-frame (each block
+            tail = self._answer_args(job, 0, W)  # slices its own words)
+            tail = (tail[0], *tail[2:])
         starts = np.arange(0, W, width)
         counter = np.zeros(3, np.int64)  # the next block, go (1) or stop (2), blocks done
         n = min(self.threads, len(starts))
         pool = self._pool_here() if n > 1 else None
-        helpers = [pool.submit(fused, *head, starts, counter, False, *tail)
+        helpers = [pool.submit(fused, direct, rays, (starts, counter, False, width), packets,
+                               kept, *tail)
                    for _ in range(n - 1)] if pool is not None else []
         try:
             pos, rot = self._poses(job, pieces)
@@ -765,7 +762,7 @@ class Os0Emulator:
                 f.result()
             raise
         self._pending = helpers
-        fused(*head, starts, counter, True, *tail)
+        fused(direct, rays, (starts, counter, True, width), packets, kept, *tail)
         return pos, rot
 
     def _chunk(self, job: _FrameJob, a: int, b: int) -> None:
@@ -819,13 +816,13 @@ class Os0Emulator:
         k = self._kernel
         none2 = np.zeros((0, 0))
         words = [v[a // C:b // C] for v in job.views[:-1]]
-        return (job.noise[a:b] if job.noise is not None else none2, a,
-                self.n_m, self._min_r, self._reach[0], self._reach[1],
-                self._range_units, self._range_mult, k["luts"], self._signal32,
-                k["clamp"], *words[:3], words[3] if len(words) == 4 else words[2][:0],
-                k["words"][0] == k["words"][1], job.sid,
-                job.t_all if job.t_all is not None else none2,
-                job.ok_all if job.ok_all is not None else np.zeros((0, 0), bool))
+        enc = (self.n_m, self._min_r, self._reach[0], self._reach[1], self._range_units,
+               self._range_mult, k["luts"], self._signal32, k["clamp"],
+               k["words"][0] == k["words"][1])
+        out = (job.sid, job.t_all if job.t_all is not None else none2,
+               job.ok_all if job.ok_all is not None else np.zeros((0, 0), bool))
+        return (job.noise[a:b] if job.noise is not None else none2, a, enc,
+                (*words[:3], words[3] if len(words) == 4 else words[2][:0]), out)
 
     def _answer_numpy(self, job: _FrameJob, a: int, b: int, t: NDArray[np.float32],
                       sid: NDArray[np.int32]) -> None:

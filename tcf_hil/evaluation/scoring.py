@@ -40,13 +40,16 @@ class Scores:
 class ScoredForest:
     """A SIC's final forest scored once: the scores, the forest as a table and as the
     document it published, the truth document, and the configuration. A run makes one and
-    hands it to the report and the export, which no longer score the forest again."""
+    hands it to the report and the export, which no longer score the forest again (nor read
+    the track again: ``track``, the sensor's horizontal track as the run read it, (n, 2),
+    where it did)."""
 
     scores: Scores
     forest: StemTable
     forest_doc: dict[str, Any]
     truth_doc: dict[str, Any]
     config: EvalConfig
+    track: NDArray[np.float64] | None = None
 
 
 DISTANCE_BANDS_M = ((0.0, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 25.0), (25.0, math.inf))

@@ -90,9 +90,13 @@ def build_report(run_dir: str | Path, manifest: dict[str, Any] | None = None,
         manifest = read_json(run / "manifest.json") if (run / "manifest.json").exists() else {}
     from tcf_hil.results.export import STEM_COLUMNS, stem_outcomes, track_xy
 
-    gt_doc = read_json(run / "ground_truth.json") if (run / "ground_truth.json").exists() \
-        else None
-    track = track_xy(run)  # (every 64th column: millimetres apart, fine for drawing too)
+    if scored is not None:  # as the run read them: the truth and the track
+        gt_doc: dict[str, Any] | None = scored.truth_doc
+        track = scored.track if scored.track is not None else track_xy(run)
+    else:
+        gt_doc = read_json(run / "ground_truth.json") \
+            if (run / "ground_truth.json").exists() else None
+        track = track_xy(run)  # (every 64th column: millimetres apart, fine for drawing too)
     gts, obs = stem_outcomes(run, gt_doc, track, scored)
     frame = _Frame.around(gts, obs, track)
     cloud = _cloud(run, frame, manifest, say)

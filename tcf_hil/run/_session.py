@@ -511,30 +511,32 @@ class RunSession:
                 {"n": p.n, "file": f"sic/{p.file}", "error": p.error} for p in inbox.invalid],
             "timeline": timeline,
         }
+        track = None
         if scores is not None:
+            from tcf_hil.results.export import track_xy
+
+            track = track_xy(out)  # read once: the bands here, the report's map
             score_doc.update(scores.summary())
-            score_doc["by_distance"] = _bands(out, scores, latest)
+            score_doc["by_distance"] = _bands(scores, latest, track)
         if manifest.faults is not None:  # the score next to what was done to the SIC
             score_doc["faults"] = manifest.faults.get("injected", {})
         write_json_atomic(out / "score.json", score_doc)
         result = RunResult(out, status, message, scores, manifest, rc, len(inbox.items),
                            len(inbox.invalid), timeline)
         if scores is not None and gt_doc is not None:  # the report takes it as scored here
-            latest_doc = (read_json(out / "sic" / valid[-1].file) if valid
-                          else {"objects": []})
+            latest_doc = inbox.doc_of(valid[-1]) if valid else {"objects": []}
             write_report(out / "report.html", out, manifest.to_dict(), scored=ScoredForest(
-                scores, latest, latest_doc, gt_doc, cfg or EvalConfig()))
+                scores, latest, latest_doc, gt_doc, cfg or EvalConfig(), track))
         return result
 
 
-def _bands(out: Path, scores: Scores, latest: Any) -> dict[str, Any] | None:
+def _bands(scores: Scores, latest: Any, track: Any) -> dict[str, Any] | None:
     """score.json's ``by_distance``: the scoring of all trees per band of distance from the
-    recorded track (none where the run has no sensor_poses.csv)."""
+    recorded track (``track``: :func:`tcf_hil.results.export.track_xy`; none where the run
+    has no sensor_poses.csv)."""
     from tcf_hil.evaluation.scoring import by_distance
-    from tcf_hil.results.export import track_xy
     from tcf_hil.world.track import distance_to_track
 
-    track = track_xy(out)
     if not len(track):
         return None
     gt = scores.gt_all

@@ -31,6 +31,7 @@ class Publication:
     error: str | None
     objects: int | None
     table: StemTable | None = field(default=None, repr=False)
+    doc: dict[str, Any] | None = field(default=None, repr=False)  # the latest's, with its table
 
     def index_row(self) -> dict[str, Any]:
         return {"n": self.n, "file": self.file, "via": self.via,
@@ -57,6 +58,7 @@ class Inbox:
             write_bytes_atomic(self.dir / name, raw)
             arrival = time.monotonic() - self.t0
             table: StemTable | None = None
+            doc: dict[str, Any] | None = None
             err: str | None = None
             if len(raw) > MAX_PUBLICATION_BYTES:
                 err = f"{len(raw)} bytes; at most {MAX_PUBLICATION_BYTES} accepted"
@@ -67,11 +69,12 @@ class Inbox:
                 except InputError as e:
                     err = str(e)
             pub = Publication(n, name, via, arrival, len(raw), table is not None, err,
-                              len(table) if table is not None else None, table)
+                              len(table) if table is not None else None, table,
+                              doc if table is not None else None)
             if table is not None:  # only the latest valid table stays in memory (a long run
                 for old in reversed(self.items):  # publishes hundreds): see table_of()
                     if old.table is not None:
-                        old.table = None
+                        old.table = old.doc = None
                         break
             self.items.append(pub)
             self._index.write(json.dumps(pub.index_row()) + "\n")
@@ -89,6 +92,16 @@ class Inbox:
         return stem_table(loads_json((self.dir / pub.file).read_text(encoding="utf-8",
                                                                      errors="replace"), name),
                           name, "observed")
+
+    def doc_of(self, pub: Publication) -> dict[str, Any]:
+        """The document of a valid publication (read back from its file unless it is the
+        latest)."""
+        if pub.doc is not None:
+            return pub.doc
+        if not pub.valid:
+            raise ValueError(f"publication {pub.n} is not valid: {pub.error}")
+        return loads_json((self.dir / pub.file).read_text(encoding="utf-8", errors="replace"),
+                          f"sic/{pub.file}")
 
     @property
     def valid(self) -> list[Publication]:
