@@ -2,10 +2,26 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+
 import pytest
 
 from tcf_hil.scenario import load_scenario
 from tcf_hil.world.forest import Forest, generate_forest
+
+
+# The render store of this test session: its own, empty folder (never the user's cache, so
+# nothing an earlier run or install stored decides a test; subprocesses inherit it).
+os.environ["TCF_HIL_CACHE"] = tempfile.mkdtemp(prefix="tcf-hil-cache-")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _render_cache() -> Iterator[None]:
+    yield
+    shutil.rmtree(os.environ["TCF_HIL_CACHE"], ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

@@ -9,7 +9,7 @@ from emulators.harvester._bus import (
     parse_bus_spec,
     socketcand_answers,
 )
-from emulators.harvester._clock import SimClock
+from emulators.harvester._clock import RunClock, SimClock
 from emulators.harvester._log import CanLog, check_log_path
 from emulators.harvester._node import (
     HarvesterNode,
@@ -21,7 +21,8 @@ from emulators.harvester._node import (
 
 __all__ = [
     "DEFAULT_SOCKETCAND_PORT", "BusSpec", "BusSpecError", "CanLog", "HarvesterNode",
-    "NodeConfig", "NodeStats", "SimClock", "check_log_path", "describe", "kernel_has_vcan",
+    "NodeConfig", "NodeStats", "RunClock", "SimClock", "check_log_path", "describe",
+    "kernel_has_vcan",
     "node_id_in_use",
     "parse_bus_spec", "socketcand_answers",
 ]

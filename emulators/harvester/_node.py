@@ -27,7 +27,7 @@ import canopen
 
 from emulators.faults import CanFaultPlan, FaultEvent
 from emulators.harvester._bus import BusSpec
-from emulators.harvester._clock import SimClock
+from emulators.harvester._clock import RunClock, SimClock
 from protocols.harvester import (
     DATUM,
     HARVESTER_OD,
@@ -130,7 +130,7 @@ class HarvesterNode:
     (``cfg.listen_s``) can tell.
     """
 
-    def __init__(self, bus: BusSpec, pose_at: Callable[[int], Pose], clock: SimClock,
+    def __init__(self, bus: BusSpec, pose_at: Callable[[int], Pose], clock: SimClock | RunClock,
                  cfg: NodeConfig = NodeConfig(), *, eds: Path | None = None,
                  on_frame: Callable[[can.Message], None] | None = None,
                  faults: CanFaultPlan | None = None,

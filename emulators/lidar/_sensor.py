@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from emulators.faults import FaultEvent, LidarFaultPlan, UdpFaults, next_init_id
-from emulators.lidar._os0 import FrameResult, Os0Emulator
+from emulators.lidar._os0 import FrameResult
 from emulators.lidar._stream import Datagram
 from protocols.ouster import ImuPacket, SensorMetadata, encode_imu_packet, finish_lidar_packets
 
@@ -28,6 +28,18 @@ class ImuSource(Protocol):
 
     def imu(self, t_ns: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """(acceleration (n, 3) m/s^2 gravity included, angular rate (n, 3) rad/s)."""
+        ...
+
+
+class FrameSource(Protocol):
+    """What makes a sensor's frames (:class:`~emulators.lidar.Os0Emulator`, or a standing
+    machine's frames sent again): frame k starts at ``start_ns + k * period_ns``."""
+
+    start_ns: int
+    period_ns: int
+
+    def frame(self, k: int) -> FrameResult:
+        """Frame k, its packets encoded, their headers and CRCs left to the sensor."""
         ...
 
 
@@ -51,7 +63,7 @@ class Os0Sensor:
     follows a re-initialisation (a new ``init_id``). ``first_frame_id``: the frame_id of the
     first frame, as of a sensor that has been running a while (16 bits: it wraps)."""
 
-    def __init__(self, emu: Os0Emulator, meta: SensorMetadata, imu: ImuSource, *,
+    def __init__(self, emu: FrameSource, meta: SensorMetadata, imu: ImuSource, *,
                  lidar_faults: LidarFaultPlan | None = None,
                  udp_faults: UdpFaults | None = None, crc_rows: CrcRows | None = None,
                  first_frame_id: int = 0, first_imu_ns: int | None = None) -> None:

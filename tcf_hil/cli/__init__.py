@@ -20,7 +20,7 @@ import traceback
 import click
 
 from tcf_hil import __version__
-from tcf_hil.cli import experiment, export, forest, harvester, lidar, run, score
+from tcf_hil.cli import experiment, export, forest, harvester, lidar, render, run, score
 from tcf_hil.cli._shared import ExitStatus, Group, err_console, terminate
 from tcf_hil.errors import TcfHilError
 
@@ -39,6 +39,7 @@ def cli(ctx: click.Context, traceback: bool) -> None:
     Start here:
       tcf-hil demo                          the main job: a live run of the reference SIC
       tcf-hil run forest-v --sic "./my_sic --port {lidar_port}"   your onboard program
+      tcf-hil render pine-thinning          render a heavy scene ahead: its runs are real time
       tcf-hil scenario list                 the paper's Forests I-X
       tcf-hil forest generate forest-v --out forest-v/
       tcf-hil score ground_truth.json observed.json --plots plots/
@@ -52,10 +53,10 @@ def cli(ctx: click.Context, traceback: bool) -> None:
 
 
 # the teaching order of `tcf-hil --help`
-for _cmd in (run.demo, run.run_cmd, run.replay_cmd, run.sic_cmd, forest.scenario,
-             forest.forest, score.detect, score.score, export.export_cmd, lidar.lidar,
-             harvester.harvester, run.soak_cmd, harvester.can_server, experiment.experiment,
-             experiment.bench_cmd):
+for _cmd in (run.demo, run.run_cmd, run.replay_cmd, run.sic_cmd, render.render_cmd,
+             render.cache, forest.scenario, forest.forest, score.detect, score.score,
+             export.export_cmd, lidar.lidar, harvester.harvester, run.soak_cmd,
+             harvester.can_server, experiment.experiment, experiment.bench_cmd):
     cli.add_command(_cmd)
 
 

@@ -206,6 +206,13 @@ def _print_side_by_side(a: Any, b: Any, preset: str) -> None:
 @click.option("--replay", "replay_dir", type=click.Path(exists=True, path_type=Path),
               default=None, help="Send recorded traffic instead of the live emulators: a "
                                  "run directory, or an Ouster pcap (with --meta, --can-log).")
+@click.option("--render", type=click.Choice(["auto", "stored", "live"]), default="auto",
+              show_default=True,
+              help="Where the frames come from: auto streams the render store's frames "
+                   "where tcf-hil render stored this run's (the bench then only paces and "
+                   "copies), else renders each frame as it is due; stored renders the whole "
+                   "track into the store first (with progress) and streams from it; live "
+                   "always renders as it goes. The bytes are the same either way.")
 @_recording_options
 @click.option("--truth", type=click.Path(dir_okay=False, exists=True, path_type=Path),
               default=None, help="With --replay: the ground truth to score against, a "
@@ -217,7 +224,7 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
             seed: int | None, out: Path | None, speed: float, duration: float | None,
             can_spec: str, grace: float, ready_s: float, replay_dir: Path | None,
             meta: Path | None, can_log: Path | None, can_offset: float, truth: Path | None,
-            faults: tuple[str, ...], sensor: str | None) -> None:
+            faults: tuple[str, ...], sensor: str | None, render: str) -> None:
     """A hardware-in-the-loop run of an onboard SIC program against SCENARIO.
 
     \b
@@ -273,7 +280,7 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     finish(_session(lambda stop, say, live: run_bridge(
         scn, command, out, mode=mode, profile=profile, seed=seed, speed=speed,
         duration_s=duration, can=can_spec, shell=shell, grace_s=grace, ready_s=ready_s,
-        stop=stop, announce=say, watch=live.watch), out))
+        stop=stop, announce=say, watch=live.watch, render=render), out))
 
 
 @click.command("replay")

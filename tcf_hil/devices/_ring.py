@@ -58,9 +58,13 @@ class PcapTarget:
 
 def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
              stop: Any, sent: Any, rec: PcapTarget | None = None,
-             parent_end: Any = None) -> None:
+             parent_end: Any = None, air: tuple[Any, ...] | None = None) -> None:
     """Producer process: writes each frame's datagrams into a shared-memory slot and sends
-    only (slot, [(t_ns, port, length)]) down the pipe, then ("done", None) after the last.
+    only (slot, [(t_ns, port, length)], fault events, phase) down the pipe, then ("done",
+    None) after the last. ``air``: an always-on sensor's plan and its standing machines
+    (:meth:`~tcf_hil.devices.lidar.LidarRun.on_air`: frames before the track, the track,
+    and after it until stopped; the pcap keeps those before and the track), else the
+    track's frames only (phase ``track``).
     ``sent`` (shared) counts the frames the sender has finished. When the sender sets
     ``stop``, answers ("final", bookkeeping) as of exactly those frames (it runs a few frames
     ahead), and with ``rec`` the pcap holds exactly those frames too."""
@@ -109,7 +113,10 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
         if fh is not None and lh is not None:
             fh.write(writer.header())
             lh.write(run.labels_header())
-        for fr, dgs in run.datagrams():
+        frames = run.on_air(*air) if air is not None else (
+            ("track", rf) for rf in run.rendered())
+        for phase, rf in frames:
+            dgs = rf.datagrams
             while not free.acquire(timeout=0.2):
                 flush()
                 if stop.is_set() or os.getppid() != parent:
@@ -125,10 +132,11 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
                 pos += n
             meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs],
                             dtype=np.int64).reshape(-1, 3)
-            conn.send(("frame", (slot, meta, run.last_events)))
-            if rec is not None:  # exactly what goes out, at its simulation time
-                pending.append((pcap_records(writer, dgs, rec.sensor_ip, rec.dest),
-                                run.labels_record(fr)))
+            conn.send(("frame", (slot, meta, run.last_events if phase == "track" else [],
+                                 phase)))
+            if rec is not None:  # exactly what goes out, at its simulation time (the
+                pending.append((pcap_records(writer, dgs, rec.sensor_ip, rec.dest), rf.labels)
+                               if phase != "after" else (b"", b""))  # stand after: not kept
             produced += 1
             marks.append((produced, run.mark()))
             slot = (slot + 1) % SLOTS
@@ -166,7 +174,8 @@ class FrameRing:
     and hands the slot back (:meth:`sent`). With ``rec``, the producer writes the pcap of
     exactly the frames sent."""
 
-    def __init__(self, run: Any, rec: PcapTarget | None) -> None:
+    def __init__(self, run: Any, rec: PcapTarget | None, air: tuple[Any, ...] | None = None
+                 ) -> None:
         from multiprocessing.shared_memory import SharedMemory
 
         ctx = mp.get_context("fork")
@@ -183,7 +192,7 @@ class FrameRing:
         try:
             self._child = ctx.Process(target=produce, args=(
                 run, tx, self._free, self.shm, self.slot_bytes, self._stop, self._sent, rec,
-                self._rx), name="lidar-frames", daemon=True)
+                self._rx, air), name="lidar-frames", daemon=True)
             self._child.start()
         finally:
             tx.close()

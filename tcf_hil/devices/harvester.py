@@ -9,6 +9,7 @@ time stamp for the recorder and for tests.
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -26,6 +27,7 @@ from emulators.harvester import (
     HarvesterNode,
     NodeConfig,
     NodeStats,
+    RunClock,
     SimClock,
     kernel_has_vcan,
     node_id_in_use,
@@ -190,14 +192,15 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
                   log_path: Path | None = None, speed: float = 1.0,
                   duration_s: float | None = None, sync_producer: bool = True,
                   autostart: bool = True, stop: threading.Event | None = None,
-                  clock: SimClock | None = None, t0_ns: int = 1_000_000_000,
+                  clock: SimClock | RunClock | None = None, t0_ns: int = 1_000_000_000,
                   on_tick: Callable[[float, float], None] | None = None,
                   faults: CanFaultPlan | None = None,
                   on_fault: Callable[[FaultEvent], None] | None = None,
                   on_conflict: Callable[[str], None] | None = None,
                   on_node: Callable[[NodeStats], None] | None = None,
                   world: World | None = None,
-                  model: HarvesterModel | None = None) -> HarvesterRunResult:
+                  model: HarvesterModel | None = None,
+                  until_stop: bool = False) -> HarvesterRunResult:
     """Drive the scenario's track in (scaled) real time with the node on ``spec`` until the
     track ends (plus one second standing), ``duration_s`` of simulation time, or ``stop``.
     ``faults``/``on_fault``: injected CAN faults and where their events go (default: the
@@ -205,7 +208,8 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
     bus stops it at once: the result's ``conflict`` says so, and ``on_conflict`` hears it.
     ``on_node`` gets the node's live :class:`~emulators.harvester.NodeStats` as it starts.
     ``world``: the run's world (its track, seed and fault plans), resolved once, in place of
-    ``terrain``, ``seed`` and ``t0_ns``; ``model``: the node's model built from it already."""
+    ``terrain``, ``seed`` and ``t0_ns``; ``model``: the node's model built from it already.
+    ``until_stop``: publish until ``stop`` (an always-on run's node), whatever the track."""
     if model is None:
         model = (HarvesterModel.from_world(world) if world is not None
                  else HarvesterModel.from_scenario(scn, terrain, seed, t0_ns))
@@ -229,8 +233,8 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
             return HarvesterRunResult(str(spec), cfg.node_id, 0.0, {}, 0, log_path,
                                       None, twin)
     clock = clock or SimClock.start(model.trajectory.t0_ns, speed)
-    end_ns = (model.trajectory.end_ns + 1_000_000_000 if duration_s is None
-              else clock.t0_ns + round(duration_s * 1e9))
+    end_ns: int | None = (None if until_stop else model.trajectory.end_ns + 1_000_000_000
+                          if duration_s is None else clock.t0_ns + round(duration_s * 1e9))
     stop = stop or threading.Event()
     can_log: CanLog | None = None
     if faults is None and world is not None:
@@ -245,14 +249,15 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
         if log_path is not None:  # first, so that it sees the boot-up
             can_log = CanLog(log_path, spec).start()
         node.start()
-        total = (end_ns - clock.t0_ns) / 1e9
+        total = (end_ns - clock.t0_ns) / 1e9 if end_ns is not None else math.inf
         while not stop.is_set() and not clash.is_set():
             now = clock.now_ns()
             if on_tick is not None:
                 on_tick((now - clock.t0_ns) / 1e9, total)
-            if now >= end_ns:
+            if end_ns is not None and now >= end_ns:
                 break
-            clash.wait(min(0.2, max(0.0, (end_ns - now) / 1e9 / clock.speed)))
+            clash.wait(0.2 if end_ns is None else
+                       min(0.2, max(0.0, (end_ns - now) / 1e9 / clock.speed)))
     finally:
         node.stop()
         if can_log is not None:
@@ -265,7 +270,8 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
         st["tpdo_period_us_p50"] = float(np.median(bt))
         st["tpdo_jitter_us_p99"] = float(np.percentile(np.abs(bt - period), 99))
     return HarvesterRunResult(str(spec), cfg.node_id,
-                              (min(clock.now_ns(), end_ns) - clock.t0_ns) / 1e9, st,
+                              (min(clock.now_ns(), end_ns if end_ns is not None
+                                   else clock.now_ns()) - clock.t0_ns) / 1e9, st,
                               can_log.frames if can_log else 0, log_path,
                               can_log.error if can_log else None, node.conflict)
 

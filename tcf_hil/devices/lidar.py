@@ -8,6 +8,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import csv
+import dataclasses
 import gc
 import io
 import math
@@ -46,10 +47,73 @@ from tcf_hil._rotations import quaternions
 from tcf_hil.devices._ring import FrameRing, PcapTarget, pcap_records
 from tcf_hil.devices.faults import FaultLog
 from tcf_hil.errors import ConfigError
+from tcf_hil.recording.store import (
+    RenderedFrame,
+    RenderStore,
+    RenderWriter,
+    StoredRender,
+    render_key,
+)
 from tcf_hil.scenario import Scenario
 from tcf_hil.world import World
 from tcf_hil.world.forest import Forest, ground_truth
 from tcf_hil.world.track import warm_up as warm_up_poses
+
+RENDER_MODES = ("auto", "stored", "live")  # where a run's frames come from (LidarRun)
+# Frames of the standing machine rendered once (1 s at 10 Hz) and sent again, restamped: its
+# range noise repeats each second (a real sensor's would not); the geometry does not change.
+STANDING_CYCLE = 10
+
+
+@dataclass
+class OnAir:
+    """An always-on sensor's plan, shared with the frame producer (a forked process): the
+    sensor powers on at simulation time ``power_on_ns`` (whole frames before the track's
+    start) and sends the machine standing at the track's start until its frame
+    ``track_at.value`` since power-on (-1: not decided yet; at the latest when the
+    simulation reaches the track's start), then the track, then the machine standing where
+    the track left it until the stream is stopped. ``track_at``: a shared integer
+    (``multiprocessing.RawValue("q")`` made before the fork)."""
+
+    power_on_ns: int
+    track_at: Any
+
+
+class _StandingPose:
+    """The track's sensor pose and IMU frozen at ``t_ns`` (a machine standing there)."""
+
+    def __init__(self, track: Any, t_ns: int) -> None:
+        self.track, self.t_ns = track, t_ns
+
+    def sensor_pose(self, t_ns: Any) -> tuple[Any, Any]:
+        return self.track.sensor_pose(np.full(len(np.atleast_1d(t_ns)), self.t_ns, np.int64))
+
+    def imu(self, t_ns: Any) -> tuple[Any, Any]:
+        n = len(np.atleast_1d(t_ns))
+        acc, _ = self.track.imu(np.full(max(n, 1), self.t_ns, np.int64))
+        return acc[:n], np.zeros((n, 3))  # standing: no rotation
+
+
+class _StandingEmulator:
+    """Frames of a standing machine for any frame k of the simulation time line (``start_ns
+    + k period``): one of a cycle of frames rendered once, its column times moved to frame
+    k's (the packet headers and CRCs are the sensor's to finish, as the emulator's)."""
+
+    def __init__(self, cycle: list[FrameResult], cycle_start_ns: int, start_ns: int,
+                 period_ns: int, fmt: Any) -> None:
+        self.cycle, self.cycle_start_ns = cycle, cycle_start_ns
+        self.start_ns, self.period_ns, self.fmt = start_ns, period_ns, fmt
+
+    def frame(self, k: int) -> FrameResult:
+        t = self.start_ns + k * self.period_ns
+        i = ((t - self.cycle_start_ns) // self.period_ns) % len(self.cycle)
+        fr = self.cycle[i]
+        # (added modulo 2^64: a move back in time wraps to the right, non-negative times)
+        delta = np.uint64((t - (self.cycle_start_ns + i * self.period_ns)) % (1 << 64))
+        arr = fr.packets.copy()
+        self.fmt.column_timestamps(arr)[...] += delta
+        return dataclasses.replace(fr, frame_index=k, timestamps_ns=fr.timestamps_ns + delta,
+                                   packets=arr)
 
 
 @dataclass(frozen=True)
@@ -95,7 +159,8 @@ class LidarRun:
                  udp_port_lidar: int = 7502, udp_port_imu: int = 7503,
                  meta: SensorMetadata | None = None, t0_ns: int = 1_000_000_000,
                  faults: bool = True, keep_poses: bool = True, forest: Forest | None = None,
-                 first_frame_id: int = 0, world: World | None = None) -> None:
+                 first_frame_id: int = 0, world: World | None = None,
+                 store: RenderStore | None = None, render: str = "live") -> None:
         """``faults``: inject the scenario's ``[faults]`` (UDP and lidar) into the datagrams;
         each frame's fault events are in :attr:`last_events` after it is yielded.
         ``keep_poses``: keep every column's sensor pose for ``sensor_poses.csv`` (about
@@ -105,7 +170,14 @@ class LidarRun:
         that has been running a while (frame_id is 16 bits: 65536 frames wrap it).
         ``world``: the run's world, resolved once (:class:`~tcf_hil.world.World`), whose
         forest, track, scene and fault plans the sensor takes; without it the sensor resolves
-        one of its own from ``scn``, ``seed``, ``t0_ns``, ``forest`` and its ports."""
+        one of its own from ``scn``, ``seed``, ``t0_ns``, ``forest`` and its ports.
+        ``store`` and ``render``: where the frames come from (:data:`RENDER_MODES`): ``live``
+        renders each as it is asked for; ``auto`` sends the render ``store`` holds for this
+        run where it is complete (:attr:`render_key`), else renders live; ``stored`` always
+        sends from the store (:meth:`render_into_store` first where the render is missing)."""
+        if render not in RENDER_MODES:
+            raise ConfigError("render", render, f"one of {', '.join(RENDER_MODES)}")
+        self._own_forest = forest is not None and world is None
         if world is None:
             ports = ((meta.udp_port_lidar, meta.udp_port_imu) if meta is not None
                      else (udp_port_lidar, udp_port_imu))
@@ -147,23 +219,222 @@ class LidarRun:
         self.lidar_faults = plans.lidar if plans else None
         self.last_events: list[FaultEvent] = []
         self.last_sent = False
+        self.faults_on = faults
+        self.model = model
+        self.store = store if render != "live" else None
+        self.render_mode = render
+        self.stored: StoredRender | None = None  # the render the frames come from, if any
+        self.writer: RenderWriter | None = None  # where rendered frames are kept, if anywhere
+        if self.store is not None:
+            key = self.render_key
+            if key is None and render == "stored":
+                raise ConfigError("render", render, "a forest built by the caller cannot be "
+                                  "stored (its scenario does not say what it holds)")
+            if key is not None:
+                self.stored = self.store.open(key)
 
-    def datagrams(self) -> Iterator[tuple[FrameResult, list[Datagram]]]:
-        """Each frame with the datagrams that leave the sensor for it (the sensor's per-frame
-        behaviour is :class:`emulators.lidar.Os0Sensor`'s); the returns each stem got and the
-        column poses are kept for the sidecar files."""
+    @property
+    def _packets_per_frame(self) -> int:
+        return self.meta.packet_format.packets_per_frame
+
+    @property
+    def track_frames(self) -> int:
+        """Frames of the whole track (a run may send fewer: ``max_frames``)."""
+        return max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
+
+    def render_doc(self) -> dict[str, Any] | None:
+        """Everything that decides this run's frames' bytes (the render store's key is made
+        of it with the code's version), or None for a forest built by the caller."""
+        if self._own_forest:
+            return None
+        from tcf_hil.scenario import scenario_to_dict
+
+        meta = dataclasses.asdict(self.meta)
+        for name in ("udp_dest", "udp_port_lidar", "udp_port_imu", "extra"):
+            meta.pop(name, None)  # not in the bytes: where they go
+        return {"scenario": scenario_to_dict(self.world.scenario), "seed": self.forest.seed,
+                "backend": self.backend, "t0_ns": self.track.t0_ns,
+                "frames": self.track_frames, "first_frame_id": self.first_frame_id,
+                "faults": self.faults_on, "model": None if self.model is None
+                else dataclasses.asdict(self.model), "sensor": meta}
+
+    @property
+    def render_key(self) -> str | None:
+        doc = self.render_doc()
+        return None if doc is None else render_key(doc)
+
+    @property
+    def ports(self) -> tuple[int, int]:
+        """The lidar and IMU ports the datagrams are made for."""
+        return self.meta.udp_port_lidar, self.meta.udp_port_imu
+
+    def render_into_store(self, progress: Callable[[int, int], None] | None = None) -> int:
+        """Every frame of the track rendered into the store (resumed after the last whole
+        frame a render cut short kept), unless it is there already; then the run sends from
+        it. Frames rendered now (0: all were stored)."""
+        if self.store is None:
+            raise ConfigError("render", self.render_mode, "'auto' or 'stored' (a store)")
+        key = self.render_key
+        doc = self.render_doc()
+        if key is None or doc is None:
+            raise ConfigError("render", self.render_mode, "a scenario's own forest")
+        if self.stored is not None:
+            return 0
+        frames, self.frames = self.frames, self.track_frames
+        writer = self.store.writer(key, doc, self.track_frames)
+        done = writer.frames
+        keep = self.keep_poses
+        self.keep_poses = False  # the store keeps the poses; this run's bookkeeping not
+        try:
+            self.writer = writer
+            for rf in self._render_live(start=done):
+                writer.append(rf, self.ports)
+                if progress is not None:
+                    progress(rf.k + 1, self.track_frames)
+            writer.complete()
+        finally:
+            self.writer = None
+            writer.close()
+            self.frames, self.keep_poses = frames, keep
+        self._reset_bookkeeping()
+        self.stored = self.store.open(key)
+        return self.track_frames - done
+
+    def _reset_bookkeeping(self) -> None:
+        self.counts[:] = 0
+        self.packets = 0
+        self._poses = io.StringIO()
+        self._pw = csv.writer(self._poses, lineterminator="\n")
+        self._pw.writerow(["time_ns", "x", "y", "z", "qw", "qx", "qy", "qz"])
+
+    def rendered(self) -> Iterator[RenderedFrame]:
+        """Each frame in the compact form the render store keeps, from the store where this
+        run sends a stored render, else rendered now; the bookkeeping (returns per stem,
+        packets, poses, fault events) follows each as it is yielded, the same either way.
+        A ``stored`` run whose render is missing renders it into the store first."""
+        if self.stored is None and self.render_mode == "stored":
+            self.render_into_store()
+        if self.stored is not None:
+            ports = self.ports
+            for k in range(self.frames):
+                rf = self.stored.frame(k, ports)
+                self._take(rf)
+                yield rf
+            return
+        for rf in self._render_live():
+            self._take(rf)
+            yield rf
+
+    def _render_live(self, start: int = 0) -> Iterator[RenderedFrame]:
+        """Frames ``start`` .. of this run rendered now (the sensor's per-frame behaviour is
+        :class:`emulators.lidar.Os0Sensor`'s; the frames before ``start`` are rendered only
+        as far as the sensor's state needs: a frame's fault draws and the IMU's times)."""
         sensor = Os0Sensor(self.emu, self.meta, self.track, lidar_faults=self.lidar_faults,
                            udp_faults=self.udp_faults, crc_rows=fast_crc_rows(),
                            first_frame_id=self.first_frame_id, first_imu_ns=self.track.t0_ns)
+        poses = self.keep_poses or self.writer is not None
         for k in range(self.frames):
             sf = sensor.frame(k)
-            self.meta = sensor.meta
-            self.last_events = sf.events
-            fr = sf.result
-            self.last_sent = sf.sent
-            if sf.sent:
-                self._count(fr)
-            yield fr, sf.datagrams
+            if k < start:
+                continue
+            yield self._compact(k, sf, sensor.meta.init_id, poses)
+
+    def _compact(self, k: int, sf: Any, init_id: int, poses: bool) -> RenderedFrame:
+        """A sensor frame in the store's compact form."""
+        fr = sf.result
+        ids = counts = np.zeros(0, np.int64)
+        labels = rows = b""
+        if sf.sent:
+            ts = fr.timestamps_ns
+            labels = encode_labels_record(int(ts[0]), int(ts[-1]), fr.stem_id, fr.stem_id2)
+            hit = fr.stem_id[fr.stem_id >= 0]
+            if fr.stem_id2 is not None:  # the DUAL profile's second returns count too
+                hit = np.concatenate([hit, fr.stem_id2[fr.stem_id2 >= 0]])
+            per = np.bincount(hit, minlength=len(self.counts))[: len(self.counts)]
+            ids = np.flatnonzero(per).astype(np.int64)
+            counts = per[ids].astype(np.int64)
+            if poses:
+                rows = self._pose_rows(fr)
+        return RenderedFrame(k, sf.datagrams, labels, rows, ids, counts, sf.events, sf.action,
+                             init_id, fr)
+
+    def _pose_rows(self, fr: FrameResult) -> bytes:
+        """``sensor_poses.csv``'s rows of a frame's columns."""
+        q = quaternions(fr.rotations)
+        p = fr.positions + self.forest.origin
+        buf = io.StringIO()
+        csv.writer(buf, lineterminator="\n").writerows(
+            [int(t), f"{a:.6f}", f"{b:.6f}", f"{c:.6f}", f"{w:.9f}", f"{x:.9f}",
+             f"{y:.9f}", f"{z:.9f}"]
+            for t, (a, b, c), (w, x, y, z) in zip(fr.timestamps_ns.tolist(), p.tolist(),
+                                                  q.tolist(), strict=True))
+        return buf.getvalue().encode()
+
+    def _take(self, rf: RenderedFrame) -> None:
+        """A frame's bookkeeping, as it is yielded."""
+        if rf.init_id != self.meta.init_id:
+            self.meta = self.meta.with_changes(init_id=rf.init_id)
+        self.last_events = rf.events
+        self.last_sent = rf.sent
+        if not rf.sent:
+            return
+        self.packets += self._packets_per_frame
+        self.counts[rf.hit_ids] += rf.hit_counts  # (ids once each)
+        if self.keep_poses:
+            self._poses.write(rf.poses.decode())
+
+    def standing(self, at_ns: int) -> _StandingEmulator:
+        """The machine standing at the track's pose at ``at_ns``: a cycle of
+        :data:`STANDING_CYCLE` frames rendered now, sent again with the times of any
+        frame."""
+        period = self.emu.period_ns
+        start = at_ns - STANDING_CYCLE * period if at_ns < self.track.t0_ns else at_ns
+        emu = Os0Emulator(self.meta, self.scene, _StandingPose(self.track, at_ns), self.model,
+                          seed=self.forest.seed, start_ns=start,
+                          threads=self.scene.caster.threads, sensor=self.sensor)
+        cycle = [emu.frame(i) for i in range(STANDING_CYCLE)]
+        return _StandingEmulator(cycle, start, self.track.t0_ns, period,
+                                 self.meta.packet_format)
+
+    def on_air(self, air: OnAir, before: _StandingEmulator, after: _StandingEmulator
+               ) -> Iterator[tuple[str, RenderedFrame]]:
+        """An always-on sensor's frames from power-on (:class:`OnAir`), each with its phase:
+        ``before`` the track (the machine standing at its start, :meth:`standing`), the
+        ``track`` (:meth:`rendered`, with its bookkeeping) and ``after`` it (standing where
+        it stopped), endless. Standing frames carry no labels, poses nor returns: they are
+        not scored."""
+        period, t0 = self.emu.period_ns, self.track.t0_ns
+        most = (t0 - air.power_on_ns) // period  # standing frames before, at the most
+        fid = self.first_frame_id
+        sensor = Os0Sensor(before, self.meta, _StandingPose(self.track, t0 - period),
+                           crc_rows=fast_crc_rows(), first_frame_id=fid,
+                           first_imu_ns=air.power_on_ns)
+        j = 0
+        while j < most:
+            at = int(air.track_at.value)
+            if 0 <= at <= j:
+                break
+            yield "before", self._standing_frame(sensor.frame(j - most))
+            j += 1
+        yield from (("track", rf) for rf in self.rendered())
+        end = t0 + self.frames * period
+        sensor = Os0Sensor(after, self.meta, _StandingPose(self.track, end),
+                           crc_rows=fast_crc_rows(), first_frame_id=fid, first_imu_ns=end)
+        k = self.frames
+        while True:
+            yield "after", self._standing_frame(sensor.frame(k))
+            k += 1
+
+    def _standing_frame(self, sf: Any) -> RenderedFrame:
+        none = np.zeros(0, np.int64)
+        return RenderedFrame(sf.result.frame_index, sf.datagrams, b"", b"", none, none, [],
+                             sf.action, self.meta.init_id)
+
+    def datagrams(self) -> Iterator[tuple[FrameResult | None, list[Datagram]]]:
+        """Each frame (the emulator's result; None for a stored frame) with the datagrams
+        that leave the sensor for it (:meth:`rendered`)."""
+        for rf in self.rendered():
+            yield rf.result, rf.datagrams
 
     def labels_header(self) -> bytes:
         """``lidar_labels.bin``'s header: the image size and what each object id is."""
@@ -173,30 +444,6 @@ class LidarRun:
         fmt = self.meta.packet_format
         return encode_labels_header(fmt.pixels_per_column, fmt.columns_per_frame,
                                     fmt.profile.returns > 1, self.n_stems, comp)
-
-    def labels_record(self, fr: FrameResult) -> bytes:
-        """The object each pixel's return hit in the frame just yielded (empty if it did not
-        leave with lidar packets: the capture has no frame to match)."""
-        if not self.last_sent:
-            return b""
-        ts = fr.timestamps_ns
-        return encode_labels_record(int(ts[0]), int(ts[-1]), fr.stem_id, fr.stem_id2)
-
-    def _count(self, fr: FrameResult) -> None:
-        self.packets += fr.packets.shape[0]
-        hit = fr.stem_id[fr.stem_id >= 0]
-        if fr.stem_id2 is not None:  # the DUAL profile's second returns count too
-            hit = np.concatenate([hit, fr.stem_id2[fr.stem_id2 >= 0]])
-        self.counts += np.bincount(hit, minlength=len(self.counts))[: len(self.counts)]
-        if not self.keep_poses:
-            return
-        q = quaternions(fr.rotations)
-        p = fr.positions + self.forest.origin
-        self._pw.writerows(
-            [int(t), f"{a:.6f}", f"{b:.6f}", f"{c:.6f}", f"{w:.9f}", f"{x:.9f}",
-             f"{y:.9f}", f"{z:.9f}"]
-            for t, (a, b, c), (w, x, y, z) in zip(fr.timestamps_ns.tolist(), p.tolist(),
-                                                  q.tolist(), strict=True))
 
     def mark(self) -> tuple[np.ndarray, int, int]:
         """The bookkeeping so far (returns per stem, length of the poses CSV, packets), for
@@ -301,9 +548,9 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
                 atomic_path(out / LABELS) as ltmp, open(ltmp, "wb") as lh:
             fh.write(writer.header())
             lh.write(run.labels_header())
-            for k, (fr, dgs) in enumerate(run.datagrams()):
-                fh.write(pcap_records(writer, dgs, sensor_ip, dest))
-                lh.write(run.labels_record(fr))
+            for k, rf in enumerate(run.rendered()):
+                fh.write(pcap_records(writer, rf.datagrams, sensor_ip, dest))
+                lh.write(rf.labels)
                 if flog is not None:
                     for ev in run.last_events:
                         flog.log(ev, "lidar")
@@ -329,6 +576,8 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                  on_fault: Callable[[FaultEvent], None] | None = None, pcap: bool = True,
                  route: Route | None = None,
                  on_sender: Callable[[SendStats], None] | None = None,
+                 air: tuple[OnAir, Any, Any] | None = None,
+                 on_track_end: Callable[[], None] | None = None,
                  **run_kw: Any) -> RecordResult:
     """Send the run live over UDP from ``sensor_ip`` to ``dest``, paced from the simulation
     clock (``speed`` 1.0 = real time, 0 = as fast as possible).
@@ -350,8 +599,12 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     ``route``: where the datagrams go now (the sensor's HTTP API moves it when a client
     sets ``udp_dest`` or the ports); the pcap keeps the destination the run was made with.
     ``on_sender`` gets the sender's live :class:`~emulators.lidar.SendStats` as it starts.
-    The result's ``frames`` counts the frames that left with lidar packets (a
-    re-initialisation's silence and dropped frames are not sent).
+    The result's ``frames`` counts the track's frames that left with lidar packets (a
+    re-initialisation's silence and dropped frames are not sent). ``air``: an always-on
+    sensor (:class:`OnAir` with its standing machines before and after the track,
+    :meth:`LidarRun.standing`): it sends from power-on, the track when the plan says, and
+    then stands until ``stop`` (``on_track_end`` is told when the first frame after the
+    track goes out); ``progress`` counts the track's frames.
     """
     run_kw.setdefault("udp_dest", dest)
     run = run or LidarRun(scn, **run_kw)
@@ -368,7 +621,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     try:
         with contextlib.ExitStack() as outputs:  # the pcap renamed into place only if all
             rec = _pcap_target(out, pcap, pcap_in_place, outputs, sensor_ip, dest)  # succeeds
-            ring = FrameRing(run, rec)
+            ring = FrameRing(run, rec, air)
             if forked is not None:
                 forked.set()
             ready = ring.prime(stop)
@@ -381,8 +634,8 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                              clock=clock, route=route) as sender:
                 if on_sender is not None:
                     on_sender(sender.stats)
-                error, on_wire = _send_frames(run, ring, ready, sender, stop, on_fault,
-                                              progress)
+                error, on_wire, track_sent = _send_frames(run, ring, ready, sender, stop,
+                                                          on_fault, progress, on_track_end)
                 stats = sender.stats
             error = ring.finish(error)
             if error is not None:  # no pcap of a failed run
@@ -393,7 +646,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
         if ring is not None:
             ring.close()
     if out is not None:
-        run.frames = ring.done
+        run.frames = track_sent
         run.write_sidecars(out)
     return run.result(out, frames=on_wire, pacing_us=stats.pacing_us(), refused=stats.refused,
                       realtime=stats.realtime,
@@ -418,32 +671,44 @@ def _pcap_target(out: Path | None, pcap: bool, in_place: bool, outputs: contextl
 def _send_frames(run: LidarRun, ring: FrameRing, ready: collections.deque[tuple[str, Any]],
                  sender: PacedSender, stop: threading.Event,
                  on_fault: Callable[[FaultEvent], None] | None,
-                 progress: Callable[[int, int], None] | None) -> tuple[str | None, int]:
+                 progress: Callable[[int, int], None] | None,
+                 on_track_end: Callable[[], None] | None = None
+                 ) -> tuple[str | None, int, int]:
     """The pacing loop: each frame from the ring sent at its time, its fault events logged
-    as it goes out, until the producer is done, fails, or ``stop``. The error (or None) and
-    the frames that left with lidar packets."""
-    on_wire = 0
+    as it goes out, until the producer is done, fails, or ``stop``. The error (or None),
+    the track's frames that left with lidar packets, and the track's frames handled."""
+    on_wire = track = 0
+    ended = False
     while not stop.is_set():
         item = ready.popleft() if ready else ring.receive(1.0)
         if item is None:
             continue
         kind, body = item
         if kind == "error":
-            return body, on_wire
+            return body, on_wire, track
         if kind == "done":
             break
-        slot, meta, events = body
+        slot, meta, events, phase = body
+        if phase == "after" and not ended:
+            ended = True
+            if on_track_end is not None:
+                on_track_end()
         for ev in events:  # logged as the frame they struck goes out
             if ev["kind"] == "lidar_reinit":  # the sidecars: the new identity
                 run.meta = run.meta.with_changes(init_id=ev["init_id"])
             if on_fault is not None:
                 on_fault(ev)
         sender.send(ring.frame(slot, meta))
-        on_wire += bool(len(meta)) and bool((meta[:, 1] == run.meta.udp_port_lidar).any())
         ring.sent()
+        if phase != "track":
+            continue
+        on_wire += bool(len(meta)) and bool((meta[:, 1] == run.meta.udp_port_lidar).any())
+        track += 1
         if progress:
-            progress(ring.done, run.frames)
-    return None, on_wire
+            progress(track, run.frames)
+    if not ended and on_track_end is not None:
+        on_track_end()
+    return None, on_wire, track
 
 
 def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int = 80,

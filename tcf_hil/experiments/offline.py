@@ -119,15 +119,19 @@ def drive(run: LidarRun, model: HarvesterModel, sics: list[OfflineSic],
     next_pose = run.track.t0_ns - LEAD_NS
     lp = run.meta.udp_port_lidar
     frames, emu_s = 0, 0.0
-    it = run.datagrams()
+    it = run.rendered()
     while True:
         t0 = time.perf_counter()
         try:
-            fr, dgs = next(it)
+            dgs = next(it).datagrams
         except StopIteration:
             break
         emu_s += time.perf_counter() - t0
-        t_end = int(fr.timestamps_ns.max()) + period_ns
+        # a lidar packet leaves at its last column's time: the frame's last is the latest
+        last = max((d.t_ns for d in dgs if d.port == lp), default=None)
+        if last is None:
+            last = max((d.t_ns for d in dgs), default=next_pose - period_ns)
+        t_end = int(last) + period_ns
         times = []
         while next_pose <= t_end:
             times.append(next_pose)

@@ -125,6 +125,9 @@ class _Poses:
             raise InputError(str(path), "header", f"{head}; expected time_ns,x,y,z,qw,qx,qy,qz")
         self._body = self._fh.tell()
         self._line = 1
+        # the first pose's time: an always-on sensor's frames before it are the machine
+        # standing before the track (sent and recorded, not scored: no pose is kept for them)
+        self.first_t: int | None = None
         self.t = np.zeros(0, np.int64)
         self.p = np.zeros((0, 7))
         self._done = False
@@ -358,6 +361,7 @@ def run_cloud(run_dir: str | Path, *, every: int = 1,
             labels.close()
         raise
     first = poses.p[:1]
+    poses.first_t = int(poses.t[0])
     info = CloudInfo(meta, labels is not None, clock is not None, first[0, :3].copy(), labels)
     return info, _frames(run, meta, fmt, clock, labels, poses, every, progress, sample)
 
@@ -468,6 +472,8 @@ def _frame_points(fr: Any, fmt: Any, meta: SensorMetadata, origins: NDArray[np.f
     if not len(cols):
         return np.zeros(0, CLOUD_DTYPE)
     m = mid[cols]
+    if poses.first_t is not None and int(ts.max()) < poses.first_t:
+        return np.zeros(0, CLOUD_DTYPE)  # the machine standing before the track
     if skip:
         poses.skip_to(int(ts.min()))
     pose = poses.at(ts)

@@ -1,24 +1,31 @@
 """A live run's traffic: the harvester on CAN and the OS0-64 on UDP on one simulation clock.
 
-The scene is built when the session binds its endpoints; the frame producer forks before
-the SIC starts (nothing else has threads or children then); the clock starts once the SIC
-is ready, with a lead: the harvester node publishes the standing machine's pose while the
-SIC starts, and the first lidar packet is due when the clock reaches the track's start.
+The scene is built when the session binds its endpoints. The sensor is always on, as a real
+OS0 from power-on: when the traffic is prepared (before the SIC starts) it sends the machine
+standing at the track's start, at the sensor's cadence, to its current destination, and the
+harvester node publishes that standing pose. Once the SIC listens on the lidar port (or
+after the ready time) the track is due a lead later: the run's clock
+(:class:`~emulators.harvester.RunClock`) steps forward to the track's own start, so the
+track keeps its time line and its bytes however long the SIC took. After the track the
+machine stands where it stopped until the run ends (those frames are sent, not recorded).
 """
 
 from __future__ import annotations
 
+import math
+import multiprocessing as mp
 import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from emulators.harvester import SimClock
+from emulators.harvester import RunClock, SimClock
 from protocols.ouster import SensorMetadata
 from tcf_hil._io import write_bytes_atomic
 from tcf_hil.devices.endpoints import SensorHost
 from tcf_hil.devices.faults import FaultLog
 from tcf_hil.devices.harvester import HarvesterModel, run_harvester
+from tcf_hil.recording.store import RenderStore
 from tcf_hil.run._figures import LiveFigures
 from tcf_hil.run._manifest import Manifest, SicRecord
 from tcf_hil.run._session import Announce, Wire, quiet
@@ -36,15 +43,15 @@ LOSSES = frozenset({"udp_loss", "udp_burst_loss", "lidar_dropout"})
 
 
 class _LateClock:
-    """The run's clock for the lidar sender, fixed only once the SIC is ready: until then
-    the sender (which asks for its first packet's due time) waits."""
+    """The run's clock for the lidar sender, fixed only once the frame producer has forked
+    (power-on): until then the sender (which asks for its first packet's due time) waits."""
 
     def __init__(self, speed: float) -> None:
         self.speed = speed
-        self._clock: SimClock | None = None
+        self._clock: RunClock | SimClock | None = None
         self._set = threading.Event()
 
-    def set(self, clock: SimClock) -> None:
+    def set(self, clock: RunClock | SimClock) -> None:
         if self._clock is None:
             self._clock = clock
         self._set.set()
@@ -53,7 +60,7 @@ class _LateClock:
         return self._set.is_set()
 
     @property
-    def clock(self) -> SimClock | None:
+    def clock(self) -> RunClock | SimClock | None:
         return self._clock
 
     def monotonic_at(self, t_sim_ns: int) -> int:
@@ -75,13 +82,22 @@ class LiveTraffic:
                  profile: str = "RNG19_RFL8_SIG16_NIR16", seed: int | None = None,
                  speed: float = 1.0, lead_s: float = 3.0, duration_s: float | None = None,
                  backend: str = "auto", record_lidar: bool = True,
-                 progress: Any = None, announce: Announce = quiet) -> None:
+                 progress: Any = None, announce: Announce = quiet,
+                 render: str = "auto", standing_s: float = 30.0) -> None:
         if lead_s * speed * 1e9 >= RUN_T0_NS:
             raise ValueError(f"lead {lead_s} s at speed {speed} reaches before simulation "
                              "time 0")
         self.scn, self.mode, self.profile, self.seed = scn, mode, profile, seed
         self.speed, self.lead_s, self.duration_s = speed, lead_s, duration_s
         self.backend, self.record_lidar = backend, record_lidar
+        self.render = render  # where the frames come from (tcf_hil.devices.lidar.RENDER_MODES)
+        # the longest the machine may stand before the track (the SIC's start-up and lead):
+        # the sensor powers on this much simulation time before the track's start
+        self.standing_s = standing_s
+        self.track_ended = threading.Event()  # the first frame after the track went out
+        self.clock: RunClock | None = None
+        self.air: Any = None
+        self.standing_before = 0  # frames the machine stood before the track
         self.progress, self.announce = progress, announce
         self.node_id = scn.harvester.node_id
         self.late = _LateClock(speed)  # set once the SIC listens (the sender waits for it)
@@ -113,9 +129,14 @@ class LiveTraffic:
         self.announce(f"building {scn.name} ({self.mode}, {self.profile}) ...")
         self.world = world = World.build(scn, seed=self.seed, t0_ns=RUN_T0_NS, lidar_ports=ports)
         self.harvester = HarvesterModel.from_world(world)  # the node's model, once
+        store = RenderStore() if self.render != "live" else None
         run = LidarRun(scn, mode=self.mode, profile=self.profile, backend=self.backend,
                        udp_dest="127.0.0.1", udp_port_lidar=ports[0], udp_port_imu=ports[1],
-                       keep_poses=self.record_lidar, world=world)
+                       keep_poses=self.record_lidar, world=world, store=store,
+                       render=self.render)
+        if run.stored is None and self.render == "stored":
+            self._render_ahead(run)
+        self.announce(f"frames: {self._source(run)}")
         if self.duration_s is not None:
             run.frames = max(1, min(run.frames,
                                     round(self.duration_s * run.meta.frequency_hz)))
@@ -125,6 +146,29 @@ class LiveTraffic:
             self.flog = FaultLog(out / "faults.jsonl", world.t0_ns)
         write_bytes_atomic(out / "metadata.json", run.meta.dumps().encode())
         return run.meta, out / "metadata.json"
+
+    def _render_ahead(self, run: Any) -> None:
+        """The whole track rendered into the store before the sensor exists (the progress
+        line says how far)."""
+        total = run.track_frames
+        t0 = time.perf_counter()
+        step = max(1, total // 10)
+
+        def say(done: int, n: int) -> None:
+            if done % step == 0 or done == n:
+                wall = time.perf_counter() - t0
+                rate = done / run.meta.frequency_hz / wall if wall else 0.0
+                self.announce(f"rendering into the store: {done}/{n} frames "
+                              f"({rate:.2f}x real time)")
+
+        run.render_into_store(progress=say)
+
+    @staticmethod
+    def _source(run: Any) -> str:
+        if run.stored is not None:
+            return f"streamed from the render store ({run.render_key})"
+        return "rendered live" + (" (nothing stored for this run; tcf-hil render stores it)"
+                                  if run.render_mode == "auto" else "")
 
     def manifest(self, sic: SicRecord | None) -> Manifest:
         run, scn = self.run, self.scn
@@ -165,6 +209,12 @@ class LiveTraffic:
         def on_sender(stats: Any) -> None:
             self.send_stats = stats
 
+        air = self._power_on_plan(run)
+        self.announce("the standing machine: rendering its frames ...")
+        period = run.emu.period_ns
+        standing = (air, run.standing(run.track.t0_ns - period),
+                    run.standing(run.track.t0_ns + run.frames * period))
+
         def lidar() -> None:
             try:
                 self.lidar_result = stream_lidar(
@@ -172,14 +222,33 @@ class LiveTraffic:
                     stop=self.end_stream, clock=self.late, progress=step, on_sender=on_sender,
                     pcap_in_place=True, forked=self.forked,
                     on_fault=on_lidar_fault if flog is not None else None,
-                    pcap=self.record_lidar, route=wire.route)
+                    pcap=self.record_lidar, route=wire.route, air=standing,
+                    on_track_end=self.track_ended.set)
             except BaseException as err:
                 self.lidar_error = err
             finally:
                 self.forked.set()
+                self.track_ended.set()
 
         self._start_thread(lidar, "lidar")
         self.forked.wait(60.0)
+        # power-on: the clock runs from here (half a second for the first frames to be made)
+        self.clock = RunClock(air.power_on_ns, time.monotonic_ns() + 500_000_000, self.speed)
+        self.late.set(self.clock)
+        self.unix_at_power_on = time.time_ns() + (self.clock.origin_monotonic_ns
+                                                  - time.monotonic_ns())
+        self._start_harvester(wire)
+
+    def _power_on_plan(self, run: Any) -> Any:
+        """When the sensor powers on: whole frames before the track's start, as many as the
+        machine may stand (``standing_s``), kept after simulation time 0 (the CAN pose
+        time is unsigned)."""
+        from tcf_hil.devices.lidar import OnAir
+
+        period, t0 = run.emu.period_ns, run.track.t0_ns
+        most = min(math.ceil(self.standing_s * 1e9 / period), t0 // period - 1)
+        self.air = OnAir(t0 - most * period, mp.get_context("fork").RawValue("q", -1))
+        return self.air
 
     def _start_thread(self, target: Any, name: str) -> None:
         th = threading.Thread(target=target, name=name, daemon=True)
@@ -187,26 +256,43 @@ class LiveTraffic:
         self.threads.append(th)
 
     def start(self, wire: Wire, manifest: Manifest) -> None:
-        run, speed = self.run, self.speed
-        t0 = run.track.t0_ns
-        lead_ns = round(self.lead_s * 1e9)  # wall time before the first lidar packet is due
-        clock = SimClock.start(t0, speed, lead_ns=lead_ns)
-        self.late.set(clock)
-        # the harvester's view of the same clock starts now, lead_ns * speed before t0
-        harv_clock = SimClock(t0 - round(lead_ns * speed), clock.origin_monotonic_ns - lead_ns,
-                              speed)
-        unix_at_t0 = time.time_ns() + (clock.origin_monotonic_ns - time.monotonic_ns())
+        """The SIC is ready: the track is due ``lead_s`` from now. The machine has stood
+        since power-on; the clock steps forward to the track's start at that frame (unless
+        the standing time ran out first: then the track started on its own)."""
+        from tcf_hil.devices._ring import SLOTS
+
+        run, speed, clock, air = self.run, self.speed, self.clock, self.air
+        assert clock is not None and air is not None
+        period, t0 = run.emu.period_ns, run.track.t0_ns
+        most = (t0 - air.power_on_ns) // period
+        now = max(0, math.ceil((clock.now_ns() - air.power_on_ns) / period))
+        at = max(now + math.ceil(self.lead_s * speed * 1e9 / period), now + SLOTS + 2)
+        if at < most:
+            air.track_at.value = at
+            at_mono = clock.origin_monotonic_ns + round(at * period / speed)
+            clock.step(at_mono, t0)
+        else:
+            at = most
+            at_mono = clock.origin_monotonic_ns + round(at * period / speed)
+        self.standing_before = at
+        unix_at_t0 = time.time_ns() + (at_mono - time.monotonic_ns())
         manifest.clock = {"sim_t0_ns": t0, "unix_ns_at_sim_t0": unix_at_t0, "speed": speed,
-                          "lead_s": self.lead_s}
-        seconds = run.frames / run.meta.frequency_hz + 1.0
-        flog = self.flog
+                          "lead_s": self.lead_s, "power_on_sim_ns": air.power_on_ns,
+                          "unix_ns_at_power_on": self.unix_at_power_on,
+                          "standing_frames_before_track": at,
+                          "steps": [list(st) for st in clock.steps]}
+
+    def _start_harvester(self, wire: Wire) -> None:
+        """The node on the run's clock from power-on (the standing machine's pose first)
+        until the run ends."""
+        flog, clock = self.flog, self.clock
 
         def harvester() -> None:
             self.harv_result = run_harvester(
                 self.scn, self.world.forest.terrain, wire.spec, world=self.world,
                 model=self.harvester,
-                log_path=self.out / "can.log", speed=speed, stop=self.harv_stop,
-                clock=harv_clock, duration_s=self.lead_s * speed + seconds,
+                log_path=self.out / "can.log", speed=self.speed, stop=self.harv_stop,
+                clock=clock, until_stop=True,
                 faults=self.can_faults, on_fault=flog.log if flog is not None else None,
                 on_conflict=self.conflicts.append, on_node=self._on_node)
 
@@ -223,8 +309,9 @@ class LiveTraffic:
         fig.sim_total_s = run.frames / run.meta.frequency_hz
         clock = self.late.clock
         fig.frames_sent, fig.frames_total = self.frames_done, run.frames
-        if clock is not None:
-            fig.sim_s = min((clock.now_ns() - run.track.t0_ns) / 1e9, fig.sim_total_s)
+        if clock is not None and self.standing_before:  # the track is under way
+            fig.sim_s = max(0.0, min((clock.now_ns() - run.track.t0_ns) / 1e9,
+                                     fig.sim_total_s))
             fig.behind_s = max(0.0, fig.sim_s - self.frames_done / run.meta.frequency_hz)
         fig.frames_lost = len(self.lost_frames)
         if self.send_stats is not None:
@@ -240,20 +327,20 @@ class LiveTraffic:
                 f"{self.run.frames} frames")
 
     def alive(self, timeout_s: float) -> bool:
-        th = self.threads[0] if self.threads else None
-        if th is None:
+        """Whether the track is still going out (the sensor stands on afterwards)."""
+        if not self.threads:
             return False
-        th.join(timeout_s)
-        return th.is_alive()
+        return not self.track_ended.wait(timeout_s)
 
     def conflict(self) -> str | None:
         return self.conflicts[0] if self.conflicts else None
 
     def finish(self) -> None:
-        self.end_stream.set()
+        """The track has gone out (the sensor stands on until :meth:`close`); a failed
+        stream raises here."""
         if not self.late.is_set():  # a sender still waiting for the clock goes on
             self.late.set(SimClock.start(0, self.speed))
-        if self.threads:
+        if self.threads and not self.threads[0].is_alive():
             self.threads[0].join()
         if self.lidar_error is not None:
             raise self.lidar_error
@@ -273,7 +360,14 @@ class LiveTraffic:
         if r is not None:
             manifest.lidar = {"frames_sent": r.frames, "packets_sent": r.packets,
                               "pacing_us_p50_p99": list(r.pacing_us),
-                              "sender_cpu_share": r.sender_cpu_share, "refused": r.refused}
+                              "sender_cpu_share": r.sender_cpu_share, "refused": r.refused,
+                              "render": {"mode": self.render, "key": self.run.render_key,
+                                         "from_store": self.run.stored is not None},
+                              # the scored part: the track's frames, from the track's start
+                              "track": {"first_frame_ns": self.run.track.t0_ns,
+                                        "frames": r.frames,
+                                        "standing_frames_before": self.standing_before,
+                                        "standing_after": "sent, not recorded"}}
         h = self.harv_result
         if h is not None:
             manifest.can = {"bus": h.spec, "node_id": h.node_id, "frames_logged": h.log_frames,

@@ -37,12 +37,15 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                eval_cfg: EvalConfig | None = None, stop: threading.Event | None = None,
                announce: Announce = quiet, progress: Any = None, ready_s: float = 15.0,
                record_lidar: bool = True, on_start: Any = None,
-               watch: Callable[[LiveFigures], None] | None = None) -> RunResult:
+               watch: Callable[[LiveFigures], None] | None = None,
+               render: str = "auto") -> RunResult:
     """One live run of the program ``sic`` against ``scn`` into ``out``: a
-    :class:`RunSession` driving :class:`LiveTraffic` (see both)."""
+    :class:`RunSession` driving :class:`LiveTraffic` (see both; ``render``: where the
+    frames come from, :data:`tcf_hil.devices.lidar.RENDER_MODES`)."""
     traffic = open_traffic(scn, mode=mode, profile=profile, seed=seed, speed=speed,
                            lead_s=lead_s, duration_s=duration_s, backend=backend,
-                           record_lidar=record_lidar, progress=progress, announce=announce)
+                           record_lidar=record_lidar, progress=progress, announce=announce,
+                           render=render, standing_s=ready_s + lead_s + 2.0)
     return RunSession(traffic, sic, out, shell=shell, can=can, sensor_ip=sensor_ip,
                       grace_s=grace_s, ready_s=ready_s, stop=stop, announce=announce,
                       eval_cfg=eval_cfg, on_start=on_start, watch=watch).run()

@@ -1,0 +1,227 @@
+"""The render store: frames rendered ahead and kept under a key made of everything that decides
+their bytes; a run that sends a stored render writes the very files a live render writes, on
+any ports; a render cut short keeps its whole frames and resumes; the cache stays under its
+size limit."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from emulators.lidar import Datagram
+from tcf_hil.devices.lidar import LidarRun, record_pcap
+from tcf_hil.errors import ConfigError
+from tcf_hil.recording.store import RenderedFrame, RenderStore, render_key
+from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
+
+SIDECARS = ("lidar.pcap", "lidar_labels.bin", "sensor_poses.csv", "ground_truth.json",
+            "visibility.json", "metadata.json")
+
+
+def _short(faults: bool = False):  # type: ignore[no-untyped-def]
+    d = scenario_to_dict(load_scenario("forest-ii"))
+    if faults:  # every kind of event a frame may carry, and a re-initialisation
+        d["faults"] = {"udp": {"loss": 0.02, "duplicate": 0.02, "reorder": 0.02},
+                       "lidar": {"dropout_at_s": [0.3], "reinit_at_s": [0.6],
+                                 "reinit_gap_s": 0.2}}
+    return scenario_from_dict(d)
+
+
+def _files(d: Path) -> dict[str, bytes]:
+    return {n: (d / n).read_bytes() for n in SIDECARS if (d / n).exists()}
+
+
+@pytest.mark.parametrize("faults", [False, True])
+def test_a_stored_render_sends_the_bytes_a_live_render_sends(tmp_path: Path,
+                                                             faults: bool) -> None:
+    scn = _short(faults)
+    store = RenderStore(tmp_path / "cache")
+    kw = {"mode": "512x10", "max_frames": 12}
+    live = record_pcap(scn, tmp_path / "live", **kw)
+    # rendered into the store first (whole track), then sent from it, on other ports
+    stored = record_pcap(scn, tmp_path / "stored", store=store, render="stored", **kw)
+    assert store.entries() and store.entries()[0]["complete"]
+    a, b = _files(tmp_path / "live"), _files(tmp_path / "stored")
+    assert a.keys() == b.keys() and "lidar.pcap" in a
+    for name in a:
+        assert a[name] == b[name], name
+    assert (live.frames, live.packets, live.returns) == (stored.frames, stored.packets,
+                                                         stored.returns)
+    # the same render serves another run on other ports: the ports follow the run
+    other = LidarRun(scn, mode="512x10", max_frames=12, store=store, render="auto",
+                     udp_port_lidar=41000, udp_port_imu=41001)
+    assert other.stored is not None
+    ports = {d.port for rf in other.rendered() for d in rf.datagrams}
+    assert ports <= {41000, 41001} and 41000 in ports
+    other.stored.close()
+
+
+def test_auto_renders_live_where_nothing_is_stored(tmp_path: Path) -> None:
+    store = RenderStore(tmp_path / "cache")
+    run = LidarRun(_short(), mode="512x10", max_frames=3, store=store, render="auto")
+    assert run.stored is None
+    assert len(list(run.rendered())) == 3
+    assert store.entries() == []  # auto never fills the store by itself
+
+
+def test_the_key_follows_what_decides_the_bytes(tmp_path: Path) -> None:
+    scn = _short()
+    k = LidarRun(scn, mode="512x10").render_key
+    assert k == LidarRun(scn, mode="512x10", udp_port_lidar=40000, max_frames=5).render_key
+    assert k != LidarRun(scn, mode="1024x10").render_key
+    assert k != LidarRun(scn, mode="512x10", seed=scn.seed + 1).render_key
+    assert k != LidarRun(_short(faults=True), mode="512x10").render_key
+    assert render_key({"a": 1}) != render_key({"a": 2})
+
+
+def test_a_hand_built_forest_is_never_stored(tmp_path: Path) -> None:
+    scn = _short()
+    forest = LidarRun(scn, mode="512x10").forest
+    assert LidarRun(scn, mode="512x10", forest=forest).render_key is None
+    with pytest.raises(ConfigError, match="render"):
+        LidarRun(scn, mode="512x10", forest=forest, store=RenderStore(tmp_path),
+                 render="stored")
+    with pytest.raises(ConfigError, match="render"):
+        LidarRun(scn, mode="512x10", render="sometimes")
+
+
+def test_a_render_cut_short_resumes_after_its_last_whole_frame(tmp_path: Path) -> None:
+    scn = _short()
+    store = RenderStore(tmp_path / "cache")
+    whole = LidarRun(scn, mode="512x10", store=store, render="stored")
+    whole.render_into_store()
+    key = whole.render_key
+    assert key is not None
+    ref = (store.path(key) / "frames.bin").read_bytes()
+    idx = (store.path(key) / "frames.idx").read_bytes()
+    n = len(idx) // 8
+    # cut short: 5 frames indexed, half of the sixth written, not complete
+    store.remove(key)
+    p = store.path(key)
+    cut = int(np.frombuffer(idx, "<u8")[5])
+    w = store.writer(key, {"x": 1}, n)
+    w.close()
+    (p / "frames.bin").write_bytes(ref[:cut + 100])
+    (p / "frames.idx").write_bytes(idx[:40])
+    assert store.open(key) is None  # never streamed: not complete
+    assert not store.entries()[0]["complete"] and store.entries()[0]["frames"] == 5
+    again = LidarRun(scn, mode="512x10", store=store, render="stored")
+    assert again.render_into_store() == n - 5
+    assert (p / "frames.bin").read_bytes() == ref
+    assert again.stored is not None and again.stored.complete
+
+
+def test_the_cache_keeps_under_its_limit_least_recently_used_first(tmp_path: Path) -> None:
+    store = RenderStore(tmp_path, max_gb=1e-9 * 250)  # 250 bytes
+    for i, key in enumerate(("a", "b", "c")):
+        w = store.writer(key, {"i": i}, 1)
+        w.append(RenderedFrame(0, [Datagram(1, 7502, b"x" * 60)], b"", b"", np.zeros(0, np.int64),
+                               np.zeros(0, np.int64), [], "send", 1), (7502, 7503))
+        w.complete()
+        w.close()
+        os.utime(store.path(key) / "render.json", (1000 + i, 1000 + i))
+    keys = [e["key"] for e in store.entries()]
+    assert keys[0] == "c" and set(keys) <= {"a", "b", "c"}
+    assert store.size() <= 250 + max(e["bytes"] for e in store.entries())
+    gone = store.evict(room=10_000)
+    assert gone and "c" not in gone[:-1]
+    n, size = store.clear()
+    assert store.entries() == [] and n >= 0 and size >= 0
+
+
+def test_a_bad_size_limit_is_named(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from tcf_hil.errors import InputError
+
+    monkeypatch.setenv("TCF_HIL_CACHE_MAX_GB", "lots")
+    with pytest.raises(InputError, match="TCF_HIL_CACHE_MAX_GB"):
+        RenderStore(tmp_path)
+
+
+_dg = st.builds(Datagram, st.integers(0, 2**62), st.sampled_from([7502, 7503, 9000]),
+                st.binary(max_size=64))
+
+
+@settings(max_examples=60, deadline=None)
+@given(k=st.integers(0, 10**6), dgs=st.lists(_dg, max_size=6), labels=st.binary(max_size=40),
+       poses=st.binary(max_size=40),
+       hits=st.lists(st.tuples(st.integers(-1, 2**40), st.integers(0, 2**40)), max_size=5),
+       events=st.lists(st.fixed_dictionaries({"kind": st.sampled_from(["udp_loss", "x"]),
+                                              "frame": st.integers(0, 99)}), max_size=3),
+       action=st.sampled_from(["send", "drop", "reinit", "silent"]),
+       init_id=st.integers(0, 2**24 - 1))
+def test_a_frame_record_reads_back_as_written(k, dgs, labels, poses, hits, events, action,
+                                              init_id) -> None:  # type: ignore[no-untyped-def]
+    ids = np.array([h[0] for h in hits], np.int64)
+    counts = np.array([h[1] for h in hits], np.int64)
+    rf = RenderedFrame(k, dgs, labels, poses, ids, counts, events, action, init_id)
+    rec = b"junk" + rf.encode((7502, 7503)) + b"tail"
+    back, end = RenderedFrame.decode(rec, 4, ports=(7502, 7503))
+    assert end == len(rec) - 4
+    assert (back.k, back.labels, back.poses, back.events, back.action, back.init_id) == (
+        k, labels, poses, events, action, init_id)
+    assert back.hit_ids.tolist() == ids.tolist() and back.hit_counts.tolist() == counts.tolist()
+    assert [(d.t_ns, d.port, bytes(d.payload)) for d in back.datagrams] == [
+        (d.t_ns, d.port, bytes(d.payload)) for d in dgs]
+    # on other ports: the lidar and IMU datagrams follow, any other keeps its port
+    moved, _ = RenderedFrame.decode(rec, 4, ports=(41000, 41001))
+    assert [d.port for d in moved.datagrams] == [
+        {7502: 41000, 7503: 41001}.get(d.port, d.port) for d in dgs]
+
+
+def test_a_truncated_record_is_named(tmp_path: Path) -> None:
+    from tcf_hil.errors import InputError
+
+    rf = RenderedFrame(0, [Datagram(1, 7502, b"abc")], b"", b"", np.zeros(0, np.int64),
+                       np.zeros(0, np.int64), [], "send", 1)
+    rec = rf.encode((7502, 7503))
+    with pytest.raises(InputError, match="truncated"):
+        RenderedFrame.decode(rec[:-2], 0, "x/frames.bin")
+    with pytest.raises(InputError, match="not a frame record"):
+        RenderedFrame.decode(b"XXXX" + rec[4:], 0)
+
+
+def test_render_then_run_streams_the_stored_bytes_as_a_user_types_it(tmp_path: Path) -> None:
+    """``tcf-hil render``, ``cache list``, then two runs of the same scenario and seed: one
+    streamed from the store, one rendered live. Both recordings hold the very same lidar
+    bytes (the track is stamped on the run's fixed simulation time line); ``cache clear``
+    frees the store."""
+    import json
+    import subprocess
+    import sys
+
+    env = dict(os.environ, TCF_HIL_CACHE=str(tmp_path / "cache"), COLUMNS="200")
+    tcf = [sys.executable, "-m", "tcf_hil.cli"]
+    scene = ["forest-ii", "--mode", "512x10", "--sensor", "ideal"]
+
+    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([*tcf, *args], capture_output=True, text=True, env=env,
+                              timeout=600)
+
+    p = cli("render", *scene)
+    assert p.returncode == 0 and "frames rendered" in p.stdout, p.stdout + p.stderr
+    p = cli("render", *scene)
+    assert p.returncode == 0 and "already stored" in p.stdout, p.stdout + p.stderr
+    p = cli("cache", "list")
+    assert p.returncode == 0 and "forest-ii" in p.stdout and "512x10" in p.stdout, p.stdout
+    sic = "{python} -c \"import sys, time; print('{\\\"objects\\\": []}', flush=True); time.sleep(60)\""
+    runs = {}
+    for render in ("auto", "live"):
+        out = tmp_path / render
+        p = cli("run", *scene, "--duration", "2", "--grace", "1", "--ready-timeout", "0",
+                "--render", render, "--sic", sic, "--out", str(out))
+        man = json.loads((out / "manifest.json").read_text())
+        assert man["lidar"]["render"]["from_store"] == (render == "auto"), p.stdout + p.stderr
+        assert man["lidar"]["frames_sent"] == 20
+        runs[render] = out
+    for name in ("lidar.pcap", "lidar_labels.bin", "sensor_poses.csv"):
+        assert (runs["auto"] / name).read_bytes() == (runs["live"] / name).read_bytes(), name
+    p = cli("cache", "clear")
+    assert p.returncode == 0 and "freed 1 renders" in p.stdout, p.stdout
+    assert "empty" in cli("cache", "list").stdout
+    p = cli("cache", "clear", "--key", "nosuchkey")
+    assert p.returncode == 2 and "no such render" in p.stderr
