@@ -12,7 +12,6 @@ import pytest
 from tcf_hil.scenario import load_scenario
 from tcf_hil.world.forest import Forest, generate_forest
 
-
 # The render store of this test session: its own, empty folder (never the user's cache, so
 # nothing an earlier run or install stored decides a test; subprocesses inherit it).
 os.environ["TCF_HIL_CACHE"] = tempfile.mkdtemp(prefix="tcf-hil-cache-")

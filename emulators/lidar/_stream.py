@@ -21,6 +21,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import NDArray
 
 from emulators.pacing import Pacer, SimClockLike
 
@@ -55,14 +56,30 @@ class SendStats:
         self.late_hist[min(abs(ns) // 1000, _HIST_US)] += 1
         self.late_n += 1
 
-    def pacing_us(self) -> tuple[float, float]:
+    def pacing_us(self, since: list[int] | None = None) -> tuple[float, float]:
         """p50 and p99 of |actual - scheduled| send time, microseconds (1 us resolution:
-        each is the upper edge of its bin)."""
-        if not self.late_n:
+        each is the upper edge of its bin); ``since``: of the packets sent after that
+        :meth:`snapshot` only."""
+        hist = self._hist(since)
+        n = int(hist.sum())
+        if not n:
             return 0.0, 0.0
-        cum = np.cumsum(np.asarray(self.late_hist, dtype=np.int64))
-        p50, p99 = np.searchsorted(cum, [0.5 * self.late_n, 0.99 * self.late_n])
+        cum = np.cumsum(hist)
+        p50, p99 = np.searchsorted(cum, [0.5 * n, 0.99 * n])
         return float(p50 + 1), float(p99 + 1)
+
+    def late_over_us(self, us: int, since: list[int] | None = None) -> int:
+        """Packets sent ``us`` microseconds or more from their due time (after the
+        :meth:`snapshot` ``since``)."""
+        return int(self._hist(since)[us:].sum())
+
+    def snapshot(self) -> list[int]:
+        """The histogram as it is now (for :meth:`pacing_us` of what follows)."""
+        return list(self.late_hist)
+
+    def _hist(self, since: list[int] | None) -> NDArray[np.int64]:
+        h = np.asarray(self.late_hist, dtype=np.int64)
+        return h - np.asarray(since, dtype=np.int64) if since is not None else h
 
 
 class Route:

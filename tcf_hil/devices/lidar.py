@@ -44,7 +44,7 @@ from protocols.pcap import PcapWriter
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil._io import atomic_path, ensure_dir, write_bytes_atomic, write_json_atomic
 from tcf_hil._rotations import quaternions
-from tcf_hil.devices._ring import FrameRing, PcapTarget, pcap_records
+from tcf_hil.devices._ring import SLOTS, FrameRing, PcapTarget, pcap_records
 from tcf_hil.devices.faults import FaultLog
 from tcf_hil.errors import ConfigError
 from tcf_hil.recording.store import (
@@ -59,7 +59,8 @@ from tcf_hil.world import World
 from tcf_hil.world.forest import Forest, ground_truth
 from tcf_hil.world.track import warm_up as warm_up_poses
 
-RENDER_MODES = ("auto", "stored", "live")  # where a run's frames come from (LidarRun)
+RENDER_MODES = ("auto", "fill", "stored", "live")  # where a run's frames come from (LidarRun)
+RING_SLOTS = SLOTS  # frames made ahead of the sender in a live stream (its frame ring)
 # Frames of the standing machine rendered once (1 s at 10 Hz) and sent again, restamped: its
 # range noise repeats each second (a real sensor's would not); the geometry does not change.
 STANDING_CYCLE = 10
@@ -128,6 +129,9 @@ class RecordResult:
     refused: int = 0
     realtime: bool = False  # the pacing loop ran under SCHED_FIFO
     sender_cpu_share: float = 0.0  # CPU time of the pacing loop per wall second while sending
+    # an always-on sensor's track alone: p50/p99 pacing error (us), packets 1 ms or more late
+    track_pacing_us: tuple[float, float] = (0.0, 0.0)
+    track_late_1ms: int = 0
 
 
 def sensor_metadata(scn: Scenario, *, mode: str = "1024x10",
@@ -173,8 +177,10 @@ class LidarRun:
         one of its own from ``scn``, ``seed``, ``t0_ns``, ``forest`` and its ports.
         ``store`` and ``render``: where the frames come from (:data:`RENDER_MODES`): ``live``
         renders each as it is asked for; ``auto`` sends the render ``store`` holds for this
-        run where it is complete (:attr:`render_key`), else renders live; ``stored`` always
-        sends from the store (:meth:`render_into_store` first where the render is missing)."""
+        run where it is complete (:attr:`render_key`), else renders live; ``fill`` as
+        ``auto``, and a live render is kept in the store as it goes (when no other process
+        is writing it: the next run of the key reads it); ``stored`` always sends from the
+        store (:meth:`render_into_store` first where the render is missing)."""
         if render not in RENDER_MODES:
             raise ConfigError("render", render, f"one of {', '.join(RENDER_MODES)}")
         self._own_forest = forest is not None and world is None
@@ -282,6 +288,12 @@ class LidarRun:
             return 0
         frames, self.frames = self.frames, self.track_frames
         writer = self.store.writer(key, doc, self.track_frames)
+        if writer is None:  # another process stored it meanwhile
+            self.frames = frames
+            self.stored = self.store.open(key)
+            if self.stored is None:
+                raise RuntimeError(f"render {key}: neither stored nor writable")
+            return 0
         done = writer.frames
         keep = self.keep_poses
         self.keep_poses = False  # the store keeps the poses; this run's bookkeeping not
@@ -321,9 +333,28 @@ class LidarRun:
                 self._take(rf)
                 yield rf
             return
-        for rf in self._render_live():
-            self._take(rf)
-            yield rf
+        writer = None
+        key, doc = self.render_key, self.render_doc()
+        if self.render_mode == "fill" and self.store is not None and key and doc \
+                and self.frames == self.track_frames:
+            writer = self.store.writer(key, doc, self.track_frames, wait=False)
+            if writer is not None and writer.frames:  # a render cut short: start over
+                writer.close()
+                self.store.remove(key)
+                writer = self.store.writer(key, doc, self.track_frames, wait=False)
+        try:
+            self.writer = writer
+            for rf in self._render_live():
+                self._take(rf)
+                if writer is not None:
+                    writer.append(rf, self.ports)
+                yield rf
+            if writer is not None:
+                writer.complete()
+        finally:
+            self.writer = None
+            if writer is not None:
+                writer.close()
 
     def _render_live(self, start: int = 0) -> Iterator[RenderedFrame]:
         """Frames ``start`` .. of this run rendered now (the sensor's per-frame behaviour is
@@ -634,8 +665,10 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                              clock=clock, route=route) as sender:
                 if on_sender is not None:
                     on_sender(sender.stats)
+                window: list[Any] = [None, None]  # the histogram at the track's ends
                 error, on_wire, track_sent = _send_frames(run, ring, ready, sender, stop,
-                                                          on_fault, progress, on_track_end)
+                                                          on_fault, progress, on_track_end,
+                                                          window)
                 stats = sender.stats
             error = ring.finish(error)
             if error is not None:  # no pcap of a failed run
@@ -648,9 +681,16 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     if out is not None:
         run.frames = track_sent
         run.write_sidecars(out)
+    track: dict[str, Any] = {}
+    if window[0] is not None:  # the track alone (standing frames around it)
+        end = window[1] if window[1] is not None else stats.snapshot()
+        track_hist = [b - a for a, b in zip(window[0], end, strict=True)]
+        tmp = SendStats(late_hist=track_hist)
+        track = {"track_pacing_us": tmp.pacing_us(), "track_late_1ms": tmp.late_over_us(1000)}
     return run.result(out, frames=on_wire, pacing_us=stats.pacing_us(), refused=stats.refused,
                       realtime=stats.realtime,
-                      sender_cpu_share=stats.cpu_s / stats.wall_s if stats.wall_s else 0.0)
+                      sender_cpu_share=stats.cpu_s / stats.wall_s if stats.wall_s else 0.0,
+                      **track)
 
 
 def _pcap_target(out: Path | None, pcap: bool, in_place: bool, outputs: contextlib.ExitStack,
@@ -672,11 +712,13 @@ def _send_frames(run: LidarRun, ring: FrameRing, ready: collections.deque[tuple[
                  sender: PacedSender, stop: threading.Event,
                  on_fault: Callable[[FaultEvent], None] | None,
                  progress: Callable[[int, int], None] | None,
-                 on_track_end: Callable[[], None] | None = None
-                 ) -> tuple[str | None, int, int]:
+                 on_track_end: Callable[[], None] | None = None,
+                 window: list[Any] | None = None) -> tuple[str | None, int, int]:
     """The pacing loop: each frame from the ring sent at its time, its fault events logged
     as it goes out, until the producer is done, fails, or ``stop``. The error (or None),
-    the track's frames that left with lidar packets, and the track's frames handled."""
+    the track's frames that left with lidar packets, and the track's frames handled.
+    ``window`` gets the sender's pacing histogram as the track's first frame goes out and as
+    the first frame after it does (:meth:`~emulators.lidar.SendStats.snapshot`)."""
     on_wire = track = 0
     ended = False
     while not stop.is_set():
@@ -689,8 +731,12 @@ def _send_frames(run: LidarRun, ring: FrameRing, ready: collections.deque[tuple[
         if kind == "done":
             break
         slot, meta, events, phase = body
+        if window is not None and phase == "track" and window[0] is None:
+            window[0] = sender.stats.snapshot()
         if phase == "after" and not ended:
             ended = True
+            if window is not None:
+                window[1] = sender.stats.snapshot()
             if on_track_end is not None:
                 on_track_end()
         for ev in events:  # logged as the frame they struck goes out

@@ -85,6 +85,8 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("stem_s", "SIC seconds in the stem algorithm"),
     ("cell_s", "wall seconds of the whole cell"),
     ("worker", "host:pid that ran the cell"),
+    ("frames_from", "where the lidar frames came from: 'store' (the render store: a cell of "
+     "the same scene rendered them; emulator_s is then reading), 'rendered', or empty"),
 )
 """results.csv, in order: (column, meaning). A stable contract; append, never reorder."""
 
@@ -190,15 +192,17 @@ def _reference(cell: Cell, scn: Scenario, row: dict[str, Any],
                progress: Callable[[int, int], None] | None) -> dict[str, Any]:
     from tcf_hil.experiments.offline import run_offline
 
+    # cells that differ only in the SIC share one render: the first keeps it in the store
     r = run_offline(scn, mode=cell.mode, profile=cell.profile, backend=cell.backend,
-                    preset=cell.preset, max_frames=cell.max_frames, progress=progress)
+                    preset=cell.preset, max_frames=cell.max_frames, progress=progress,
+                    render="fill")
     row.update(_score_row(r.scores.all, r.scores.seen))
     row.update(stems=len(r.ground_truth["objects"]), stems_seen=r.stems_seen,
                observed=len(r.forest_doc["objects"]), frames=r.frames,
                sim_s=round(r.sim_seconds, 3), emulator_s=round(r.emulator_s, 3),
                emulator_x_realtime=round(r.sim_seconds / max(r.emulator_s, 1e-9), 3),
                sic_ms_p50=round(r.sic_ms(50), 3), sic_ms_p99=round(r.sic_ms(99), 3),
-               stem_s=round(r.stem_s, 3))
+               stem_s=round(r.stem_s, 3), frames_from="store" if r.from_store else "rendered")
     return {"forest.json": r.forest_doc, "score.json": r.scores.summary(),
             "em_all": _em_doc(r.scores.all), "em_seen": _em_doc(r.scores.seen)}
 

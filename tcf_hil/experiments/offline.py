@@ -53,6 +53,7 @@ class OfflineResult:
     poses: int = 0
     packets: int = 0
     stems_seen: int = 0
+    from_store: bool = False  # the frames came from the render store (emulator_s: reading)
 
     def sic_ms(self, q: float) -> float:
         return float(np.percentile(self.sic_frame_ms, q)) if self.sic_frame_ms else 0.0
@@ -156,16 +157,21 @@ def run_offline(scn: Scenario, *, mode: str = "1024x10",
                 eval_cfg: EvalConfig | None = None, voxel_m: float | None = None,
                 progress: Callable[[int, int], None] | None = None,
                 forest: Forest | None = None, t0_ns: int = RUN_T0_NS,
-                first_frame_id: int = 0) -> OfflineResult:
+                first_frame_id: int = 0, render: str = "live") -> OfflineResult:
     """Emulate ``scn`` at ``mode``, feed every packet and pose frame to the reference SIC
     (``preset``), score its final forest against all and against seen trees.
 
     ``forest``: a hand-built forest instead of the one ``scn`` generates; ``t0_ns``: the
     simulation time the track starts at (the CAN pose time is its microseconds modulo 2^32);
-    ``first_frame_id``: the sensor's first frame_id."""
+    ``first_frame_id``: the sensor's first frame_id. ``render``: where the frames come from
+    (:data:`tcf_hil.devices.lidar.RENDER_MODES`; ``fill``: the render store's frames where
+    it holds them, else rendered and kept there for the next cell of the same scene)."""
+    from tcf_hil.recording.store import RenderStore
+
     run = LidarRun(scn, mode=mode, profile=profile, seed=seed, backend=backend,
                    max_frames=max_frames, t0_ns=t0_ns, faults=False, forest=forest,
-                   first_frame_id=first_frame_id, keep_poses=False)  # no sidecar files here
+                   first_frame_id=first_frame_id, keep_poses=False,  # no sidecar files here
+                   store=RenderStore() if render != "live" else None, render=render)
     model = HarvesterModel.from_scenario(scn, run.forest.terrain, run.forest.seed, t0_ns)
     sic = OfflineSic(preset, run.meta, model.node_config(), voxel_m=voxel_m)
     frames, emu_s = drive(run, model, [sic], progress)
@@ -177,4 +183,4 @@ def run_offline(scn: Scenario, *, mode: str = "1024x10",
                          sim_seconds=frames * run.emu.period_ns / 1e9, emulator_s=emu_s,
                          sic_frame_ms=sic.frame_ms, stem_s=sic.stem_s,
                          poses=sic.track.received, packets=sic.stats.packets,
-                         stems_seen=run.stems_seen())
+                         stems_seen=run.stems_seen(), from_store=run.stored is not None)

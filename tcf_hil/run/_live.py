@@ -259,14 +259,14 @@ class LiveTraffic:
         """The SIC is ready: the track is due ``lead_s`` from now. The machine has stood
         since power-on; the clock steps forward to the track's start at that frame (unless
         the standing time ran out first: then the track started on its own)."""
-        from tcf_hil.devices._ring import SLOTS
+        from tcf_hil.devices.lidar import RING_SLOTS
 
         run, speed, clock, air = self.run, self.speed, self.clock, self.air
         assert clock is not None and air is not None
         period, t0 = run.emu.period_ns, run.track.t0_ns
         most = (t0 - air.power_on_ns) // period
         now = max(0, math.ceil((clock.now_ns() - air.power_on_ns) / period))
-        at = max(now + math.ceil(self.lead_s * speed * 1e9 / period), now + SLOTS + 2)
+        at = max(now + math.ceil(self.lead_s * speed * 1e9 / period), now + RING_SLOTS + 2)
         if at < most:
             air.track_at.value = at
             at_mono = clock.origin_monotonic_ns + round(at * period / speed)
@@ -361,6 +361,8 @@ class LiveTraffic:
             manifest.lidar = {"frames_sent": r.frames, "packets_sent": r.packets,
                               "pacing_us_p50_p99": list(r.pacing_us),
                               "sender_cpu_share": r.sender_cpu_share, "refused": r.refused,
+                              "track_pacing_us_p50_p99": list(r.track_pacing_us),
+                              "track_packets_late_1ms": r.track_late_1ms,
                               "render": {"mode": self.render, "key": self.run.render_key,
                                          "from_store": self.run.stored is not None},
                               # the scored part: the track's frames, from the track's start

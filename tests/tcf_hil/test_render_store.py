@@ -103,8 +103,9 @@ def test_a_render_cut_short_resumes_after_its_last_whole_frame(tmp_path: Path) -
     # cut short: 5 frames indexed, half of the sixth written, not complete
     store.remove(key)
     p = store.path(key)
-    cut = int(np.frombuffer(idx, "<u8")[5])
+    cut = int(np.frombuffer(idx, "<u8")[5])  # (where the sixth record starts)
     w = store.writer(key, {"x": 1}, n)
+    assert w is not None
     w.close()
     (p / "frames.bin").write_bytes(ref[:cut + 100])
     (p / "frames.idx").write_bytes(idx[:40])
@@ -120,6 +121,7 @@ def test_the_cache_keeps_under_its_limit_least_recently_used_first(tmp_path: Pat
     store = RenderStore(tmp_path, max_gb=1e-9 * 250)  # 250 bytes
     for i, key in enumerate(("a", "b", "c")):
         w = store.writer(key, {"i": i}, 1)
+        assert w is not None
         w.append(RenderedFrame(0, [Datagram(1, 7502, b"x" * 60)], b"", b"", np.zeros(0, np.int64),
                                np.zeros(0, np.int64), [], "send", 1), (7502, 7503))
         w.complete()
@@ -173,6 +175,27 @@ def test_a_frame_record_reads_back_as_written(k, dgs, labels, poses, hits, event
         {7502: 41000, 7503: 41001}.get(d.port, d.port) for d in dgs]
 
 
+def test_a_damaged_stored_record_is_named(tmp_path: Path) -> None:
+    from tcf_hil.errors import InputError
+
+    store = RenderStore(tmp_path)
+    w = store.writer("k", {}, 1)
+    assert w is not None
+    w.append(RenderedFrame(0, [Datagram(1, 7502, b"abc" * 50)], b"", b"",
+                           np.zeros(0, np.int64), np.zeros(0, np.int64), [], "send", 1),
+             (7502, 7503))
+    w.complete()
+    w.close()
+    raw = bytearray((store.path("k") / "frames.bin").read_bytes())
+    raw[10] ^= 0xFF
+    (store.path("k") / "frames.bin").write_bytes(bytes(raw))
+    r = store.open("k")
+    assert r is not None
+    with pytest.raises(InputError, match=r"frames\.bin.*damaged"):
+        r.frame(0)
+    r.close()
+
+
 def test_a_truncated_record_is_named(tmp_path: Path) -> None:
     from tcf_hil.errors import InputError
 
@@ -208,7 +231,8 @@ def test_render_then_run_streams_the_stored_bytes_as_a_user_types_it(tmp_path: P
     assert p.returncode == 0 and "already stored" in p.stdout, p.stdout + p.stderr
     p = cli("cache", "list")
     assert p.returncode == 0 and "forest-ii" in p.stdout and "512x10" in p.stdout, p.stdout
-    sic = "{python} -c \"import sys, time; print('{\\\"objects\\\": []}', flush=True); time.sleep(60)\""
+    sic = ("{python} -c \"import sys, time; print('{\\\"objects\\\": []}', flush=True); "
+           "time.sleep(60)\"")
     runs = {}
     for render in ("auto", "live"):
         out = tmp_path / render
@@ -225,3 +249,36 @@ def test_render_then_run_streams_the_stored_bytes_as_a_user_types_it(tmp_path: P
     assert "empty" in cli("cache", "list").stdout
     p = cli("cache", "clear", "--key", "nosuchkey")
     assert p.returncode == 2 and "no such render" in p.stderr
+
+
+def test_experiment_cells_that_differ_only_in_the_sic_share_one_render(tmp_path: Path) -> None:
+    """``fill``: the first offline run of a scene renders and keeps its frames, the next
+    (another preset of the reference SIC) reads them, and gets what a live render gives."""
+    from tcf_hil.experiments.offline import run_offline
+
+    d = scenario_to_dict(load_scenario("forest-ii"))
+    d["track"]["end_m"] = [0.0, -20.0, 2.0]  # 5 m: a short track
+    scn = scenario_from_dict(d)
+    os.environ["TCF_HIL_CACHE"], old = str(tmp_path / "cache"), os.environ["TCF_HIL_CACHE"]
+    try:
+        first = run_offline(scn, mode="512x10", preset="tuned", render="fill")
+        second = run_offline(scn, mode="512x10", preset="paper", render="fill")
+        again = run_offline(scn, mode="512x10", preset="paper", render="live")
+    finally:
+        os.environ["TCF_HIL_CACHE"] = old
+    assert not first.from_store and second.from_store and not again.from_store
+    assert second.forest_doc["objects"] == again.forest_doc["objects"]
+    assert second.frames == again.frames and second.packets == again.packets
+    assert second.ground_truth == again.ground_truth
+    assert len(RenderStore(tmp_path / "cache").entries()) == 1
+
+
+def test_one_writer_per_render(tmp_path: Path) -> None:
+    store = RenderStore(tmp_path)
+    w = store.writer("k", {}, 1)
+    assert w is not None
+    assert store.writer("k", {}, 1, wait=False) is None  # another writes it
+    w.close()
+    w2 = store.writer("k", {}, 1, wait=False)
+    assert w2 is not None
+    w2.close()
