@@ -74,6 +74,13 @@ class Os0Sensor:
         # frame that is sent)
         self._fid_base: int | None = -first_frame_id
 
+    def skip_to(self, k: int) -> None:
+        """The sensor as after making frames up to ``k`` - 1, without making them: only
+        where no fault plan runs (their draws are made frame by frame)."""
+        if self.lidar_faults is not None or self.udp_faults is not None:
+            raise ValueError("a sensor with fault plans makes every frame in order")
+        self._next_imu = self.emu.start_ns + k * self.emu.period_ns
+
     def frame(self, k: int) -> SensorFrame:
         """Frame ``k`` (frames are asked for in order)."""
         meta, emu = self.meta, self.emu

@@ -75,8 +75,12 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if parent_end is not None:
         parent_end.close()  # the fork's copy of the reading end: a dead reader breaks the pipe
-    with contextlib.suppress(OSError):
-        os.nice(19)  # the pacing loop, not the frame factory, gets the CPU when both want it
+    # The pacing loop, not the frame factory, gets the CPU when both want it; a stored
+    # render's frames are only read (milliseconds a frame): that reading keeps the
+    # ordinary priority, or a renderer or the program under test would starve it
+    if getattr(run, "stored", None) is None:
+        with contextlib.suppress(OSError):
+            os.nice(19)
     with contextlib.suppress(Exception):  # one core stays free for the pacing loop
         from threadpoolctl import threadpool_limits
 
@@ -113,6 +117,7 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
         if fh is not None and lh is not None:
             fh.write(writer.header())
             lh.write(run.labels_header())
+        run.halt = stop  # a frame the render ahead has not made is not waited for then
         frames = run.on_air(*air) if air is not None else (
             ("track", rf) for rf in run.rendered())
         for phase, rf in frames:
@@ -136,7 +141,9 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
                                  phase)))
             if rec is not None:  # exactly what goes out, at its simulation time (the
                 pending.append((pcap_records(writer, dgs, rec.sensor_ip, rec.dest), rf.labels)
-                               if phase != "after" else (b"", b""))  # stand after: not kept
+                               if phase in ("before", "track") else (b"", b""))  # the rest:
+                # sent, not kept (standing before the clock stepped onto the track's time
+                # line, and after the track)
             produced += 1
             marks.append((produced, run.mark()))
             slot = (slot + 1) % SLOTS

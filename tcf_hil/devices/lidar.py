@@ -12,7 +12,11 @@ import dataclasses
 import gc
 import io
 import math
+import multiprocessing as mp
+import os
+import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +42,9 @@ from protocols.labels import encode_labels_header, encode_labels_record
 from protocols.ouster import (
     MetadataError,
     SensorMetadata,
+    decode_lidar_packet,
     os0_64_metadata,
+    shift_lidar_packet,
 )
 from protocols.pcap import PcapWriter
 from tcf_hil._crc import fast_crc_rows
@@ -70,14 +76,68 @@ STANDING_CYCLE = 10
 class OnAir:
     """An always-on sensor's plan, shared with the frame producer (a forked process): the
     sensor powers on at simulation time ``power_on_ns`` (whole frames before the track's
-    start) and sends the machine standing at the track's start until its frame
-    ``track_at.value`` since power-on (-1: not decided yet; at the latest when the
-    simulation reaches the track's start), then the track, then the machine standing where
-    the track left it until the stream is stopped. ``track_at``: a shared integer
-    (``multiprocessing.RawValue("q")`` made before the fork)."""
+    start) and sends the machine standing at the track's start; once the run decides,
+    from its frame ``step_at.value`` since power-on the clock has stepped onto the track's
+    time line (the frames from there are recorded) and from frame ``track_at.value`` the
+    track goes out (both -1 until decided; the track at the latest when the simulation
+    reaches its start), then the machine stands where the track left it until the stream
+    is stopped. Shared integers: ``multiprocessing.RawValue("q")`` made before the fork;
+    ``step_at`` is set before ``track_at``."""
 
     power_on_ns: int
     track_at: Any
+    step_at: Any
+
+
+@dataclass
+class RenderAhead:
+    """A render into the store going on in a process of its own (forked: it shares the
+    built scene; ``nice`` 10, below the program under test): ``done`` (shared) counts the
+    frames stored, ``state`` is 0 while rendering, 1 done, 2 failed."""
+
+    process: Any
+    done: Any
+    state: Any
+    upto: int
+
+    def running(self) -> bool:
+        """Whether the renderer still runs (asked from any process of the run)."""
+        if self.state.value != 0:
+            return False
+        try:
+            os.kill(self.process.pid, 0)
+        except OSError:
+            return False
+        return True
+
+    def stop(self) -> None:
+        """The renderer stopped (what it stored stays: a later render resumes it)."""
+        if self.process.pid is not None and self.running():
+            self.process.terminate()
+        self.process.join(timeout=10.0)
+
+
+def _render_ahead(run: LidarRun, writer: RenderWriter, upto: int, done: Any,
+                  state: Any) -> None:
+    """The renderer process of :meth:`LidarRun.render_ahead`."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run decides when it stops
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    with contextlib.suppress(OSError):
+        os.nice(10)
+    try:
+        run.frames = upto
+        run.writer = writer
+        for rf in run._render_live(start=writer.frames):
+            writer.append(rf, run.ports)
+            done.value = rf.k + 1
+        if writer.frames >= run.track_frames:
+            writer.complete()
+        state.value = 1
+    except BaseException:
+        state.value = 2
+        raise
+    finally:
+        writer.close()
 
 
 class _StandingPose:
@@ -231,6 +291,8 @@ class LidarRun:
         self.render_mode = render
         self.stored: StoredRender | None = None  # the render the frames come from, if any
         self.writer: RenderWriter | None = None  # where rendered frames are kept, if anywhere
+        self.ahead: RenderAhead | None = None  # a render being written for this run
+        self.halt: Any = None  # an event: stop waiting for frames the render has not made
         if self.store is not None:
             key = self.render_key
             if key is None and render == "stored":
@@ -329,6 +391,8 @@ class LidarRun:
         if self.stored is not None:
             ports = self.ports
             for k in range(self.frames):
+                if k >= self.stored.frames and not self._wait_for(k):
+                    return  # halted while waiting
                 rf = self.stored.frame(k, ports)
                 self._take(rf)
                 yield rf
@@ -356,6 +420,23 @@ class LidarRun:
             if writer is not None:
                 writer.close()
 
+    def _wait_for(self, k: int) -> bool:
+        """Until the render being written holds frame ``k``: True, or False where
+        :attr:`halt` was set meanwhile (raises where its renderer failed or is gone without
+        the frame)."""
+        assert self.stored is not None
+        ahead = self.ahead
+        while self.stored.refresh() <= k:
+            if self.halt is not None and self.halt.is_set():
+                return False
+            if ahead is None or ahead.state.value == 2 or not ahead.running():
+                if self.stored.refresh() > k:
+                    break
+                raise RuntimeError(f"the render ahead into {self.stored.path} stopped "
+                                   f"before frame {k} (see the bench's stderr)")
+            time.sleep(0.01)
+        return True
+
     def _render_live(self, start: int = 0) -> Iterator[RenderedFrame]:
         """Frames ``start`` .. of this run rendered now (the sensor's per-frame behaviour is
         :class:`emulators.lidar.Os0Sensor`'s; the frames before ``start`` are rendered only
@@ -364,11 +445,44 @@ class LidarRun:
                            udp_faults=self.udp_faults, crc_rows=fast_crc_rows(),
                            first_frame_id=self.first_frame_id, first_imu_ns=self.track.t0_ns)
         poses = self.keep_poses or self.writer is not None
-        for k in range(self.frames):
+        first = 0
+        if start and self.lidar_faults is None and self.udp_faults is None:
+            sensor.skip_to(start)  # no fault draws to replay: frames before start unmade
+            first = start
+        for k in range(first, self.frames):
             sf = sensor.frame(k)
             if k < start:
                 continue
             yield self._compact(k, sf, sensor.meta.init_id, poses)
+
+    def render_ahead(self, upto: int | None = None) -> RenderAhead | None:
+        """Render this run's frames up to ``upto`` (default: the run's) into the store in a
+        process of its own (:class:`RenderAhead`), from where a render cut short stopped,
+        and send them from there as they come (:meth:`rendered` waits for a frame not yet
+        stored). None where nothing is to render: the store holds the frames already (the
+        run sends them), or another process is writing this render (the run renders
+        live)."""
+        key, doc = self.render_key, self.render_doc()
+        if self.store is None or key is None or doc is None:
+            return None
+        upto = self.frames if upto is None else upto
+        writer = self.store.writer(key, doc, self.track_frames, wait=False)
+        if writer is None:  # complete meanwhile, or another process writes it
+            self.stored = self.store.open(key)
+            return None
+        if writer.frames >= upto:  # a render cut short that holds this run's frames
+            writer.close()
+            self.stored = self.store.open(key, partial=True)
+            return None
+        ctx = mp.get_context("fork")
+        done, state = ctx.RawValue("q", writer.frames), ctx.RawValue("i", 0)
+        proc = ctx.Process(target=_render_ahead, args=(self, writer, upto, done, state),
+                           name="lidar-render", daemon=True)
+        proc.start()
+        writer.close()  # (this process's copies: the renderer holds the lock)
+        self.stored = self.store.open(key, partial=True)
+        self.ahead = RenderAhead(proc, done, state, upto)
+        return self.ahead
 
     def _compact(self, k: int, sf: Any, init_id: int, poses: bool) -> RenderedFrame:
         """A sensor frame in the store's compact form."""
@@ -430,27 +544,53 @@ class LidarRun:
     def on_air(self, air: OnAir, before: _StandingEmulator, after: _StandingEmulator
                ) -> Iterator[tuple[str, RenderedFrame]]:
         """An always-on sensor's frames from power-on (:class:`OnAir`), each with its phase:
-        ``before`` the track (the machine standing at its start, :meth:`standing`), the
-        ``track`` (:meth:`rendered`, with its bookkeeping) and ``after`` it (standing where
-        it stopped), endless. Standing frames carry no labels, poses nor returns: they are
-        not scored."""
+        standing at the track's start (:meth:`standing`) ``unheard`` (before the run's
+        decision: sent, not recorded, on the time line of power-on) and ``before`` the
+        track (on the track's time line, after the clock's step), the ``track``
+        (:meth:`rendered`, with its bookkeeping) and ``after`` it (standing where it
+        stopped), endless. Standing frames carry no labels, poses nor returns: they are not
+        scored."""
         period, t0 = self.emu.period_ns, self.track.t0_ns
         most = (t0 - air.power_on_ns) // period  # standing frames before, at the most
-        fid = self.first_frame_id
-        sensor = Os0Sensor(before, self.meta, _StandingPose(self.track, t0 - period),
-                           crc_rows=fast_crc_rows(), first_frame_id=fid,
+        crc = fast_crc_rows()
+        pose = _StandingPose(self.track, t0 - period)
+        # frame_id counts the frames since power-on (0 first), on across the clock's step
+        sensor = Os0Sensor(before, self.meta, pose, crc_rows=crc, first_frame_id=most,
                            first_imu_ns=air.power_on_ns)
-        j = 0
-        while j < most:
+        j, stepped = 0, False
+        while True:
             at = int(air.track_at.value)
+            if at < 0 and j >= most:  # the standing time ran out: the track starts now
+                at = most
             if 0 <= at <= j:
                 break
-            yield "before", self._standing_frame(sensor.frame(j - most))
+            if at >= 0 and not stepped and j >= int(air.step_at.value):
+                stepped = True  # on the track's time line from here: k counts to its start
+                sensor = Os0Sensor(before, self.meta, pose, crc_rows=crc, first_frame_id=at,
+                                   first_imu_ns=t0 + (j - at) * period)
+            k = j - at if stepped else j - most
+            yield ("before" if stepped else "unheard"), self._standing_frame(sensor.frame(k))
             j += 1
-        yield from (("track", rf) for rf in self.rendered())
+        # the track's frames as rendered count from its first frame (the same bytes in every
+        # run): moved on by the frames stood before it (until a re-initialisation restarts
+        # the count), their CRCs rewritten
+        fmt, lp = self.meta.packet_format, self.ports[0]
+        shift, last = j, j - 1
+        for rf in self.rendered():
+            if rf.action == "reinit":
+                shift = 0
+            if shift:
+                rf.datagrams = [Datagram(d.t_ns, d.port, shift_lidar_packet(
+                    fmt, bytes(d.payload), shift, 0, crc)) if d.port == lp else d
+                    for d in rf.datagrams]
+            ids = [d for d in rf.datagrams if d.port == lp]
+            if ids:
+                last = decode_lidar_packet(fmt, bytes(ids[-1].payload), check_crc=False
+                                           ).frame_id
+            yield "track", rf
         end = t0 + self.frames * period
-        sensor = Os0Sensor(after, self.meta, _StandingPose(self.track, end),
-                           crc_rows=fast_crc_rows(), first_frame_id=fid, first_imu_ns=end)
+        sensor = Os0Sensor(after, self.meta, _StandingPose(self.track, end), crc_rows=crc,
+                           first_frame_id=last + 1 - self.frames, first_imu_ns=end)
         k = self.frames
         while True:
             yield "after", self._standing_frame(sensor.frame(k))

@@ -216,12 +216,23 @@ class StoredRender:
     def __init__(self, path: Path) -> None:
         self.path = path
         self.info: dict[str, Any] = json.loads((path / "render.json").read_text())
-        idx = (path / "frames.idx").read_bytes() if (path / "frames.idx").exists() else b""
-        self.offsets = np.frombuffer(idx[:len(idx) // 8 * 8], "<u8").astype(np.int64)
+        self.offsets = np.zeros(0, np.int64)
         self._fh = open(path / "frames.bin", "rb")
-        size = os.fstat(self._fh.fileno()).st_size
-        self._map: mmap.mmap | None = mmap.mmap(self._fh.fileno(), 0, access=mmap.ACCESS_READ) \
-            if size else None
+        self._map: mmap.mmap | None = None
+        self.refresh()
+
+    def refresh(self) -> int:
+        """Whole frames stored now (a render that is being written grows)."""
+        p = self.path / "frames.idx"
+        idx = p.read_bytes() if p.exists() else b""
+        if len(idx) // 8 > len(self.offsets):
+            self.offsets = np.frombuffer(idx[:len(idx) // 8 * 8], "<u8").astype(np.int64)
+            size = os.fstat(self._fh.fileno()).st_size
+            if size and (self._map is None or len(self._map) < size):
+                if self._map is not None:
+                    self._map.close()
+                self._map = mmap.mmap(self._fh.fileno(), 0, access=mmap.ACCESS_READ)
+        return len(self.offsets)
 
     @property
     def frames(self) -> int:
@@ -338,8 +349,9 @@ class RenderStore:
     def path(self, key: str) -> Path:
         return self.renders_dir / key
 
-    def open(self, key: str) -> StoredRender | None:
-        """The render ``key`` where it is complete, else None."""
+    def open(self, key: str, partial: bool = False) -> StoredRender | None:
+        """The render ``key`` where it is complete (``partial``: whatever it holds, still
+        being written or cut short), else None."""
         p = self.path(key)
         if not (p / "render.json").exists() or not (p / "frames.bin").exists():
             return None
@@ -347,7 +359,7 @@ class RenderStore:
             r = StoredRender(p)
         except (OSError, ValueError):
             return None
-        if not r.complete:
+        if not r.complete and not partial:
             r.close()
             return None
         r.touch()

@@ -134,12 +134,16 @@ class LiveTraffic:
                        udp_dest="127.0.0.1", udp_port_lidar=ports[0], udp_port_imu=ports[1],
                        keep_poses=self.record_lidar, world=world, store=store,
                        render=self.render)
-        if run.stored is None and self.render == "stored":
-            self._render_ahead(run)
-        self.announce(f"frames: {self._source(run)}")
         if self.duration_s is not None:
             run.frames = max(1, min(run.frames,
                                     round(self.duration_s * run.meta.frequency_hz)))
+        if run.stored is None and self.render == "stored":
+            self._render_first(run)
+        elif run.stored is None and self.render == "auto":
+            ahead = run.render_ahead()
+            if ahead is not None:
+                self._lead(run, ahead)
+        self.announce(f"frames: {self._source(run)}")
         self.run = run
         self.can_faults = world.faults.can if world.faults is not None else None
         if world.faults is not None:
@@ -147,7 +151,36 @@ class LiveTraffic:
         write_bytes_atomic(out / "metadata.json", run.meta.dumps().encode())
         return run.meta, out / "metadata.json"
 
-    def _render_ahead(self, run: Any) -> None:
+    def _lead(self, run: Any, ahead: Any) -> None:
+        """Wait until the render going on is far enough ahead that the track, sent at the
+        sensor's cadence from a few seconds after power-on, never waits for a frame: with
+        the renderer at r frames a second and the track needing c (10 x speed), the frames
+        stored d must reach n - 0.85 r (n / c + lead) (the rate measured so far, with a
+        margin for the denser parts of a stand). Says how far it is every few seconds."""
+        n, need = run.frames, run.meta.frequency_hz * self.speed
+        t0, d0 = time.monotonic(), int(ahead.done.value)
+        said = t0
+        while True:
+            d, now = int(ahead.done.value), time.monotonic()
+            if d >= n or not ahead.running():
+                return
+            el = now - t0
+            if el >= 1.0 and d > d0:
+                rate = (d - d0) / el
+                want = n - 0.85 * rate * (n / need + self.lead_s)
+                if d >= want:
+                    self.announce(f"rendering ahead: {d}/{n} frames stored "
+                                  f"({rate / need:.2f}x real time); the track can start")
+                    return
+                if now - said >= 5.0:
+                    said = now
+                    eta = (want - d) / rate
+                    self.announce(f"rendering ahead: {d}/{n} frames stored "
+                                  f"({rate / need:.2f}x real time); the track can start in "
+                                  f"about {eta:.0f} s")
+            time.sleep(0.1)
+
+    def _render_first(self, run: Any) -> None:
         """The whole track rendered into the store before the sensor exists (the progress
         line says how far)."""
         total = run.track_frames
@@ -165,6 +198,9 @@ class LiveTraffic:
 
     @staticmethod
     def _source(run: Any) -> str:
+        if run.ahead is not None:
+            return (f"rendered ahead into the render store ({run.render_key}) and streamed "
+                    "from it")
         if run.stored is not None:
             return f"streamed from the render store ({run.render_key})"
         return "rendered live" + (" (nothing stored for this run; tcf-hil render stores it)"
@@ -247,7 +283,8 @@ class LiveTraffic:
 
         period, t0 = run.emu.period_ns, run.track.t0_ns
         most = min(math.ceil(self.standing_s * 1e9 / period), t0 // period - 1)
-        self.air = OnAir(t0 - most * period, mp.get_context("fork").RawValue("q", -1))
+        ctx = mp.get_context("fork")
+        self.air = OnAir(t0 - most * period, ctx.RawValue("q", -1), ctx.RawValue("q", -1))
         return self.air
 
     def _start_thread(self, target: Any, name: str) -> None:
@@ -256,9 +293,11 @@ class LiveTraffic:
         self.threads.append(th)
 
     def start(self, wire: Wire, manifest: Manifest) -> None:
-        """The SIC is ready: the track is due ``lead_s`` from now. The machine has stood
-        since power-on; the clock steps forward to the track's start at that frame (unless
-        the standing time ran out first: then the track started on its own)."""
+        """The SIC is ready: the machine, standing since power-on, drives off ``lead_s``
+        from now. The clock steps forward to the track's time line at the next frame the
+        producer has not made (``lead_s`` before the track's start: those standing frames
+        and the track are recorded on one time line), unless the standing time ran out
+        first (then no step: the track starts at its own time)."""
         from tcf_hil.devices.lidar import RING_SLOTS
 
         run, speed, clock, air = self.run, self.speed, self.clock, self.air
@@ -266,20 +305,23 @@ class LiveTraffic:
         period, t0 = run.emu.period_ns, run.track.t0_ns
         most = (t0 - air.power_on_ns) // period
         now = max(0, math.ceil((clock.now_ns() - air.power_on_ns) / period))
-        at = max(now + math.ceil(self.lead_s * speed * 1e9 / period), now + RING_SLOTS + 2)
+        step = now + RING_SLOTS + 2  # (the producer is at most the ring ahead of the clock)
+        at = step + math.ceil(self.lead_s * speed * 1e9 / period)
         if at < most:
-            air.track_at.value = at
-            at_mono = clock.origin_monotonic_ns + round(at * period / speed)
-            clock.step(at_mono, t0)
-        else:
-            at = most
-            at_mono = clock.origin_monotonic_ns + round(at * period / speed)
+            clock.step(clock.origin_monotonic_ns + round(step * period / speed),
+                       t0 - (at - step) * period)
+        else:  # no step: the standing frames from here go out on the track's time already
+            at, step = most, min(step, most)
+        air.step_at.value = step
+        air.track_at.value = at
         self.standing_before = at
+        at_mono = clock.monotonic_at(t0)
         unix_at_t0 = time.time_ns() + (at_mono - time.monotonic_ns())
         manifest.clock = {"sim_t0_ns": t0, "unix_ns_at_sim_t0": unix_at_t0, "speed": speed,
                           "lead_s": self.lead_s, "power_on_sim_ns": air.power_on_ns,
                           "unix_ns_at_power_on": self.unix_at_power_on,
                           "standing_frames_before_track": at,
+                          "standing_frames_recorded": max(0, at - step),
                           "steps": [list(st) for st in clock.steps]}
 
     def _start_harvester(self, wire: Wire) -> None:
@@ -352,6 +394,9 @@ class LiveTraffic:
             self.late.set(SimClock.start(0, self.speed))
         for th in self.threads:
             th.join(timeout=60.0)
+        run = getattr(self, "run", None)
+        if run is not None and run.ahead is not None:
+            run.ahead.stop()  # what it stored stays (a later run resumes it)
         if self.flog is not None:
             self.flog.close()
             assert manifest.faults is not None
@@ -364,7 +409,8 @@ class LiveTraffic:
                               "track_pacing_us_p50_p99": list(r.track_pacing_us),
                               "track_packets_late_1ms": r.track_late_1ms,
                               "render": {"mode": self.render, "key": self.run.render_key,
-                                         "from_store": self.run.stored is not None},
+                                         "from_store": self.run.stored is not None,
+                                         "rendered_ahead": self.run.ahead is not None},
                               # the scored part: the track's frames, from the track's start
                               "track": {"first_frame_ns": self.run.track.t0_ns,
                                         "frames": r.frames,

@@ -239,8 +239,11 @@ def test_replay_reproduces_the_score(reference_run: Path, tmp_path: Path) -> Non
     assert rc == 0, "\n".join(screen[-40:])
     lines = live_lines(screen, "CAN frames")
     assert any("replaying" in x for x in lines), "\n".join(screen[-40:])
-    last = re.search(r"frames (\d+)/500.* CAN frames (\d+)", lines[-1])
-    assert last and int(last[1]) >= 499 and int(last[2]) > 1000, lines[-1]
+    # the recording: the standing lead (from the clock's step on) and the 500 track frames
+    clock = json.loads((reference_run / "manifest.json").read_text())["clock"]
+    total = 500 + clock["standing_frames_recorded"]
+    last = re.search(rf"frames (\d+)/{total}.* CAN frames (\d+)", lines[-1])
+    assert last and int(last[1]) >= total - 1 and int(last[2]) > 1000, lines[-1]
     a = json.loads((reference_run / "score.json").read_text())["all_trees"]
     b = json.loads((out / "score.json").read_text())["all_trees"]
     assert b["evaluation_score_percent"] == pytest.approx(a["evaluation_score_percent"], abs=5)
