@@ -282,3 +282,61 @@ def test_one_writer_per_render(tmp_path: Path) -> None:
     w2 = store.writer("k", {}, 1, wait=False)
     assert w2 is not None
     w2.close()
+
+
+def _frame_ids_and_times(run: LidarRun, frames: list[tuple[str, RenderedFrame]]
+                         ) -> list[tuple[str, int, int]]:
+    from protocols.ouster import decode_lidar_packet
+
+    fmt, lp = run.meta.packet_format, run.ports[0]
+    out = []
+    for phase, rf in frames:
+        ps = [decode_lidar_packet(fmt, bytes(d.payload), init_id=run.meta.init_id,
+                                  prod_sn=run.meta.prod_sn) for d in rf.datagrams
+              if d.port == lp]  # (the CRC is checked: a restamped packet must carry its own)
+        assert len({p.frame_id for p in ps}) == 1
+        out.append((phase, ps[0].frame_id, int(ps[0].timestamps_ns.min())))
+    return out
+
+
+def test_an_always_on_sensor_stands_steps_drives_and_stands(tmp_path: Path) -> None:
+    """The frames an always-on sensor sends (:meth:`LidarRun.on_air`): standing on the
+    power-on time line, then (after the run's decision) on the track's, the track as a run
+    without standing frames sends it but for frame_id and CRC, then standing on; frame_id
+    counts on by one throughout, the IMU every 10 ms with no burst at the step."""
+    import itertools
+    import multiprocessing as mp
+
+    from tcf_hil.devices.lidar import OnAir
+
+    scn = _short()
+    run = LidarRun(scn, mode="512x10", max_frames=6, t0_ns=60_000_000_000)
+    period, t0 = run.emu.period_ns, run.track.t0_ns
+    air = OnAir(t0 - 50 * period, mp.RawValue("q", -1), mp.RawValue("q", -1))
+    gen = run.on_air(air, run.standing(t0 - period), run.standing(t0 + 6 * period))
+    first = list(itertools.islice(gen, 10))
+    air.step_at.value, air.track_at.value = 10, 14  # decided after ten frames
+    rest = list(itertools.islice(gen, 4 + 6 + 3))
+    seq = _frame_ids_and_times(run, first + rest)
+    assert [p for p, _, _ in seq] == ["unheard"] * 10 + ["before"] * 4 + ["track"] * 6 + [
+        "after"] * 3
+    assert [i for _, i, _ in seq] == list(range(23))
+    times = [t for _, _, t in seq]
+    assert times[0] == t0 - 50 * period and times[13] == t0 - period and times[14] == t0
+    assert all(b - a == period for a, b in itertools.pairwise(times[10:]))
+    assert times[10] - times[9] == (50 - 14) * period + period  # the one step forward
+    # the track: the bytes of the same frames with no standing before them, but frame_id
+    plain = LidarRun(scn, mode="512x10", max_frames=6, t0_ns=60_000_000_000)
+    ref = list(plain.rendered())
+    from protocols.ouster import shift_lidar_packet
+    from tcf_hil._crc import fast_crc_rows
+
+    fmt, crc = run.meta.packet_format, fast_crc_rows()
+    for (_, rf), rr in zip(rest[4:10], ref, strict=True):
+        assert [(d.t_ns, d.port, shift_lidar_packet(fmt, bytes(e.payload), 14, 0, crc)
+                 if e.port == run.ports[0] else bytes(e.payload)) for d, e in
+                zip(rf.datagrams, rr.datagrams, strict=True)] == [
+            (d.t_ns, d.port, bytes(d.payload)) for d in rf.datagrams]
+    imu = [d.t_ns for _, rf in first + rest for d in rf.datagrams if d.port == run.ports[1]]
+    gaps = sorted({b - a for a, b in itertools.pairwise(imu)})
+    assert gaps[0] == 10_000_000 and len(gaps) == 2  # 100 Hz, and the step once
