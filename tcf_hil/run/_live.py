@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import os
 import threading
 import time
 from pathlib import Path
@@ -38,6 +39,9 @@ if TYPE_CHECKING:
 # the track starts at simulation time 60 s: the harvester's lead before it never reaches
 # negative times (the CAN pose time is an unsigned 32-bit microsecond count)
 RUN_T0_NS = 60_000_000_000
+# a scene that renders this much faster than its run needs is rendered as it goes (in the
+# frame producer, a few frames ahead); a slower one is rendered ahead into the store first
+FAST_ENOUGH = 2.0
 # the fault events that strike a frame out, wholly or in part (emulators.faults)
 LOSSES = frozenset({"udp_loss", "udp_burst_loss", "lidar_dropout"})
 
@@ -120,7 +124,7 @@ class LiveTraffic:
 
     def bind(self, out: Path | None, host: SensorHost, ports: tuple[int, int]
              ) -> tuple[SensorMetadata, Path | None]:
-        from tcf_hil.devices.lidar import LidarRun
+        from tcf_hil.devices.lidar import STANDING_CYCLE, LidarRun
         from tcf_hil.world import World
 
         assert out is not None, "a live run records into a run directory"
@@ -137,13 +141,24 @@ class LiveTraffic:
         if self.duration_s is not None:
             run.frames = max(1, min(run.frames,
                                     round(self.duration_s * run.meta.frequency_hz)))
+        # the standing machine's frames (before and after the track), timed: how fast this
+        # machine renders the scene (a new emulator's first frames: a rate on the low side)
+        self.announce("the standing machine: rendering its frames ...")
+        period = run.emu.period_ns
+        t_render = time.perf_counter()
+        self.standing = (run.standing(run.track.t0_ns - period),
+                         run.standing(run.track.t0_ns + run.frames * period))
+        rate = 2 * STANDING_CYCLE / max(time.perf_counter() - t_render, 1e-9)
+        need = run.meta.frequency_hz * self.speed
         if run.stored is None and self.render == "stored":
             self._render_first(run)
-        elif run.stored is None and self.render == "auto":
+        elif run.stored is None and self.render == "auto" and rate < FAST_ENOUGH * need:
+            # slower than real time, or not much faster: rendered ahead into the store
             ahead = run.render_ahead()
             if ahead is not None:
                 self._lead(run, ahead)
-        self.announce(f"frames: {self._source(run)}")
+        self.announce(f"frames: {self._source(run)} (the scene renders at "
+                      f"{rate / need:.1f}x real time here)")
         self.run = run
         self.can_faults = world.faults.can if world.faults is not None else None
         if world.faults is not None:
@@ -155,8 +170,12 @@ class LiveTraffic:
         """Wait until the render going on is far enough ahead that the track, sent at the
         sensor's cadence from a few seconds after power-on, never waits for a frame: with
         the renderer at r frames a second and the track needing c (10 x speed), the frames
-        stored d must reach n - 0.85 r (n / c + lead) (the rate measured so far, with a
-        margin for the denser parts of a stand). Says how far it is every few seconds."""
+        stored d must reach n - f r (n / c + lead), r the rate measured so far (alone on
+        the machine) and f = 0.85 (the denser parts of a stand) x the share of the cores
+        the program under test leaves the renderer (it is assumed to keep one busy; the
+        renderer runs below it). Says how far it is every few seconds."""
+        cores = os.cpu_count() or 1
+        f = 0.85 * max(0.5, (cores - 1) / cores)
         n, need = run.frames, run.meta.frequency_hz * self.speed
         t0, d0 = time.monotonic(), int(ahead.done.value)
         said = t0
@@ -167,7 +186,7 @@ class LiveTraffic:
             el = now - t0
             if el >= 1.0 and d > d0:
                 rate = (d - d0) / el
-                want = n - 0.85 * rate * (n / need + self.lead_s)
+                want = n - f * rate * (n / need + self.lead_s)
                 if d >= want:
                     self.announce(f"rendering ahead: {d}/{n} frames stored "
                                   f"({rate / need:.2f}x real time); the track can start")
@@ -246,10 +265,7 @@ class LiveTraffic:
             self.send_stats = stats
 
         air = self._power_on_plan(run)
-        self.announce("the standing machine: rendering its frames ...")
-        period = run.emu.period_ns
-        standing = (air, run.standing(run.track.t0_ns - period),
-                    run.standing(run.track.t0_ns + run.frames * period))
+        standing = (air, *self.standing)
 
         def lidar() -> None:
             try:

@@ -44,6 +44,11 @@ _D = SicConfig.from_env()
               show_default=True, help="Seconds between publications.")
 @click.option("--idle", "idle_s", type=click.FloatRange(min=0.1), default=3.0,
               show_default=True, help="End of stream after this long without a packet.")
+@click.option("--stand", "stand_s", type=click.FloatRange(min=0), default=5.0,
+              show_default=True,
+              help="End of the drive once the machine (its CAN pose) has stood still this "
+                   "many seconds after it moved, as at the end of a strip road: an always-on "
+                   "sensor does not fall silent (0: only --idle and SIGTERM end it).")
 @click.option("--voxel", "voxel_m", type=click.FloatRange(min=0.001), default=None,
               help="Voxel map resolution, m (default 0.03 for tuned, 0.1 for paper: about "
                    "the paper's point density).")

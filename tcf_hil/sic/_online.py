@@ -10,8 +10,9 @@
   own at a lower priority (:mod:`tcf_hil.sic._worker`), so a tile run never holds up a frame
   (``TCF_SIC_STEM_WORKER=0``: inline, between frames, within a time budget);
 - the forest is published every ``publish_s`` and at the end of the stream (no packet for
-  ``idle_s``, or SIGTERM/SIGINT): NDJSON on stdout, a file rewritten atomically, or an HTTP
-  POST.
+  ``idle_s``; the machine standing still for ``stand_s`` of its pose time after it moved,
+  as at the end of a strip road, while an always-on sensor goes on sending; or
+  SIGTERM/SIGINT): NDJSON on stdout, a file rewritten atomically, or an HTTP POST.
 """
 
 from __future__ import annotations
@@ -85,6 +86,9 @@ class SicConfig:
     preset: str = "field"
     publish_s: float = 2.0
     idle_s: float = 3.0
+    # the machine standing still this long (pose time, s) after it moved: the drive is over
+    # (longer than a multi-pass track's stop to change gear, 1 s in the presets)
+    stand_s: float = 5.0
     voxel_m: float | None = None  # None: 0.03 m for tuned, 0.1 m for paper (its density)
     max_points: int = 12_000_000  # about 400 MB (x, y, z and width float32, and the voxel keys)
     max_seconds: float = 0.0  # stop after this long (0: no limit)
@@ -157,6 +161,20 @@ class PoseTrack:
         self.window = window
         self._last_us: int | None = None
         self.received = 0
+        self._start: tuple[float, float] | None = None  # the first pose's x, y
+        self.moved = False  # more than MOVED_M from the first pose, ever
+        self._still: tuple[float, float, int] | None = None  # x, y and time it stood from
+
+    MOVED_M = 0.5  # a machine that went this far from where it stood has driven
+    STILL_M = 0.02  # within this of where it stopped, it stands (the pose's noise is below)
+
+    def stood_still_s(self) -> float:
+        """How long (pose time) the machine has stood still since it last moved; 0 until it
+        has driven at all."""
+        with self._lock:
+            if not self.moved or self._still is None or self._last_us is None:
+                return 0.0
+            return (self._last_us - self._still[2]) / 1e6
 
     def add(self, time_raw_us: int, x: float, y: float, z: float, heading_deg: float,
             pitch_deg: float, roll_deg: float) -> None:
@@ -165,6 +183,14 @@ class PoseTrack:
             if self._last_us is not None and t_us <= self._last_us:
                 return  # repeated or out of order: keep the track monotonic
             self._last_us = t_us
+            if self._start is None:
+                self._start = (x, y)
+            elif not self.moved and math.hypot(x - self._start[0],
+                                               y - self._start[1]) > self.MOVED_M:
+                self.moved = True
+            if self._still is None or math.hypot(x - self._still[0],
+                                                 y - self._still[1]) > self.STILL_M:
+                self._still = (x, y, t_us)
             yaw = math.radians(90.0 - heading_deg)
             if self._n:
                 prev = float(self._buf[self._n - 1, 4])
@@ -618,6 +644,10 @@ class OnboardSic:
                 if now >= next_pub and seen_data:
                     pub.publish(self._document(smap, rx.stats, track, final=False))
                     next_pub = now + cfg.publish_s
+                if seen_data and cfg.stand_s > 0 and track.stood_still_s() >= cfg.stand_s:
+                    _log(f"the machine has stood still for {cfg.stand_s:g} s after driving: "
+                         "end of the drive")
+                    break
             for _t, columns in waiting:  # the stream ended: what the poses cover
                 if not self._map(columns, track, rays, smap, rx.stats):
                     rx.stats.frames_without_pose += 1
