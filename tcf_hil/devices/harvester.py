@@ -200,7 +200,8 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
                   on_node: Callable[[NodeStats], None] | None = None,
                   world: World | None = None,
                   model: HarvesterModel | None = None,
-                  until_stop: bool = False) -> HarvesterRunResult:
+                  until_stop: bool = False,
+                  stand_from_ns: int | None = None) -> HarvesterRunResult:
     """Drive the scenario's track in (scaled) real time with the node on ``spec`` until the
     track ends (plus one second standing), ``duration_s`` of simulation time, or ``stop``.
     ``faults``/``on_fault``: injected CAN faults and where their events go (default: the
@@ -209,7 +210,8 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
     ``on_node`` gets the node's live :class:`~emulators.harvester.NodeStats` as it starts.
     ``world``: the run's world (its track, seed and fault plans), resolved once, in place of
     ``terrain``, ``seed`` and ``t0_ns``; ``model``: the node's model built from it already.
-    ``until_stop``: publish until ``stop`` (an always-on run's node), whatever the track."""
+    ``until_stop``: publish until ``stop`` (an always-on run's node), whatever the track;
+    ``stand_from_ns``: the machine stands from this simulation time on (a run cut short)."""
     if model is None:
         model = (HarvesterModel.from_world(world) if world is not None
                  else HarvesterModel.from_scenario(scn, terrain, seed, t0_ns))
@@ -241,7 +243,14 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
         faults = world.faults.can if world.faults is not None else None
     elif faults is None and faults_active(scn.faults):
         faults = fault_plans(scn.faults, seed, model.trajectory.t0_ns).can
-    node = HarvesterNode(spec, model.bus_pose, clock, cfg, faults=faults, on_fault=on_fault,
+    pose_at = model.bus_pose
+    if stand_from_ns is not None:  # the machine stops there (a run cut short) and stands
+        stop_at = stand_from_ns
+
+        def pose_at(t_ns: int) -> Any:
+            return model.bus_pose(min(t_ns, stop_at))
+
+    node = HarvesterNode(spec, pose_at, clock, cfg, faults=faults, on_fault=on_fault,
                          on_conflict=conflicting)
     if on_node is not None:
         on_node(node.stats)

@@ -190,9 +190,15 @@ class ReplayTraffic:
                 + (" (looping; Ctrl-C stops)" if self.loop else ""))
 
     def alive(self, timeout_s: float) -> bool:
+        """Whether the recording's lidar traffic is still going out (a recording of an
+        always-on run goes on with its CAN log's tail, the machine standing, until
+        :meth:`close`, as the live run did while its SIC finished)."""
         if self.thread is None:
             return False
         self.thread.join(timeout_s)
+        lidar = self.rec.counts["lidar"]
+        if not self.loop and lidar and self.sent.get("lidar", 0) >= lidar:
+            return False
         return self.thread.is_alive()
 
     def conflict(self) -> str | None:
@@ -224,9 +230,13 @@ class ReplayTraffic:
         fig.refused, fig.can = sent["refused"], sent["can"]
 
     def finish(self) -> None:
-        self.end.set()
-        if self.thread is not None:
-            self.thread.join()
+        """The lidar traffic has gone out (what is left of the CAN log goes on until
+        :meth:`close`)."""
+        if self.loop or (self.thread is not None and self.sent.get("lidar", 0)
+                         < self.rec.counts["lidar"]):  # stopped early: all of it stops
+            self.end.set()
+            if self.thread is not None:
+                self.thread.join()
 
     def close(self, manifest: Manifest) -> None:
         self.end.set()
