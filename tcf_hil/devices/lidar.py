@@ -504,16 +504,26 @@ class LidarRun:
                              init_id, fr)
 
     def _pose_rows(self, fr: FrameResult) -> bytes:
-        """``sensor_poses.csv``'s rows of a frame's columns."""
+        """The sensor pose of a frame's columns as the store keeps them
+        (:attr:`RenderedFrame.poses`): written as ``sensor_poses.csv`` rows only where a
+        run keeps that file (:meth:`_take`)."""
         q = quaternions(fr.rotations)
         p = fr.positions + self.forest.origin
+        return (fr.timestamps_ns.astype("<i8").tobytes()
+                + np.hstack([p, q]).astype("<f8").tobytes())
+
+    @staticmethod
+    def _poses_csv_rows(poses: bytes) -> str:
+        """``sensor_poses.csv``'s rows of :meth:`_pose_rows`' bytes."""
+        n = len(poses) // 64
+        t = np.frombuffer(poses[:8 * n], "<i8")
+        v = np.frombuffer(poses[8 * n:], "<f8").reshape(n, 7)
         buf = io.StringIO()
         csv.writer(buf, lineterminator="\n").writerows(
             [int(t), f"{a:.6f}", f"{b:.6f}", f"{c:.6f}", f"{w:.9f}", f"{x:.9f}",
              f"{y:.9f}", f"{z:.9f}"]
-            for t, (a, b, c), (w, x, y, z) in zip(fr.timestamps_ns.tolist(), p.tolist(),
-                                                  q.tolist(), strict=True))
-        return buf.getvalue().encode()
+            for t, (a, b, c, w, x, y, z) in zip(t.tolist(), v.tolist(), strict=True))
+        return buf.getvalue()
 
     def _take(self, rf: RenderedFrame) -> None:
         """A frame's bookkeeping, as it is yielded."""
@@ -526,7 +536,7 @@ class LidarRun:
         self.packets += self._packets_per_frame
         self.counts[rf.hit_ids] += rf.hit_counts  # (ids once each)
         if self.keep_poses:
-            self._poses.write(rf.poses.decode())
+            self._poses.write(self._poses_csv_rows(rf.poses))
 
     def standing(self, at_ns: int) -> _StandingEmulator:
         """The machine standing at the track's pose at ``at_ns``: a cycle of

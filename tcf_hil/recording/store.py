@@ -59,7 +59,7 @@ __all__ = ["ACTIONS", "DEFAULT_MAX_GB", "RenderStore", "RenderWriter", "Rendered
 
 ACTIONS = ("send", "drop", "reinit", "silent")
 DEFAULT_MAX_GB = 20.0
-FORMAT = 2  # of the files above: a change makes every older render a miss
+FORMAT = 3  # of the files above: a change makes every older render a miss
 _HEAD = struct.Struct("<4sqBIIIIII")
 _MAGIC = b"TCFF"
 
@@ -69,10 +69,11 @@ class RenderedFrame:
     """One frame as the sensor sends it, in the compact form the store keeps: its
     datagrams (each at its simulation time, tagged with the port the run was made with),
     what each return hit (``labels``: a :mod:`protocols.labels` record, empty for a frame
-    that left without lidar packets), the sensor pose of every column (``poses``: rows of
-    ``sensor_poses.csv``), the returns per object id (``hit_ids``/``hit_counts``), the
-    fault events that struck it, what the sensor did (``action``) and its ``init_id``
-    after the frame."""
+    that left without lidar packets), the sensor pose of every column (``poses``: the n
+    column times as little-endian int64, then (n, 7) float64 x, y, z, qw, qx, qy, qz in the
+    world: ``sensor_poses.csv``'s numbers), the returns per object id
+    (``hit_ids``/``hit_counts``), the fault events that struck it, what the sensor did
+    (``action``) and its ``init_id`` after the frame."""
 
     k: int
     datagrams: list[Datagram]

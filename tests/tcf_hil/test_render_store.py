@@ -36,6 +36,7 @@ def _files(d: Path) -> dict[str, bytes]:
     return {n: (d / n).read_bytes() for n in SIDECARS if (d / n).exists()}
 
 
+@pytest.mark.slow  # the second lane: whole tracks rendered, runs
 @pytest.mark.parametrize("faults", [False, True])
 def test_a_stored_render_sends_the_bytes_a_live_render_sends(tmp_path: Path,
                                                              faults: bool) -> None:
@@ -90,6 +91,7 @@ def test_a_hand_built_forest_is_never_stored(tmp_path: Path) -> None:
         LidarRun(scn, mode="512x10", render="sometimes")
 
 
+@pytest.mark.slow  # the second lane: whole tracks rendered, runs
 def test_a_render_cut_short_resumes_after_its_last_whole_frame(tmp_path: Path) -> None:
     scn = _short()
     store = RenderStore(tmp_path / "cache")
@@ -208,6 +210,7 @@ def test_a_truncated_record_is_named(tmp_path: Path) -> None:
         RenderedFrame.decode(b"XXXX" + rec[4:], 0)
 
 
+@pytest.mark.slow  # the second lane: whole tracks rendered, runs
 def test_render_then_run_streams_the_stored_bytes_as_a_user_types_it(tmp_path: Path) -> None:
     """``tcf-hil render``, ``cache list``, then two runs of the same scenario and seed: one
     streamed from the store, one rendered live. Both recordings hold the very same lidar
