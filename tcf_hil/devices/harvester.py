@@ -9,6 +9,7 @@ time stamp for the recorder and for tests.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import threading
 import time
@@ -243,12 +244,8 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
         faults = world.faults.can if world.faults is not None else None
     elif faults is None and faults_active(scn.faults):
         faults = fault_plans(scn.faults, seed, model.trajectory.t0_ns).can
-    pose_at = model.bus_pose
-    if stand_from_ns is not None:  # the machine stops there (a run cut short) and stands
-        stop_at = stand_from_ns
-
-        def pose_at(t_ns: int) -> Any:
-            return model.bus_pose(min(t_ns, stop_at))
+    pose_at = model.bus_pose if stand_from_ns is None else standing_from(model.bus_pose,
+                                                                          stand_from_ns)
 
     node = HarvesterNode(spec, pose_at, clock, cfg, faults=faults, on_fault=on_fault,
                          on_conflict=conflicting)
@@ -285,6 +282,18 @@ def run_harvester(scn: Scenario, terrain: Terrain, spec: BusSpec, *, seed: int =
                               can_log.error if can_log else None, node.conflict)
 
 
+def standing_from(bus_pose: Callable[[int], Pose], stop_ns: int) -> Callable[[int], Pose]:
+    """``bus_pose`` until ``stop_ns``, then the machine standing where it was then: the
+    same pose, stamped with each time asked for, at speed 0."""
+
+    def pose_at(t_ns: int) -> Pose:
+        if t_ns <= stop_ns:
+            return bus_pose(t_ns)
+        return dataclasses.replace(bus_pose(stop_ns), time_us=t_ns // 1000, speed_m_s=0.0)
+
+    return pose_at
+
+
 def heading_error_deg(a: float, b: float) -> float:
     """Smallest angle between two compass headings."""
     d = (a - b) % 360.0
@@ -292,4 +301,4 @@ def heading_error_deg(a: float, b: float) -> float:
 
 
 __all__ = ["HarvesterModel", "HarvesterRunResult", "heading_error_deg", "open_bus",
-           "run_harvester"]
+           "run_harvester", "standing_from"]

@@ -39,9 +39,6 @@ if TYPE_CHECKING:
 # the track starts at simulation time 60 s: the harvester's lead before it never reaches
 # negative times (the CAN pose time is an unsigned 32-bit microsecond count)
 RUN_T0_NS = 60_000_000_000
-# a scene that renders this much faster than its run needs is rendered as it goes (in the
-# frame producer, a few frames ahead); a slower one is rendered ahead into the store first
-FAST_ENOUGH = 2.0
 # the fault events that strike a frame out, wholly or in part (emulators.faults)
 LOSSES = frozenset({"udp_loss", "udp_burst_loss", "lidar_dropout"})
 
@@ -152,8 +149,11 @@ class LiveTraffic:
         need = run.meta.frequency_hz * self.speed
         if run.stored is None and self.render == "stored":
             self._render_first(run)
-        elif run.stored is None and self.render == "auto" and rate < FAST_ENOUGH * need:
-            # slower than real time, or not much faster: rendered ahead into the store
+        elif run.stored is None and self.render == "auto":
+            # rendered ahead into the store, below the SIC's priority, and read from there
+            # at the ordinary one (rendered in the frame producer at nice 19 instead, a
+            # scene that renders at several times real time went out 100 ms late on every
+            # packet beside the reference SIC on 2 cores: Forest II 1024x10 at speed 2)
             ahead = run.render_ahead()
             if ahead is not None:
                 self._lead(run, ahead)

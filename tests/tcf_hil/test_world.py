@@ -62,3 +62,21 @@ def test_a_run_opens_its_traffic_from_its_source(tmp_path) -> None:  # type: ign
     assert isinstance(live, LiveTraffic) and live.speed == 2.0
     with pytest.raises(InputError, match="not a tcf-hil run directory"):
         open_traffic(tmp_path)  # an empty directory: not a recording
+
+
+def test_a_run_cut_short_stands_where_it_stopped_on_can_too() -> None:
+    """After the run's last frame the node publishes the machine standing there: the same
+    pose, each stamped with its own time (a SIC's pose track must go on), at speed 0."""
+    from tcf_hil.devices.harvester import standing_from
+
+    w = World.build(load_scenario("forest-ii"), t0_ns=60_000_000_000)
+    model = HarvesterModel.from_world(w)
+    stop = w.t0_ns + 3_000_000_000  # three seconds into the drive
+    pose = standing_from(model.bus_pose, stop)
+    assert pose(stop - 10_000_000) == model.bus_pose(stop - 10_000_000)
+    later = [pose(stop + k * 10_000_000) for k in range(1, 4)]
+    assert [p.time_us for p in later] == [(stop + k * 10_000_000) // 1000 for k in (1, 2, 3)]
+    moving = model.bus_pose(stop)
+    assert moving.speed_m_s > 0.1
+    assert all((p.x_m, p.y_m, p.heading_deg, p.speed_m_s) ==
+               (moving.x_m, moving.y_m, moving.heading_deg, 0.0) for p in later)
