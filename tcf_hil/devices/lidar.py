@@ -87,6 +87,10 @@ class OnAir:
     power_on_ns: int
     track_at: Any
     step_at: Any
+    # frames of the machine standing after the track at the most (-1: until stopped): a
+    # run's sensor falls silent once the run could be over, so that a bench left hanging
+    # does not go on sending to the ports the next run on the machine takes
+    after_frames: int = -1
 
 
 @dataclass
@@ -602,7 +606,7 @@ class LidarRun:
         sensor = Os0Sensor(after, self.meta, _StandingPose(self.track, end), crc_rows=crc,
                            first_frame_id=last + 1 - self.frames, first_imu_ns=end)
         k = self.frames
-        while True:
+        while air.after_frames < 0 or k < self.frames + air.after_frames:
             yield "after", self._standing_frame(sensor.frame(k))
             k += 1
 

@@ -84,7 +84,8 @@ class LiveTraffic:
                  speed: float = 1.0, lead_s: float = 3.0, duration_s: float | None = None,
                  backend: str = "auto", record_lidar: bool = True,
                  progress: Any = None, announce: Announce = quiet,
-                 render: str = "auto", standing_s: float = 30.0) -> None:
+                 render: str = "auto", standing_s: float = 30.0,
+                 standing_after_s: float | None = None) -> None:
         if lead_s * speed * 1e9 >= RUN_T0_NS:
             raise ValueError(f"lead {lead_s} s at speed {speed} reaches before simulation "
                              "time 0")
@@ -95,6 +96,7 @@ class LiveTraffic:
         # the longest the machine may stand before the track (the SIC's start-up and lead):
         # the sensor powers on this much simulation time before the track's start
         self.standing_s = standing_s
+        self.standing_after_s = standing_after_s  # None: until the run closes
         self.track_ended = threading.Event()  # the first frame after the track went out
         self.clock: RunClock | None = None
         self.air: Any = None
@@ -303,7 +305,10 @@ class LiveTraffic:
         period, t0 = run.emu.period_ns, run.track.t0_ns
         most = min(math.ceil(self.standing_s * 1e9 / period), t0 // period - 1)
         ctx = mp.get_context("fork")
-        self.air = OnAir(t0 - most * period, ctx.RawValue("q", -1), ctx.RawValue("q", -1))
+        after = -1 if self.standing_after_s is None else math.ceil(
+            self.standing_after_s * self.speed * 1e9 / period)
+        self.air = OnAir(t0 - most * period, ctx.RawValue("q", -1), ctx.RawValue("q", -1),
+                         after)
         return self.air
 
     def _start_thread(self, target: Any, name: str) -> None:
