@@ -206,12 +206,14 @@ def _print_side_by_side(a: Any, b: Any, preset: str) -> None:
 @click.option("--replay", "replay_dir", type=click.Path(exists=True, path_type=Path),
               default=None, help="Send recorded traffic instead of the live emulators: a "
                                  "run directory, or an Ouster pcap (with --meta, --can-log).")
-@click.option("--render", type=click.Choice(["auto", "stored", "live"]), default="auto",
-              show_default=True,
+@click.option("--render", type=click.Choice(["auto", "stored", "ahead", "live"]),
+              default="auto", show_default=True,
               help="Where the frames come from: auto streams the render store's frames "
                    "where tcf-hil render stored this run's (the bench then only paces and "
-                   "copies), else renders each frame as it is due; stored renders the whole "
-                   "track into the store first (with progress) and streams from it; live "
+                   "copies), else renders each frame a few frames ahead of its time; stored "
+                   "renders the whole track into the store first (with progress) and "
+                   "streams from it; ahead renders into the store in a process of its own "
+                   "while the run streams from it, after a lead computed from its rate; live "
                    "always renders as it goes. The bytes are the same either way.")
 @_recording_options
 @click.option("--truth", type=click.Path(dir_okay=False, exists=True, path_type=Path),

@@ -65,7 +65,8 @@ from tcf_hil.world import World
 from tcf_hil.world.forest import Forest, ground_truth
 from tcf_hil.world.track import warm_up as warm_up_poses
 
-RENDER_MODES = ("auto", "fill", "stored", "live")  # where a run's frames come from (LidarRun)
+# where a run's frames come from (LidarRun; "ahead": a live run's, LiveTraffic)
+RENDER_MODES = ("auto", "fill", "stored", "live", "ahead")
 RING_SLOTS = SLOTS  # frames made ahead of the sender in a live stream (its frame ring)
 # Frames of the standing machine rendered once (1 s at 10 Hz) and sent again, restamped: its
 # range noise repeats each second (a real sensor's would not); the geometry does not change.
@@ -239,7 +240,8 @@ class LidarRun:
         ``world``: the run's world, resolved once (:class:`~tcf_hil.world.World`), whose
         forest, track, scene and fault plans the sensor takes; without it the sensor resolves
         one of its own from ``scn``, ``seed``, ``t0_ns``, ``forest`` and its ports.
-        ``store`` and ``render``: where the frames come from (:data:`RENDER_MODES`): ``live``
+        ``store`` and ``render``: where the frames come from (:data:`RENDER_MODES`; ``ahead``
+        is ``auto`` here, :meth:`render_ahead` is the caller's): ``live``
         renders each as it is asked for; ``auto`` sends the render ``store`` holds for this
         run where it is complete (:attr:`render_key`), else renders live; ``fill`` as
         ``auto``, and a live render is kept in the store as it goes (when no other process

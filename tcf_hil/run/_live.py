@@ -151,11 +151,10 @@ class LiveTraffic:
         need = run.meta.frequency_hz * self.speed
         if run.stored is None and self.render == "stored":
             self._render_first(run)
-        elif run.stored is None and self.render == "auto":
-            # rendered ahead into the store, below the SIC's priority, and read from there
-            # at the ordinary one (rendered in the frame producer at nice 19 instead, a
-            # scene that renders at several times real time went out 100 ms late on every
-            # packet beside the reference SIC on 2 cores: Forest II 1024x10 at speed 2)
+        elif run.stored is None and self.render == "ahead":
+            # rendered ahead into the store in a process of its own, below the SIC's
+            # priority, and read from there (on 2 cores beside the reference SIC this lost
+            # frames at the SIC's receiver: see the README; auto renders in the producer)
             ahead = run.render_ahead()
             if ahead is not None:
                 self._lead(run, ahead)
