@@ -647,7 +647,8 @@ class OnboardSic:
                 if seen_data and cfg.stand_s > 0 and track.stood_still_s() >= cfg.stand_s:
                     _log(f"the machine has stood still for {cfg.stand_s:g} s after driving: "
                          "end of the drive")
-                    break
+                    rx.close()  # what the standing sensor sends on is not the drive's: no
+                    break  # frame of it is counted lost while the last tiles are finished
             for _t, columns in waiting:  # the stream ended: what the poses cover
                 if not self._map(columns, track, rays, smap, rx.stats):
                     rx.stats.frames_without_pose += 1
