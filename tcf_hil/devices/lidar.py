@@ -43,6 +43,7 @@ from protocols.ouster import (
     MetadataError,
     SensorMetadata,
     decode_lidar_packet,
+    finish_lidar_packets,
     os0_64_metadata,
     shift_lidar_packet,
 )
@@ -595,14 +596,26 @@ class LidarRun:
         for rf in self.rendered():
             if rf.action == "reinit":
                 shift = 0
-            if shift:
-                rf.datagrams = [Datagram(d.t_ns, d.port, shift_lidar_packet(
-                    fmt, bytes(d.payload), shift, 0, crc)) if d.port == lp else d
-                    for d in rf.datagrams]
-            ids = [d for d in rf.datagrams if d.port == lp]
-            if ids:
-                last = decode_lidar_packet(fmt, bytes(ids[-1].payload), check_crc=False
-                                           ).frame_id
+            lidar = [i for i, d in enumerate(rf.datagrams) if d.port == lp]
+            if lidar:
+                fid = decode_lidar_packet(fmt, bytes(rf.datagrams[lidar[0]].payload),
+                                          check_crc=False).frame_id
+                last = (fid + shift) & 0xFFFF
+                if shift and len(lidar) == fmt.packets_per_frame:  # one header write and
+                    arr = np.frombuffer(b"".join(  # one CRC pass for the frame's packets
+                        rf.datagrams[i].payload for i in lidar), np.uint8).reshape(
+                        len(lidar), -1).copy()
+                    finish_lidar_packets(fmt, arr, frame_id=last, init_id=rf.init_id,
+                                         prod_sn=self.meta.prod_sn, crc_rows=crc)
+                    dgs = list(rf.datagrams)
+                    for row, i in enumerate(lidar):
+                        d = dgs[i]
+                        dgs[i] = Datagram(d.t_ns, d.port, arr[row].tobytes())
+                    rf.datagrams = dgs
+                elif shift:  # packets lost or doubled on the way (UDP faults): one by one
+                    rf.datagrams = [Datagram(d.t_ns, d.port, shift_lidar_packet(
+                        fmt, bytes(d.payload), shift, 0, crc)) if d.port == lp else d
+                        for d in rf.datagrams]
             yield "track", rf
         end = t0 + self.frames * period
         sensor = Os0Sensor(after, self.meta, _StandingPose(self.track, end), crc_rows=crc,
