@@ -294,6 +294,9 @@ class LidarRun:
         self.last_sent = False
         self.faults_on = faults
         self.model = model
+        self._meta0 = self.meta  # what the key is made of (render_doc), computed once
+        self._doc: dict[str, Any] | None = None
+        self._key: str | None = None
         self.store = store if render != "live" else None
         self.render_mode = render
         self.stored: StoredRender | None = None  # the render the frames come from, if any
@@ -322,21 +325,26 @@ class LidarRun:
         of it with the code's version), or None for a forest built by the caller."""
         if self._own_forest:
             return None
+        if self._doc is not None:
+            return self._doc
         from tcf_hil.scenario import scenario_to_dict
 
-        meta = dataclasses.asdict(self.meta)
+        meta = dataclasses.asdict(self._meta0)  # (as made: a re-initialisation changes it)
         for name in ("udp_dest", "udp_port_lidar", "udp_port_imu", "extra"):
             meta.pop(name, None)  # not in the bytes: where they go
-        return {"scenario": scenario_to_dict(self.world.scenario), "seed": self.forest.seed,
+        doc = {"scenario": scenario_to_dict(self.world.scenario), "seed": self.forest.seed,
                 "backend": self.backend, "t0_ns": self.track.t0_ns,
                 "frames": self.track_frames, "first_frame_id": self.first_frame_id,
                 "faults": self.faults_on, "model": None if self.model is None
                 else dataclasses.asdict(self.model), "sensor": meta}
+        self._doc = doc
+        return doc
 
     @property
     def render_key(self) -> str | None:
-        doc = self.render_doc()
-        return None if doc is None else render_key(doc)
+        if self._key is None and (doc := self.render_doc()) is not None:
+            self._key = render_key(doc)
+        return self._key
 
     @property
     def ports(self) -> tuple[int, int]:
@@ -405,9 +413,9 @@ class LidarRun:
                 yield rf
             return
         writer = None
-        key, doc = self.render_key, self.render_doc()
-        if self.render_mode == "fill" and self.store is not None and key and doc \
-                and self.frames == self.track_frames:
+        key, doc = (self.render_key, self.render_doc()) if self.render_mode == "fill" \
+            else (None, None)
+        if self.store is not None and key and doc and self.frames == self.track_frames:
             writer = self.store.writer(key, doc, self.track_frames, wait=False)
             if writer is not None and writer.frames:  # a render cut short: start over
                 writer.close()

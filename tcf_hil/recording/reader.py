@@ -111,17 +111,6 @@ class Recording:
     # a field CAN log's SDO answers: the node that gave them and the values
     sdo_node: int | None = None
     sdo_values: dict[tuple[int, int], bytes] = field(default_factory=dict)
-    # a run's clock steps (manifest ``clock.steps``: the sim time the clock would have read,
-    # the one it jumped to): datagrams before a step move up to it, onto one time line with
-    # the CAN log (whose wall times never stepped)
-    steps: list[tuple[int, int]] = field(default_factory=list)
-
-    def on_timeline(self, t_ns: int) -> int:
-        """A datagram's recorded time on the recording's one time line (see ``steps``)."""
-        for frm, to in self.steps:
-            if t_ns < frm:
-                t_ns += to - frm
-        return t_ns
 
     @property
     def is_run(self) -> bool:
@@ -163,15 +152,8 @@ class Recording:
                              f"missing or malformed ({err})") from err
         # can.log from a run; a replayed field recording's log keeps its own format
         own = [run_dir / f"can{x}" for x in CAN_LOG_SUFFIXES if (run_dir / f"can{x}").exists()]
-        try:
-            steps = [(int(a), int(b)) for a, b in clock.get("steps", [])]
-        except (TypeError, ValueError) as err:
-            raise InputError(str(run_dir / "manifest.json"), "clock.steps",
-                             f"malformed ({err})") from err
-        rec = cls(*_read_meta(meta or run_dir / "metadata.json"), run_dir / "lidar.pcap",
-                  can_log or (own[0] if own else None), (t0, unix0, speed), man)
-        rec.steps = steps
-        return rec
+        return cls(*_read_meta(meta or run_dir / "metadata.json"), run_dir / "lidar.pcap",
+                   can_log or (own[0] if own else None), (t0, unix0, speed), man)
 
     # ------------------------------------------------------------------------- reading
     def datagrams(self) -> Iterator[tuple[int, int, bytes]]:
@@ -183,7 +165,7 @@ class Recording:
                 if (d.dst_port == lidar or (d.dst_port == imu and
                                             len(d.payload) == IMU_PACKET_BYTES)) and \
                         d.src_ip == self.sensor_ip:
-                    yield self.on_timeline(d.timestamp_ns), d.dst_port, d.payload
+                    yield d.timestamp_ns, d.dst_port, d.payload
 
     def can_messages(self) -> Iterator[tuple[int, can.Message]]:
         """(time ns on the pcap's time line, frame) of every frame of the CAN log."""
@@ -252,8 +234,8 @@ class Recording:
                         elif len(d.payload) != fmt.packet_bytes:
                             raise self._bad(i, self._misfit(d.payload, crc) or "")
                         n["lidar"] += 1
-                        first = self.on_timeline(d.timestamp_ns) if first is None else first
-                        last = self.on_timeline(d.timestamp_ns)
+                        first = d.timestamp_ns if first is None else first
+                        last = d.timestamp_ns
                         batch.append((i, d.payload))
                         if len(batch) == _CHECK_BATCH:
                             check()
