@@ -196,8 +196,11 @@ def _print_side_by_side(a: Any, b: Any, preset: str) -> None:
                    "node with the harvester's id stops the run (exit 1).")
 @click.option("--grace", type=click.FloatRange(min=0), default=120.0, show_default=True,
               help="Seconds the SIC gets after the stream ends to publish its final forest "
-                   "and exit (then SIGTERM, then SIGKILL); a SIC that exits sooner ends the "
-                   "run sooner. The reference SIC's stem worker needs up to a minute after a "
+                   "and exit; then SIGTERM (its cue to publish and exit), 15 s more, then "
+                   "SIGKILL, each to its whole process group; the run says in one line when "
+                   "it had to stop the SIC before its final forest, and the manifest keeps "
+                   "sic.ended_by and sic.final_forest. A SIC that exits sooner ends the run "
+                   "sooner. The reference SIC's stem worker needs up to a minute after a "
                    "natural stand at 1024x10, minutes at 2048x10 on one core.")
 @click.option("--ready-timeout", "ready_s", type=click.FloatRange(min=0), default=15.0,
               show_default=True,

@@ -53,6 +53,7 @@ class SicRecord:
     pid: int | None = None
     returncode: int | None = None
     ended_by: str | None = None  # the signal the bench had to send
+    final_forest: bool | None = None  # whether it published its final forest (see SicProcess)
 
 
 @dataclass

@@ -452,6 +452,7 @@ class RunSession:
         if manifest.sic is not None:
             manifest.sic.returncode = st.rc
             manifest.sic.ended_by = proc.signalled if proc is not None else None
+            manifest.sic.final_forest = proc.final_forest() if proc is not None else None
         if inbox is not None:
             manifest.publications = {"total": len(inbox.items), "valid": len(inbox.valid),
                                      "invalid": len(inbox.invalid),
@@ -467,6 +468,9 @@ class RunSession:
         if status == RunStatus.COMPLETE and ended_by:
             message = (f"the SIC did not exit within {self.grace_s:g} s after the "
                        f"{self.traffic.noun}; ended with {ended_by}")
+            if proc is not None and proc.final_forest() is False:
+                message += (" before it published its final forest (its latest forest is "
+                            "scored; a longer --grace gives it time)")
         elif status == RunStatus.COMPLETE and rc not in (0, None):
             status = RunStatus.SIC_FAILED
             message = f"the SIC exited with code {rc} (see {out / 'sic' / 'stderr.log'})"

@@ -44,6 +44,7 @@ ENV_DOC: tuple[tuple[str, str], ...] = (
                     "file:PATH or an http:// URL; yours may ignore it)"),
 )
 
+SIGTERM_WAIT_S = 15.0  # after --grace: SIGTERM, this long to publish and exit, then SIGKILL
 _PLACEHOLDER = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
 
@@ -147,6 +148,7 @@ class SicProcess:
             self.stderr_log.close()
             raise
         self.signalled: str | None = None  # the signal the bench had to send, if any
+        self.published_before_signal: int | None = None  # publications when it was sent
         self.reader = threading.Thread(target=self._read, name="sic-stdout", daemon=True)
         self.reader.start()
 
@@ -191,7 +193,9 @@ class SicProcess:
         return self.proc.wait()
 
     def _terminate(self) -> None:
-        for sig, wait in ((signal.SIGTERM, 15.0), (signal.SIGKILL, 5.0)):
+        for sig, wait in ((signal.SIGTERM, SIGTERM_WAIT_S), (signal.SIGKILL, 5.0)):
+            if self.published_before_signal is None:
+                self.published_before_signal = len(self.inbox.valid)
             self.signalled = sig.name
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(self.proc.pid, sig)
@@ -209,6 +213,22 @@ class SicProcess:
             except (ProcessLookupError, PermissionError):
                 return
             time.sleep(0.2)
+
+    def final_forest(self) -> bool | None:
+        """Whether the SIC published its final forest: it exited by itself, or published
+        after the bench's SIGTERM (its cue), or its latest forest says ``"sic": {"final":
+        true}``, as the reference SIC's does. None while it runs."""
+        if self.proc.poll() is None:
+            return None
+        if self.signalled is None:
+            return True
+        valid = self.inbox.valid
+        if len(valid) > (self.published_before_signal or 0):
+            return True
+        if valid:
+            sic = self.inbox.doc_of(valid[-1]).get("sic")
+            return isinstance(sic, dict) and sic.get("final") is True
+        return False
 
     def close(self) -> None:
         self.end(0.0)

@@ -11,7 +11,8 @@
   (``TCF_SIC_STEM_WORKER=0``: inline, between frames, within a time budget);
 - the forest is published every ``publish_s`` and at the end of the stream (no packet for
   ``idle_s``; the machine standing still for ``stand_s`` of its pose time after it moved,
-  as at the end of a strip road, while an always-on sensor goes on sending; or
+  as the lidar frames mapped show it (the end of a strip road, while an always-on sensor
+  goes on sending); or
   SIGTERM/SIGINT): NDJSON on stdout, a file rewritten atomically, or an HTTP POST.
 """
 
@@ -168,13 +169,18 @@ class PoseTrack:
     MOVED_M = 0.5  # a machine that went this far from where it stood has driven
     STILL_M = 0.02  # within this of where it stopped, it stands (the pose's noise is below)
 
-    def stood_still_s(self) -> float:
+    def stood_still_s(self, seen_ns: float | None = None) -> float:
         """How long (pose time) the machine has stood still since it last moved; 0 until it
-        has driven at all."""
+        has driven at all. With ``seen_ns`` (the latest lidar time stamp mapped), only as far
+        as the lidar has shown it: the bus runs on the sensor's clock, but a sensor that
+        falls behind (a loaded bench) still has the end of the drive to send."""
         with self._lock:
             if not self.moved or self._still is None or self._last_us is None:
                 return 0.0
-            return (self._last_us - self._still[2]) / 1e6
+            last_us = float(self._last_us)
+            if seen_ns is not None and self._n:
+                last_us = min(last_us, (seen_ns + self._shift_ns(seen_ns)) / 1000.0)
+            return max(0.0, (last_us - self._still[2]) / 1e6)
 
     def add(self, time_raw_us: int, x: float, y: float, z: float, heading_deg: float,
             pitch_deg: float, roll_deg: float) -> None:
@@ -516,6 +522,7 @@ class OnboardSic:
         self.stem_cost = FrameCost()
         self.worker: Any = None  # the stem worker while a run has one
         self.meta: SensorMetadata | None = None
+        self.seen_ns: float | None = None  # the latest lidar time stamp put into the map
         self._last_reload = -1e9
 
     @staticmethod
@@ -644,7 +651,8 @@ class OnboardSic:
                 if now >= next_pub and seen_data:
                     pub.publish(self._document(smap, rx.stats, track, final=False))
                     next_pub = now + cfg.publish_s
-                if seen_data and cfg.stand_s > 0 and track.stood_still_s() >= cfg.stand_s:
+                if (seen_data and cfg.stand_s > 0 and self.seen_ns is not None
+                        and track.stood_still_s(self.seen_ns) >= cfg.stand_s):
                     _log(f"the machine has stood still for {cfg.stand_s:g} s after driving: "
                          "end of the drive")
                     rx.close()  # what the standing sensor sends on is not the drive's: no
@@ -740,6 +748,8 @@ class OnboardSic:
         if pose is None:
             return False
         st.frames += 1
+        self.seen_ns = float(ts.max()) if self.seen_ns is None else max(self.seen_ns,
+                                                                         float(ts.max()))
         pts = self.world_points(rng, cols, pose[0], pose[1], rays)
         smap.add(pts, pose[0][-1, :2], self._widths(rng, cols))
         return True

@@ -379,7 +379,35 @@ def test_schema_breaking_publication_is_kept_and_the_run_goes_on(tmp_path: Path)
     assert rec["score"]["scored_publication"] == 3  # the latest valid one (from the file)
     assert rec["manifest"]["status"] == "complete"
     assert rec["manifest"]["sic"]["ended_by"] == "SIGTERM"
-    assert "ended with SIGTERM" in p.stdout + p.stderr
+    # nothing after the SIGTERM and no "final" in its forest: it was stopped before it
+    assert rec["manifest"]["sic"]["final_forest"] is False
+    assert "ended with SIGTERM before it published its final forest" in p.stdout + p.stderr
+
+
+SIC_FINAL_ON_SIGTERM = textwrap.dedent('''
+    import json, signal, sys, time
+    print(json.dumps({"objects": []}), flush=True)
+    def last(*_):  # SIGTERM is the cue: publish what it has, then exit
+        print(json.dumps({"objects": [{"cp": [0.0, 0.0, 0.0], "class": "S"}]}), flush=True)
+        sys.exit(0)
+    signal.signal(signal.SIGTERM, last)
+    time.sleep(120)
+''')
+
+
+def test_a_sic_that_publishes_on_sigterm_has_published_its_final_forest(tmp_path: Path
+                                                                         ) -> None:
+    script = tmp_path / "sic.py"
+    script.write_text(SIC_FINAL_ON_SIGTERM)
+    out = tmp_path / "run"
+    p = tcf("run", "forest-ii", "--mode", "512x10", "--out", str(out), "--duration", "2",
+            "--grace", "0.5", "--ready-timeout", "0", "--sic", f"{{python}} {script}")
+    assert p.returncode == 0, p.stdout + p.stderr
+    man = assert_valid_recording(out)["manifest"]
+    assert (man["sic"]["ended_by"], man["sic"]["final_forest"]) == ("SIGTERM", True)
+    assert man["publications"]["valid"] == 2
+    said = p.stdout + p.stderr
+    assert "ended with SIGTERM" in said and "before it published" not in said
 
 
 def test_sigterm_ends_the_run_with_valid_files_and_a_partial_score(tmp_path: Path) -> None:

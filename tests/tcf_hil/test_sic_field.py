@@ -379,6 +379,7 @@ def test_a_live_run_of_a_natural_stand_scores_above_the_floor(tmp_path: Path) ->
     bands = {b["from_m"]: b for b in score["by_distance"]["bands"]}
     sic = json.loads((out / "manifest.json").read_text())["sic"]
     assert sic["ended_by"] is None, sic  # the SIC published its final forest and exited
+    assert sic["final_forest"] is True, sic
     assert bands[0.0]["detection"] >= 0.8, bands[0.0]
     assert bands[0.0]["dbh_rmse_m"] <= 0.04, bands[0.0]
     assert bands[5.0]["detection"] >= 0.75, bands[5.0]

@@ -115,6 +115,26 @@ def test_pose_track_matches_lidar_time_a_wrap_ahead_of_the_pose_count() -> None:
     assert pos[0, 0] == pytest.approx(0.955, abs=1e-9)
 
 
+def test_the_drive_ends_only_as_far_as_the_lidar_has_shown_it() -> None:
+    # 2 s at 1 m/s east, then 10 s standing (poses at 100 Hz, the count past one wrap)
+    tr = PoseTrack()
+    base_us = (1 << 32) + 1_000_000
+    for k in range(1201):
+        x = min(k, 200) * 0.01
+        tr.add((base_us + k * 10_000) % (1 << 32), x, 0.0, 0.0, 90.0, 0.0, 0.0)
+    # (it stands from within STILL_M of where it stopped: 1 pose, 10 ms, early)
+    assert tr.stood_still_s() == pytest.approx(10.0, abs=0.02)  # by the bus alone
+    stopped_ns = (base_us + 2_000_000) * 1000.0  # a lidar time stamp (not wrapped)
+    # a sensor behind the bus: the lidar has shown 1 s of the standing, not 10
+    assert tr.stood_still_s(stopped_ns + 1e9) == pytest.approx(1.0, abs=0.02)
+    assert tr.stood_still_s(stopped_ns - 1e9) == 0.0  # still driving, as the lidar shows it
+    assert tr.stood_still_s(stopped_ns + 60e9) == tr.stood_still_s()  # never past the bus
+    fresh = PoseTrack()  # a machine that never drove has not ended a drive
+    for k in range(1000):
+        fresh.add(k * 10_000, 0.0, 0.0, 0.0, 90.0, 0.0, 0.0)
+    assert fresh.stood_still_s(1e13) == 0.0
+
+
 def test_world_points_land_where_the_sdk_ray_model_puts_them() -> None:
     meta = os0_64_metadata("512x10", "RNG19_RFL8_SIG16_NIR16")
     mount = np.array([1.5, -0.5, 2.0])
