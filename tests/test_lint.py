@@ -26,6 +26,7 @@ def test_ruff_is_clean() -> None:
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
+@pytest.mark.slow  # the second lane (.ci/run): half a minute of a cold mypy cache
 def test_mypy_is_clean() -> None:
     proc = subprocess.run([sys.executable, "-m", "mypy", "--no-incremental", "tcf_hil",
                            "protocols", "emulators"], cwd=ROOT, capture_output=True, text=True)

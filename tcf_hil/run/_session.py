@@ -468,7 +468,7 @@ class RunSession:
         if status == RunStatus.COMPLETE and ended_by:
             message = (f"the SIC did not exit within {self.grace_s:g} s after the "
                        f"{self.traffic.noun}; ended with {ended_by}")
-            if proc is not None and proc.final_forest() is False:
+            if proc is not None and inbox.valid and proc.final_forest() is False:
                 message += (" before it published its final forest (its latest forest is "
                             "scored; a longer --grace gives it time)")
         elif status == RunStatus.COMPLETE and rc not in (0, None):

@@ -400,7 +400,7 @@ def test_a_sic_that_publishes_on_sigterm_has_published_its_final_forest(tmp_path
     script = tmp_path / "sic.py"
     script.write_text(SIC_FINAL_ON_SIGTERM)
     out = tmp_path / "run"
-    p = tcf("run", "forest-ii", "--mode", "512x10", "--out", str(out), "--duration", "2",
+    p = tcf("run", "forest-ii", "--mode", "512x10", "--out", str(out), "--duration", "1",
             "--grace", "0.5", "--ready-timeout", "0", "--sic", f"{{python}} {script}")
     assert p.returncode == 0, p.stdout + p.stderr
     man = assert_valid_recording(out)["manifest"]

@@ -99,7 +99,7 @@ def test_curves_join_within_a_tube_and_end_flat_at_its_top() -> None:
     assert np.all(tc.points[:, 3] >= 0) and np.all(tc.points[:, 3] < 0.5)
 
 
-@pytest.mark.parametrize("name", ["natural", "forest-x"])
+@pytest.mark.parametrize("name", ["natural", pytest.param("forest-x", marks=pytest.mark.slow)])
 def test_joint_spheres_lie_inside_the_true_surface(name: str) -> None:
     """Each segment's joint sphere (what fills Embree's cut where two segments meet) is
     centred on its first point and lies inside the stem: every point of it (64 directions)

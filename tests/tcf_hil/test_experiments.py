@@ -51,6 +51,8 @@ def _events(progress: list[tuple[str, dict]] | None = None
     return seen, on_event
 
 
+@pytest.mark.slow  # the second lane (.ci/run): a Dask cluster's start-up (the local
+# executor's sweeps stay in the first lane)
 def test_sweep_on_a_two_worker_local_cluster_then_a_rerun_skips(tmp_path: Path) -> None:
     # 2.5 s of track: most stems glimpsed once from 10-25 m, a row of returns every 1.4 deg.
     # The tuned preset's radius graph joins such rows into stems; the field preset (the

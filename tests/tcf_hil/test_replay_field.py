@@ -286,6 +286,7 @@ def test_bad_recordings_are_one_line_naming_the_file(tmp_path: Path, damage: str
     assert needle in lines[0] and str(tmp_path) in lines[0], lines[0]
 
 
+@pytest.mark.slow  # the second lane (.ci/run): long recordings replayed
 def test_memory_stays_flat_whatever_the_recording_length(tmp_path: Path) -> None:
     """A 2048x10 recording of 6 s (about 100 MB) checked and read through with less than
     12 MB of Python allocations at the peak (reading it whole would be 100 MB)."""
