@@ -159,10 +159,18 @@ class PcapWriter:
         frac = rem if self.nanosecond else rem // 1000
         room = (self.mtu - 20) // 8 * 8
         size = 8 + L
-        parts = []
+        pieces = []  # each fragment's length, then all written into one array of records
         off = 0
         while True:
             clen = room if size - off > self.mtu - 20 else size - off
+            pieces.append(clen)
+            off += clen
+            if off >= size:
+                break
+        out = np.empty((M, sum(50 + c for c in pieces)), np.uint8)
+        col = 0
+        off = 0
+        for clen in pieces:
             more = off + clen < size
             flags_frag = (0x2000 if more else 0) | (off // 8)
             hdr = np.frombuffer(_IP.pack(0x45, 0, 20 + clen, 0, flags_frag, 64, 17, 0, src,
@@ -173,7 +181,8 @@ class PcapWriter:
             while (total >> 16).any():
                 total = (total & 0xFFFF) + (total >> 16)
             csum = ~total & 0xFFFF
-            rec = np.empty((M, 16 + 14 + 20 + clen), np.uint8)
+            rec = out[:, col:col + 50 + clen]
+            col += 50 + clen
             flen = 14 + 20 + clen
             head = np.empty((M, 4), "<u4")
             head[:, 0], head[:, 1], head[:, 2], head[:, 3] = sec, frac, flen, flen
@@ -183,11 +192,8 @@ class PcapWriter:
             rec[:, 34], rec[:, 35] = ids >> 8, ids & 0xFF
             rec[:, 40], rec[:, 41] = csum >> 8, csum & 0xFF
             rec[:, 50:] = udp[:, off:off + clen]
-            parts.append(rec)
             off += clen
-            if not more:
-                break
-        return np.concatenate(parts, axis=1).tobytes()
+        return out.tobytes()
 
     def encode(self, datagrams: Iterable[UdpDatagram]) -> bytes:
         """A whole file: header and every datagram."""

@@ -54,6 +54,7 @@ from tcf_hil._rotations import quaternions
 from tcf_hil.devices._ring import SLOTS, FrameRing, PcapTarget, pcap_records
 from tcf_hil.devices.faults import FaultLog
 from tcf_hil.errors import ConfigError
+from tcf_hil.recording.poses_csv import pose_rows
 from tcf_hil.recording.store import (
     RenderedFrame,
     RenderStore,
@@ -533,12 +534,7 @@ class LidarRun:
         n = len(poses) // 64
         t = np.frombuffer(poses[:8 * n], "<i8")
         v = np.frombuffer(poses[8 * n:], "<f8").reshape(n, 7)
-        buf = io.StringIO()
-        csv.writer(buf, lineterminator="\n").writerows(
-            [int(t), f"{a:.6f}", f"{b:.6f}", f"{c:.6f}", f"{w:.9f}", f"{x:.9f}",
-             f"{y:.9f}", f"{z:.9f}"]
-            for t, (a, b, c, w, x, y, z) in zip(t.tolist(), v.tolist(), strict=True))
-        return buf.getvalue()
+        return pose_rows(t, v, (6, 6, 6, 9, 9, 9, 9))  # metres to the um, quaternions 1e-9
 
     def _take(self, rf: RenderedFrame) -> None:
         """A frame's bookkeeping, as it is yielded."""
