@@ -7,8 +7,8 @@ Run: ``python benchmarks/bench_realtime.py [--scenes forest-v,forest-x,pine-thin
 Per scene and mode:
 
 - **render**: ``LidarRun.render_into_store`` of the whole track into a store of its own (a
-  temporary ``TCF_HIL_CACHE``): its wall time, throughput as x real time, and the store's
-  bytes per minute of track;
+  temporary ``TCF_HIL_CACHE``), by one worker per CPU (as ``tcf-hil render``): its wall time,
+  throughput as x real time, and the store's bytes per minute of track;
 - **run** (``--repeat`` times): ``tcf-hil run SCENE --mode M --duration D --sic SIC`` streamed
   from that store, with: seconds from the command to the sensor's power-on (its first
   packet leaves half a second later), the track's packets 1 ms or more late and its pacing
@@ -79,7 +79,8 @@ def _render(scene: str, mode: str) -> dict[str, Any]:
     wall = time.perf_counter() - t0
     track_s = run.track_frames / run.meta.frequency_hz
     size = next(e["bytes"] for e in store.entries() if e["key"] == run.render_key)
-    return {"render_s": wall, "render_x_rt": track_s / wall if made else float("nan"),
+    return {"render_s": wall, "render_workers": len(os.sched_getaffinity(0)),
+            "render_x_rt": track_s / wall if made else float("nan"),
             "track_s": track_s, "mb_per_min": size / 1e6 / (track_s / 60)}
 
 

@@ -106,9 +106,10 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
 @click.option("--http-port", type=click.IntRange(0, 65535), default=None,
               help="Serve the sensor's HTTP API on this port (ouster-sdk and ouster-cli "
                    "need 80, which needs root) [default with --sensor-address auto: 80 where "
-                   "it may be bound, else a free port; otherwise no API]. Given here, the API "
-                   "stays up after the track until Ctrl-C; by default the command ends with "
-                   "the track.")
+                   "it may be bound, else a free port; otherwise no API]. Given here, the sensor "
+                   "stays on after the track until Ctrl-C (the API answers; the machine "
+                   "stands where the track left it and its frames go on at the sensor's "
+                   "cadence, not recorded); by default the command ends with the track.")
 @click.option("--http-address", default=None,
               help="Address of the HTTP API (default: the sensor address).")
 @fault_option

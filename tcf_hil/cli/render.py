@@ -35,10 +35,14 @@ def _gb(n: int) -> str:
 @seed_option()
 @click.option("--backend", type=click.Choice(BACKEND_CHOICES), default="auto", show_default=True,
               help="Ray casting backend (a run must use the same one to find the render).")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Renderer processes at once, each taking blocks of 10 frames in turn "
+                   "(the ray threads shared out among them) [default: one per CPU this "
+                   "process may use]; a scenario with fault plans renders in order, in one.")
 @fault_option
 @sensor_option
 def render_cmd(scenario_name: str, mode: str, profile: str, seed: int | None, backend: str,
-               faults: tuple[str, ...], sensor: str | None) -> None:
+               workers: int | None, faults: tuple[str, ...], sensor: str | None) -> None:
     """Render SCENARIO's whole track into the render store, ahead of a run.
 
     \b
@@ -72,7 +76,7 @@ def render_cmd(scenario_name: str, mode: str, profile: str, seed: int | None, ba
         return
     t0 = time.perf_counter()
     with blame(scenario_name), Progress(f"render {scn.name} {mode}") as bar:
-        made = run.render_into_store(progress=bar.counter)
+        made = run.render_into_store(progress=bar.counter, workers=workers)
     wall = time.perf_counter() - t0
     sim = made / run.meta.frequency_hz
     info = next(e for e in store.entries() if e["key"] == key)

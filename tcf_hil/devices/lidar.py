@@ -15,10 +15,13 @@ import math
 import multiprocessing as mp
 import os
 import signal
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from multiprocessing import connection as mp_connection
+from multiprocessing.connection import wait as mp_wait
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +63,7 @@ from tcf_hil.recording.store import (
     RenderStore,
     RenderWriter,
     StoredRender,
+    pack_frame,
     render_key,
 )
 from tcf_hil.scenario import Scenario
@@ -122,6 +126,38 @@ class RenderAhead:
         if self.process.pid is not None and self.running():
             self.process.terminate()
         self.process.join(timeout=10.0)
+
+
+RENDER_BLOCK = 10  # frames a render worker takes at a time (a second at 10 Hz)
+_FRAME_NO = struct.Struct("<q")  # before each packed frame a worker sends: -2 it failed
+
+
+def _render_part(run: LidarRun, start: int, counter: Any, lock: Any, conn: Any,
+                 threads: int) -> None:
+    """A renderer process of :meth:`LidarRun.render_into_store` with workers: the next
+    block of frames no worker has taken (``counter``), each frame packed and sent, until the
+    track's end. No fault plan runs here (every frame's bytes follow from its index)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when it stops
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        run.emu.threads = threads
+        sensor = run.sensor_at(start)
+        while True:
+            with lock:
+                b = counter.value
+                counter.value = b + 1
+            a = start + b * RENDER_BLOCK
+            if a >= run.track_frames:
+                break
+            sensor.skip_to(a)
+            for k in range(a, min(a + RENDER_BLOCK, run.track_frames)):
+                rf = run._compact(k, sensor.frame(k), sensor.meta.init_id, True)
+                conn.send_bytes(_FRAME_NO.pack(k) + pack_frame(rf, run.ports))
+    except BaseException as err:
+        with contextlib.suppress(Exception):
+            conn.send_bytes(_FRAME_NO.pack(-2) + f"{type(err).__name__}: {err}".encode())
+    finally:
+        conn.close()
 
 
 def _render_ahead(run: LidarRun, writer: RenderWriter, upto: int, done: Any,
@@ -352,10 +388,16 @@ class LidarRun:
         """The lidar and IMU ports the datagrams are made for."""
         return self.meta.udp_port_lidar, self.meta.udp_port_imu
 
-    def render_into_store(self, progress: Callable[[int, int], None] | None = None) -> int:
+    def render_into_store(self, progress: Callable[[int, int], None] | None = None,
+                          workers: int | None = None) -> int:
         """Every frame of the track rendered into the store (resumed after the last whole
         frame a render cut short kept), unless it is there already; then the run sends from
-        it. Frames rendered now (0: all were stored)."""
+        it. Frames rendered now (0: all were stored). ``workers`` > 1 (default: one per CPU
+        this process may use): rendered by that many processes at once (forked: they share
+        the built scene), each taking blocks of :data:`RENDER_BLOCK` frames in turn and
+        packing its frames itself, the ray threads shared out among them (Forest X at
+        2048x10 on 2 cores: 1.6x real time in one, 2.5x in two; pine-thinning 0.9x and
+        1.1x); a run with fault plans renders in order, in one."""
         if self.store is None:
             raise ConfigError("render", self.render_mode, "'auto' or 'stored' (a store)")
         key = self.render_key
@@ -377,10 +419,18 @@ class LidarRun:
         self.keep_poses = False  # the store keeps the poses; this run's bookkeeping not
         try:
             self.writer = writer
-            for rf in self._render_live(start=done):
-                writer.append(rf, self.ports)
-                if progress is not None:
-                    progress(rf.k + 1, self.track_frames)
+            if workers is None:
+                workers = len(os.sched_getaffinity(0))
+            if workers > 1 and self.lidar_faults is None and self.udp_faults is None:
+                for k, packed in self._render_parallel(done, workers):
+                    writer.append_packed(k, packed)
+                    if progress is not None:
+                        progress(k + 1, self.track_frames)
+            else:
+                for rf in self._render_live(start=done):
+                    writer.append(rf, self.ports)
+                    if progress is not None:
+                        progress(rf.k + 1, self.track_frames)
             writer.complete()
         finally:
             self.writer = None
@@ -389,6 +439,53 @@ class LidarRun:
         self._reset_bookkeeping()
         self.stored = self.store.open(key)
         return self.track_frames - done
+
+    def _render_parallel(self, start: int, workers: int) -> Iterator[tuple[int, bytes]]:
+        """Frames ``start`` .. of the track, packed (:func:`pack_frame`), in order, from
+        ``workers`` forked renderer processes (:func:`_render_part`)."""
+        ctx = mp.get_context("fork")
+        counter, lock = ctx.RawValue("q", 0), ctx.Lock()
+        threads = max(1, self.emu.threads // workers)
+        procs, conns = [], []
+        try:
+            for i in range(workers):
+                r, w = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_render_part, name=f"lidar-render-{i}", daemon=True,
+                                   args=(self, start, counter, lock, w, threads))
+                proc.start()
+                w.close()
+                procs.append(proc)
+                conns.append(r)
+            pending: dict[int, bytes] = {}  # frames come a block per worker out of order
+            live, nxt = list(conns), start
+            while nxt < self.track_frames:
+                if nxt in pending:
+                    yield nxt, pending.pop(nxt)
+                    nxt += 1
+                    continue
+                if not live:
+                    raise RuntimeError(f"the render workers ended without frame {nxt}")
+                for c in mp_wait(live):
+                    assert isinstance(c, mp_connection.Connection)
+                    try:
+                        msg = c.recv_bytes()
+                    except EOFError:
+                        live.remove(c)
+                        continue
+                    k = _FRAME_NO.unpack_from(msg)[0]
+                    if k == -2:
+                        raise RuntimeError(f"a render worker failed: "
+                                           f"{msg[_FRAME_NO.size:].decode(errors='replace')}")
+                    if k >= 0:
+                        pending[k] = msg[_FRAME_NO.size:]
+        finally:
+            for proc in procs:
+                if proc.is_alive():
+                    proc.terminate()
+            for proc in procs:
+                proc.join(10)
+            for c in conns:
+                c.close()
 
     def _reset_bookkeeping(self) -> None:
         self.counts[:] = 0
@@ -453,13 +550,21 @@ class LidarRun:
             time.sleep(0.01)
         return True
 
+    def sensor_at(self, k: int) -> Os0Sensor:
+        """The sensor that sends this run's frames, as before frame ``k`` (0: at the track's
+        start; later only where no fault plan runs: :meth:`Os0Sensor.skip_to`)."""
+        sensor = Os0Sensor(self.emu, self.meta, self.track, lidar_faults=self.lidar_faults,
+                           udp_faults=self.udp_faults, crc_rows=fast_crc_rows(),
+                           first_frame_id=self.first_frame_id, first_imu_ns=self.track.t0_ns)
+        if k:
+            sensor.skip_to(k)
+        return sensor
+
     def _render_live(self, start: int = 0) -> Iterator[RenderedFrame]:
         """Frames ``start`` .. of this run rendered now (the sensor's per-frame behaviour is
         :class:`emulators.lidar.Os0Sensor`'s; the frames before ``start`` are rendered only
         as far as the sensor's state needs: a frame's fault draws and the IMU's times)."""
-        sensor = Os0Sensor(self.emu, self.meta, self.track, lidar_faults=self.lidar_faults,
-                           udp_faults=self.udp_faults, crc_rows=fast_crc_rows(),
-                           first_frame_id=self.first_frame_id, first_imu_ns=self.track.t0_ns)
+        sensor = self.sensor_at(0)
         poses = self.keep_poses or self.writer is not None
         first = 0
         if start and self.lidar_faults is None and self.udp_faults is None:
@@ -930,6 +1035,15 @@ def _send_frames(run: LidarRun, ring: FrameRing, ready: collections.deque[tuple[
     return None, on_wire, track
 
 
+def _standing_after(run: LidarRun) -> tuple[OnAir, Any, Any]:
+    """An always-on plan for a sensor that streams its track at once and then stands where
+    the track left it, sending, until stopped (as a real sensor on a parked machine)."""
+    ctx = mp.get_context("fork")
+    period, t0 = run.emu.period_ns, run.track.t0_ns
+    air = OnAir(t0 - period, ctx.RawValue("q", 0), ctx.RawValue("q", 0), -1)
+    return air, run.standing(t0 - period), run.standing(t0 + run.frames * period)
+
+
 def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int = 80,
                  sensor_ip: str = "127.0.0.1", speed: float = 1.0,
                  stop: threading.Event | None = None, ready: threading.Event | None = None,
@@ -988,14 +1102,14 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
             out = None if record is None else (
                 Path(record) if segment == 0 else Path(record) / f"reinit-{segment}")
             segment += 1
+            run = LidarRun(scn, meta=current[0], **kw)
             r = stream_lidar(scn, sensor_ip=sensor_ip, speed=speed, stop=inner[0],
-                             meta=current[0], record=out, **kw)
+                             record=out, run=run,
+                             air=_standing_after(run) if linger else None)
             if on_result is not None:
                 on_result(r)
             if not reinit.is_set():
-                if not linger:
-                    break
-                stop.wait()  # the track ended: keep answering HTTP until told to stop
+                break  # linger: the sensor stood after the track until told to stop
     finally:
         done.set()
         api.close()

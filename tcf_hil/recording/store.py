@@ -55,7 +55,7 @@ from tcf_hil._io import write_json_atomic
 from tcf_hil.errors import InputError
 
 __all__ = ["ACTIONS", "DEFAULT_MAX_GB", "RenderStore", "RenderWriter", "RenderedFrame",
-           "StoredRender", "cache_root", "code_version", "render_key"]
+           "StoredRender", "cache_root", "code_version", "pack_frame", "render_key"]
 
 ACTIONS = ("send", "drop", "reinit", "silent")
 DEFAULT_MAX_GB = 20.0
@@ -265,6 +265,13 @@ class StoredRender:
         self._fh.close()
 
 
+def pack_frame(rf: RenderedFrame, ports: tuple[int, int]) -> bytes:
+    """A frame's record as ``frames.bin`` keeps it (compressed), made with the lidar and IMU
+    ``ports``: what :meth:`RenderWriter.append_packed` takes (a renderer process packs its
+    frames itself, so compressing is parallel too)."""
+    return zlib.compress(rf.encode(ports), 1)
+
+
 class RenderWriter:
     """Frames appended to a render in the store (resumed after its last whole frame), and
     :meth:`complete` once the last is in. ``lock``: the open lock file it holds (one writer
@@ -299,9 +306,12 @@ class RenderWriter:
 
     def append(self, rf: RenderedFrame, ports: tuple[int, int]) -> None:
         """``rf``, the next frame, made with the lidar and IMU ``ports``."""
-        if rf.k != self.frames:
-            raise ValueError(f"frame {rf.k} appended after {self.frames} frames")
-        z = zlib.compress(rf.encode(ports), 1)
+        self.append_packed(rf.k, pack_frame(rf, ports))
+
+    def append_packed(self, k: int, z: bytes) -> None:
+        """Frame ``k``, the next, as :func:`pack_frame` made it (in any process)."""
+        if k != self.frames:
+            raise ValueError(f"frame {k} appended after {self.frames} frames")
         rec = _LEN.pack(len(z)) + z
         self._bin.write(rec)
         self._bin.flush()

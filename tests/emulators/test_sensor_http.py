@@ -218,3 +218,49 @@ def test_a_reinit_during_a_recorded_stream_starts_a_new_recording(tmp_path: Path
     first = json.loads((rec / "metadata.json").read_text())["sensor_info"]
     second = json.loads((rec / "reinit-1" / "metadata.json").read_text())["sensor_info"]
     assert first["initialization_id"] != second["initialization_id"]
+
+
+def test_a_served_sensor_stands_and_sends_after_its_track_until_stopped() -> None:
+    """As a real sensor on a parked machine: after the track (three frames here) the sensor
+    goes on sending at its cadence, frame_id counting on, until it is stopped; the result
+    counts the track's frames only."""
+    import threading
+
+    from protocols.ouster import decode_lidar_packet, os0_64_metadata
+    from tcf_hil.devices.lidar import serve_sensor
+    from tcf_hil.scenario import load_scenario
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    udp = []
+    for _ in range(2):
+        u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        u.bind(("127.0.0.1", 0))
+        u.settimeout(60.0)
+        udp.append(u)
+    stop, ready = threading.Event(), threading.Event()
+    results: list[Any] = []
+    worker = threading.Thread(target=serve_sensor, args=(load_scenario("forest-ii"),), kwargs=dict(
+        http_port=port, stop=stop, ready=ready, mode="512x10", max_frames=3,
+        udp_port_lidar=udp[0].getsockname()[1], udp_port_imu=udp[1].getsockname()[1],
+        on_result=results.append))
+    worker.start()
+    fmt = os0_64_metadata("512x10").packet_format
+    try:
+        assert ready.wait(60)
+        ids = [decode_lidar_packet(fmt, udp[0].recv(65536), check_crc=False).frame_id
+               for _ in range(12 * 32)]  # twelve 512x10 frames of 32 packets: 3 of the track
+        t0 = time.monotonic()
+        for _ in range(5 * 32):  # five more frames, at the sensor's cadence
+            udp[0].recv(65536)
+        took = time.monotonic() - t0
+    finally:
+        stop.set()
+        worker.join(60)
+        for u in udp:
+            u.close()
+    assert not worker.is_alive() and len(results) == 1 and results[0].frames == 3
+    frames = sorted(set(ids))
+    assert frames == list(range(frames[0], frames[0] + 12))  # one count, on past the track
+    assert 0.3 < took < 5.0  # 10 Hz: five frames take half a second, not nothing

@@ -119,6 +119,37 @@ def test_a_render_cut_short_resumes_after_its_last_whole_frame(tmp_path: Path) -
     assert again.stored is not None and again.stored.complete
 
 
+def test_a_render_by_two_workers_is_the_render_in_order(tmp_path: Path) -> None:
+    d = scenario_to_dict(load_scenario("forest-ii"))
+    d["track"].update(end_m=[0.0, -21.0, 2.0], speed_m_s=2.0)  # 2 s and a stop: 20 frames, 2 blocks
+    scn = scenario_from_dict(d)
+    one, two = RenderStore(tmp_path / "one"), RenderStore(tmp_path / "two")
+    a = LidarRun(scn, mode="512x10", store=one, render="stored")
+    a.render_into_store(workers=1)
+    b = LidarRun(scn, mode="512x10", store=two, render="stored")
+    seen: list[int] = []
+    assert b.render_into_store(progress=lambda k, n: seen.append(k), workers=2) \
+        == a.track_frames >= 20
+    assert seen == list(range(1, a.track_frames + 1))  # in order, whoever made them
+    key = a.render_key
+    assert key is not None and key == b.render_key
+    for name in ("frames.bin", "frames.idx"):
+        assert (one.path(key) / name).read_bytes() == (two.path(key) / name).read_bytes()
+    # cut short after 7 frames (mid block), then resumed by two workers: the same bytes
+    idx = (two.path(key) / "frames.idx").read_bytes()
+    ref = (two.path(key) / "frames.bin").read_bytes()
+    two.remove(key)
+    w = two.writer(key, {"x": 1}, a.track_frames)
+    assert w is not None
+    w.close()
+    (two.path(key) / "frames.bin").write_bytes(ref[:int(np.frombuffer(idx, "<u8")[7])])
+    (two.path(key) / "frames.idx").write_bytes(idx[:56])
+    again = LidarRun(scn, mode="512x10", store=two, render="stored")
+    assert again.render_into_store(workers=2) == a.track_frames - 7
+    assert (two.path(key) / "frames.bin").read_bytes() == ref
+    assert again.stored is not None and again.stored.complete
+
+
 def test_the_cache_keeps_under_its_limit_least_recently_used_first(tmp_path: Path) -> None:
     store = RenderStore(tmp_path, max_gb=1e-9 * 250)  # 250 bytes
     for i, key in enumerate(("a", "b", "c")):
