@@ -5,6 +5,7 @@
 The protocol's pure parser/formatter lives in :mod:`protocols.socketcand`; its names are
 re-exported here for compatibility (import them from ``protocols.socketcand``)."""
 
+from emulators.canbus._process import ServerProcess
 from emulators.canbus._socketcand import DEFAULT_PORT, ServerStats, SocketcandServer
 from protocols.socketcand import (
     MAX_MESSAGE_BYTES,
@@ -18,5 +19,5 @@ from protocols.socketcand import (
 )
 
 __all__ = ["DEFAULT_PORT", "MAX_MESSAGE_BYTES", "CanFrame", "Command", "MessageReader",
-           "ServerStats", "SocketcandProtocolError", "SocketcandServer", "format_frame",
-           "format_send", "parse_command"]
+           "ServerProcess", "ServerStats", "SocketcandProtocolError", "SocketcandServer",
+           "format_frame", "format_send", "parse_command"]

@@ -3,6 +3,7 @@ shown or freed."""
 
 from __future__ import annotations
 
+import os
 import time
 from datetime import UTC, datetime
 
@@ -76,7 +77,8 @@ def render_cmd(scenario_name: str, mode: str, profile: str, seed: int | None, ba
         return
     t0 = time.perf_counter()
     with blame(scenario_name), Progress(f"render {scn.name} {mode}") as bar:
-        made = run.render_into_store(progress=bar.counter, workers=workers)
+        made = run.render_into_store(progress=bar.counter,
+                                     workers=workers or len(os.sched_getaffinity(0)))
     wall = time.perf_counter() - t0
     sim = made / run.meta.frequency_hz
     info = next(e for e in store.entries() if e["key"] == key)

@@ -49,7 +49,7 @@ from tcf_hil.world.terrain import Terrain
 from tcf_hil.world.track import PoseError, Trajectory
 
 if TYPE_CHECKING:
-    from emulators.canbus import SocketcandServer
+    from emulators.canbus import ServerProcess, SocketcandServer
     from tcf_hil.world import World
 
 
@@ -144,12 +144,13 @@ def open_bus(spec_text: str, *, announce: Callable[[str], None] = lambda s: None
     """The bus for a ``--can`` value; ``own`` starts a CAN server of its own on a free port
     of 127.0.0.1 (a run's default: nobody else is on it); ``auto`` picks vcan0, else joins or
     starts the socketcand server on 127.0.0.1:29536. A server started here stops on exit."""
-    server: SocketcandServer | None = None
+    server: SocketcandServer | ServerProcess | None = None
     if spec_text.strip() == "own":
-        from emulators.canbus import SocketcandServer
+        from emulators.canbus import ServerProcess
 
-        server = SocketcandServer("127.0.0.1", 0)
-        server.start()
+        # in a process of its own: the relaying stays off the run's interpreter lock, which
+        # the lidar sender needs at every packet
+        server = ServerProcess("127.0.0.1", 0)
         spec: BusSpec | None = BusSpec("socketcand", "vcan0", "127.0.0.1", server.port)
         announce(f"bus: the run's own CAN server at {spec}")
     else:

@@ -16,6 +16,7 @@ import multiprocessing as mp
 import os
 import signal
 import struct
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -128,31 +129,35 @@ class RenderAhead:
         self.process.join(timeout=10.0)
 
 
-RENDER_BLOCK = 10  # frames a render worker takes at a time (a second at 10 Hz)
-_FRAME_NO = struct.Struct("<q")  # before each packed frame a worker sends: -2 it failed
+SWITCH_INTERVAL_S = float(os.environ.get("TCF_HIL_SWITCH_S", "0.0002"))  # while streaming
+RENDER_BLOCK = 10  # frames a render worker renders in a row (a second at 10 Hz)
+RENDER_AHEAD_BLOCKS = 8  # blocks kept waiting for their turn, at the most (at 2048x10, ~30 MB)
+RENDER_SILENT_S = 300.0  # a render worker that makes no frame this long has failed
+_FRAME_NO = struct.Struct("<q")  # before each packed frame a worker sends (-1 its end, -2
+# it failed: the reason follows)
 
 
-def _render_part(run: LidarRun, start: int, counter: Any, lock: Any, conn: Any,
-                 threads: int) -> None:
-    """A renderer process of :meth:`LidarRun.render_into_store` with workers: the next
-    block of frames no worker has taken (``counter``), each frame packed and sent, until the
-    track's end. No fault plan runs here (every frame's bytes follow from its index)."""
+def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any) -> None:
+    """Renderer ``i`` of ``workers`` of :meth:`LidarRun.render_into_store`: blocks ``i``,
+    ``i + workers``, ... of :data:`RENDER_BLOCK` frames from ``start``, each frame packed
+    and sent, then its end mark. No fault plan runs here (a frame's bytes follow from its
+    index); the ray threads are shared out among the workers."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when it stops
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
-        run.emu.threads = threads
+        caster = run.scene.caster
+        if caster.threads is not None:
+            caster.threads = max(1, caster.threads // workers)
+        run.emu.threads = max(1, run.emu.threads // workers)
         sensor = run.sensor_at(start)
-        while True:
-            with lock:
-                b = counter.value
-                counter.value = b + 1
-            a = start + b * RENDER_BLOCK
-            if a >= run.track_frames:
-                break
+        a = start + i * RENDER_BLOCK
+        while a < run.track_frames:
             sensor.skip_to(a)
             for k in range(a, min(a + RENDER_BLOCK, run.track_frames)):
                 rf = run._compact(k, sensor.frame(k), sensor.meta.init_id, True)
                 conn.send_bytes(_FRAME_NO.pack(k) + pack_frame(rf, run.ports))
+            a += workers * RENDER_BLOCK
+        conn.send_bytes(_FRAME_NO.pack(-1))
     except BaseException as err:
         with contextlib.suppress(Exception):
             conn.send_bytes(_FRAME_NO.pack(-2) + f"{type(err).__name__}: {err}".encode())
@@ -389,11 +394,12 @@ class LidarRun:
         return self.meta.udp_port_lidar, self.meta.udp_port_imu
 
     def render_into_store(self, progress: Callable[[int, int], None] | None = None,
-                          workers: int | None = None) -> int:
+                          workers: int = 1) -> int:
         """Every frame of the track rendered into the store (resumed after the last whole
         frame a render cut short kept), unless it is there already; then the run sends from
-        it. Frames rendered now (0: all were stored). ``workers`` > 1 (default: one per CPU
-        this process may use): rendered by that many processes at once (forked: they share
+        it. Frames rendered now (0: all were stored). ``workers`` > 1 (``tcf-hil render``:
+        one per CPU this process may use; not from a daemonic process, which may not fork
+        children): rendered by that many processes at once (forked: they share
         the built scene), each taking blocks of :data:`RENDER_BLOCK` frames in turn and
         packing its frames itself, the ray threads shared out among them (Forest X at
         2048x10 on 2 cores: 1.6x real time in one, 2.5x in two; pine-thinning 0.9x and
@@ -419,9 +425,8 @@ class LidarRun:
         self.keep_poses = False  # the store keeps the poses; this run's bookkeeping not
         try:
             self.writer = writer
-            if workers is None:
-                workers = len(os.sched_getaffinity(0))
-            if workers > 1 and self.lidar_faults is None and self.udp_faults is None:
+            if (workers > 1 and self.lidar_faults is None and self.udp_faults is None
+                    and not mp.current_process().daemon):
                 for k, packed in self._render_parallel(done, workers):
                     writer.append_packed(k, packed)
                     if progress is not None:
@@ -442,42 +447,60 @@ class LidarRun:
 
     def _render_parallel(self, start: int, workers: int) -> Iterator[tuple[int, bytes]]:
         """Frames ``start`` .. of the track, packed (:func:`pack_frame`), in order, from
-        ``workers`` forked renderer processes (:func:`_render_part`)."""
+        ``workers`` forked renderer processes (:func:`_render_part`: worker ``i`` renders
+        blocks ``i``, ``i + workers``, ...). Frames that come ahead of their turn wait here,
+        at most :data:`RENDER_AHEAD_BLOCKS` blocks of them; then only the worker whose turn
+        it is is read (the others wait on their pipes). A worker that dies or falls silent
+        for :data:`RENDER_SILENT_S` fails the render."""
         ctx = mp.get_context("fork")
-        counter, lock = ctx.RawValue("q", 0), ctx.Lock()
-        threads = max(1, self.emu.threads // workers)
-        procs, conns = [], []
+        procs: list[Any] = []
+        conns: list[Any] = []
         try:
             for i in range(workers):
                 r, w = ctx.Pipe(duplex=False)
                 proc = ctx.Process(target=_render_part, name=f"lidar-render-{i}", daemon=True,
-                                   args=(self, start, counter, lock, w, threads))
+                                   args=(self, start, i, workers, w))
                 proc.start()
                 w.close()
                 procs.append(proc)
                 conns.append(r)
-            pending: dict[int, bytes] = {}  # frames come a block per worker out of order
-            live, nxt = list(conns), start
+            pending: dict[int, bytes] = {}
+            ended: set[int] = set()
+            nxt, last = start, time.monotonic()
             while nxt < self.track_frames:
                 if nxt in pending:
                     yield nxt, pending.pop(nxt)
                     nxt += 1
+                    last = time.monotonic()
                     continue
-                if not live:
-                    raise RuntimeError(f"the render workers ended without frame {nxt}")
-                for c in mp_wait(live):
-                    assert isinstance(c, mp_connection.Connection)
+                owner = (nxt - start) // RENDER_BLOCK % workers
+                if owner in ended:
+                    raise RuntimeError(f"render worker {owner} ended without frame {nxt}")
+                full = len(pending) >= RENDER_AHEAD_BLOCKS * RENDER_BLOCK
+                watch = [conns[owner]] if full else \
+                    [c for i, c in enumerate(conns) if i not in ended]
+                ready = mp_wait(watch, timeout=1.0)
+                if not ready and time.monotonic() - last > RENDER_SILENT_S:
+                    raise RuntimeError(f"render worker {owner} made no frame for "
+                                       f"{RENDER_SILENT_S:g} s (frame {nxt})")
+                for c in ready:
+                    i = conns.index(c)
                     try:
+                        assert isinstance(c, mp_connection.Connection)
                         msg = c.recv_bytes()
-                    except EOFError:
-                        live.remove(c)
-                        continue
+                    except EOFError:  # gone without its end mark: killed, or crashed
+                        procs[i].join(1.0)
+                        raise RuntimeError(f"render worker {i} died (exit code "
+                                           f"{procs[i].exitcode}) before frame {nxt}") from None
                     k = _FRAME_NO.unpack_from(msg)[0]
                     if k == -2:
-                        raise RuntimeError(f"a render worker failed: "
+                        raise RuntimeError(f"render worker {i} failed: "
                                            f"{msg[_FRAME_NO.size:].decode(errors='replace')}")
-                    if k >= 0:
+                    if k == -1:
+                        ended.add(i)
+                    else:
                         pending[k] = msg[_FRAME_NO.size:]
+                        last = time.monotonic()
         finally:
             for proc in procs:
                 if proc.is_alive():
@@ -939,6 +962,12 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
             gc.collect()
             gc.freeze()
             frozen = True
+            # The pacing loop shares the interpreter with the run's other threads (the CAN
+            # node and its log, the HTTP API, the progress line): one that holds the GIL
+            # keeps it up to the switch interval (5 ms by default) after the sender wakes
+            # for a packet. A shorter interval bounds that wait.
+            switch = sys.getswitchinterval()
+            sys.setswitchinterval(min(switch, SWITCH_INTERVAL_S))
             with PacedSender(sensor_ip, dest, speed=speed, realtime=realtime,
                              clock=clock, route=route) as sender:
                 if on_sender is not None:
@@ -954,6 +983,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     finally:
         if frozen:
             gc.unfreeze()
+            sys.setswitchinterval(switch)
         if ring is not None:
             ring.close()
     if out is not None:
@@ -1041,7 +1071,8 @@ def _standing_after(run: LidarRun) -> tuple[OnAir, Any, Any]:
     ctx = mp.get_context("fork")
     period, t0 = run.emu.period_ns, run.track.t0_ns
     air = OnAir(t0 - period, ctx.RawValue("q", 0), ctx.RawValue("q", 0), -1)
-    return air, run.standing(t0 - period), run.standing(t0 + run.frames * period)
+    after = run.standing(t0 + run.frames * period)
+    return air, after, after  # (the track starts at once: nothing stands before it)
 
 
 def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int = 80,
@@ -1103,8 +1134,10 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
                 Path(record) if segment == 0 else Path(record) / f"reinit-{segment}")
             segment += 1
             run = LidarRun(scn, meta=current[0], **kw)
+            # lingering, the recording is written in place as frames go out (the stream
+            # ends only when stopped: a crash meanwhile leaves a readable capture)
             r = stream_lidar(scn, sensor_ip=sensor_ip, speed=speed, stop=inner[0],
-                             record=out, run=run,
+                             record=out, run=run, pcap_in_place=linger,
                              air=_standing_after(run) if linger else None)
             if on_result is not None:
                 on_result(r)

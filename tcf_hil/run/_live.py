@@ -217,7 +217,7 @@ class LiveTraffic:
                 self.announce(f"rendering into the store: {done}/{n} frames "
                               f"({rate:.2f}x real time)")
 
-        run.render_into_store(progress=say)
+        run.render_into_store(progress=say, workers=len(os.sched_getaffinity(0)))
 
     @staticmethod
     def _source(run: Any) -> str:

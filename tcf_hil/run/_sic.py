@@ -215,20 +215,23 @@ class SicProcess:
             time.sleep(0.2)
 
     def final_forest(self) -> bool | None:
-        """Whether the SIC published its final forest: it exited by itself, or published
-        after the bench's SIGTERM (its cue), or its latest forest says ``"sic": {"final":
-        true}``, as the reference SIC's does. None while it runs."""
-        if self.proc.poll() is None:
+        """Whether the SIC published its final forest. Where its latest valid forest says
+        so (``"sic": {"final": true|false}``, as the reference SIC's does), that; else
+        whether it exited by itself with code 0, or published after the bench's SIGTERM
+        (its cue) and exited on it. False without a valid forest; None while it runs."""
+        code = self.proc.poll()
+        if code is None:
             return None
-        if self.signalled is None:
-            return True
         valid = self.inbox.valid
-        if len(valid) > (self.published_before_signal or 0):
-            return True
-        if valid:
-            sic = self.inbox.doc_of(valid[-1]).get("sic")
-            return isinstance(sic, dict) and sic.get("final") is True
-        return False
+        if not valid:
+            return False
+        sic = self.inbox.doc_of(valid[-1]).get("sic")
+        if isinstance(sic, dict) and isinstance(sic.get("final"), bool):
+            return bool(sic["final"])
+        if self.signalled is None:
+            return code == 0
+        return (self.signalled == "SIGTERM"
+                and len(valid) > (self.published_before_signal or 0))
 
     def close(self) -> None:
         self.end(0.0)

@@ -575,6 +575,7 @@ class OnboardSic:
         worker: Any = None  # the stem algorithm's process (cfg.stem_worker)
         pub = Publisher(cfg.publish)
         t_start = self.t_start = time.monotonic()
+        self.seen_ns = None
         try:
             rx = LidarReceiver(meta, cfg.lidar_bind, port)
             rx.start()

@@ -460,3 +460,30 @@ def test_constructor_rejects_bad_settings() -> None:
         SocketcandServer(port=0, slow_client="block")  # type: ignore[arg-type]
     with pytest.raises(ValueError):
         SocketcandServer(port=0, rawmode_grace_s=-1)
+
+
+def test_a_server_in_a_process_of_its_own_relays_and_stops() -> None:
+    from emulators.canbus import ServerProcess
+
+    server = ServerProcess("127.0.0.1", 0)
+    try:
+        a = can.Bus(interface="socketcand", host="127.0.0.1", port=server.port,
+                    channel="vcan0")
+        b = can.Bus(interface="socketcand", host="127.0.0.1", port=server.port,
+                    channel="vcan0")
+        try:
+            time.sleep(0.2)  # (both in raw mode)
+            a.send(can.Message(arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False))
+            got = b.recv(5.0)
+            assert got is not None
+            assert (got.arbitration_id, bytes(got.data)) == (0x181, b"\x01\x02")
+        finally:
+            a.shutdown()
+            b.shutdown()
+        with pytest.raises(OSError):  # its port is taken: one clear error, no process left
+            ServerProcess("127.0.0.1", server.port)
+    finally:
+        server.stop()
+    with socket.socket() as s:  # stopped: the port is free again
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", server.port))
