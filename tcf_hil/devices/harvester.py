@@ -287,10 +287,14 @@ def standing_from(bus_pose: Callable[[int], Pose], stop_ns: int) -> Callable[[in
     """``bus_pose`` until ``stop_ns``, then the machine standing where it was then: the
     same pose, stamped with each time asked for, at speed 0."""
 
+    stood: list[Pose] = []  # the pose it stands in, made once (the same for every time)
+
     def pose_at(t_ns: int) -> Pose:
         if t_ns <= stop_ns:
             return bus_pose(t_ns)
-        return dataclasses.replace(bus_pose(stop_ns), time_us=t_ns // 1000, speed_m_s=0.0)
+        if not stood:
+            stood.append(bus_pose(stop_ns))
+        return dataclasses.replace(stood[0], time_us=t_ns // 1000, speed_m_s=0.0)
 
     return pose_at
 
