@@ -32,15 +32,18 @@ class ServerProcess:
         child.close()
         if not self._conn.poll(_START_S):
             self._kill()
+            self._conn.close()
             raise RuntimeError(f"the CAN server process did not start within {_START_S:g} s")
         try:
             ok, said = self._conn.recv()
         except EOFError:
             self._kill()
+            self._conn.close()
             raise RuntimeError("the CAN server process ended as it started "
                                f"(exit code {self._proc.exitcode})") from None
         if not ok:
             self._kill()
+            self._conn.close()
             raise OSError(said)
         self.host, self.port = host, int(said)
 
@@ -53,12 +56,13 @@ class ServerProcess:
 
     def _kill(self) -> None:
         if self._proc.is_alive():
-            self._proc.terminate()
+            self._proc.kill()
             self._proc.join(5.0)
 
 
 def _serve(host: str, port: int, conn: Any, parent: int) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the starter decides when it stops
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the starter decides when it stops (a
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # group's Ctrl-C or SIGTERM is its too)
     try:
         server = SocketcandServer(host, port).start()
     except BaseException as err:

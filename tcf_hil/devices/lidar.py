@@ -129,7 +129,7 @@ class RenderAhead:
         self.process.join(timeout=10.0)
 
 
-SWITCH_INTERVAL_S = float(os.environ.get("TCF_HIL_SWITCH_S", "0.0002"))  # while streaming
+SWITCH_INTERVAL_S = 0.0002  # the interpreter's switch interval while the lidar sender runs
 RENDER_BLOCK = 10  # frames a render worker renders in a row (a second at 10 Hz)
 RENDER_AHEAD_BLOCKS = 8  # blocks kept waiting for their turn, at the most (at 2048x10, ~30 MB)
 RENDER_SILENT_S = 300.0  # a render worker that makes no frame this long has failed
@@ -137,13 +137,17 @@ _FRAME_NO = struct.Struct("<q")  # before each packed frame a worker sends (-1 i
 # it failed: the reason follows)
 
 
-def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any) -> None:
+def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any,
+                 readers: list[Any]) -> None:
     """Renderer ``i`` of ``workers`` of :meth:`LidarRun.render_into_store`: blocks ``i``,
     ``i + workers``, ... of :data:`RENDER_BLOCK` frames from ``start``, each frame packed
     and sent, then its end mark. No fault plan runs here (a frame's bytes follow from its
     index); the ray threads are shared out among the workers."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when it stops
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    for r in readers:  # the parent's read ends (forked here): with them closed, a parent
+        r.close()  # that is gone breaks this worker's pipe instead of blocking it for ever
+    parent = os.getppid()
     try:
         caster = run.scene.caster
         if caster.threads is not None:
@@ -154,6 +158,8 @@ def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any) -> 
         while a < run.track_frames:
             sensor.skip_to(a)
             for k in range(a, min(a + RENDER_BLOCK, run.track_frames)):
+                if os.getppid() != parent:
+                    return
                 rf = run._compact(k, sensor.frame(k), sensor.meta.init_id, True)
                 conn.send_bytes(_FRAME_NO.pack(k) + pack_frame(rf, run.ports))
             a += workers * RENDER_BLOCK
@@ -426,6 +432,7 @@ class LidarRun:
         try:
             self.writer = writer
             if (workers > 1 and self.lidar_faults is None and self.udp_faults is None
+                    and (self.model is None or self.model.noise_sigma_m == 0)
                     and not mp.current_process().daemon):
                 for k, packed in self._render_parallel(done, workers):
                     writer.append_packed(k, packed)
@@ -459,7 +466,7 @@ class LidarRun:
             for i in range(workers):
                 r, w = ctx.Pipe(duplex=False)
                 proc = ctx.Process(target=_render_part, name=f"lidar-render-{i}", daemon=True,
-                                   args=(self, start, i, workers, w))
+                                   args=(self, start, i, workers, w, [*conns, r]))
                 proc.start()
                 w.close()
                 procs.append(proc)
@@ -488,7 +495,7 @@ class LidarRun:
                     try:
                         assert isinstance(c, mp_connection.Connection)
                         msg = c.recv_bytes()
-                    except EOFError:  # gone without its end mark: killed, or crashed
+                    except (EOFError, OSError):  # gone without its end mark: killed, crashed
                         procs[i].join(1.0)
                         raise RuntimeError(f"render worker {i} died (exit code "
                                            f"{procs[i].exitcode}) before frame {nxt}") from None
@@ -949,6 +956,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     out = Path(record) if record is not None else None
     ring: FrameRing | None = None
     frozen = False
+    switch = sys.getswitchinterval()  # (restored as the stream ends)
     error: str | None = None
     try:
         with contextlib.ExitStack() as outputs:  # the pcap renamed into place only if all
@@ -966,7 +974,6 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
             # node and its log, the HTTP API, the progress line): one that holds the GIL
             # keeps it up to the switch interval (5 ms by default) after the sender wakes
             # for a packet. A shorter interval bounds that wait.
-            switch = sys.getswitchinterval()
             sys.setswitchinterval(min(switch, SWITCH_INTERVAL_S))
             with PacedSender(sensor_ip, dest, speed=speed, realtime=realtime,
                              clock=clock, route=route) as sender:
