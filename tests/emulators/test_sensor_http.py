@@ -163,6 +163,20 @@ def test_stock_ouster_cli_records_from_the_emulated_sensor(tmp_path: Path) -> No
     assert os.path.getsize(out) > 500_000
 
 
+def _served_endpoints() -> tuple[int, list[socket.socket]]:
+    """A free TCP port for a served sensor's HTTP API, and its lidar and IMU sockets (bound
+    to free UDP ports of 127.0.0.1)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    udp = []
+    for _ in range(2):
+        u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        u.bind(("127.0.0.1", 0))
+        udp.append(u)
+    return port, udp
+
+
 def test_a_reinit_during_a_recorded_stream_starts_a_new_recording(tmp_path: Path) -> None:
     """serve_sensor with ``record``: what was sent before a client's re-initialisation goes
     to DIR, what after it to DIR/reinit-1, each with the metadata it was sent under."""
@@ -173,14 +187,7 @@ def test_a_reinit_during_a_recorded_stream_starts_a_new_recording(tmp_path: Path
     from tcf_hil.devices.lidar import serve_sensor
     from tcf_hil.scenario import load_scenario
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    udp = []
-    for _ in range(2):
-        u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        u.bind(("127.0.0.1", 0))
-        udp.append(u)
+    port, udp = _served_endpoints()
     rec, stop, ready = tmp_path / "rec", threading.Event(), threading.Event()
     results: list[Any] = []
     worker = threading.Thread(target=serve_sensor, args=(load_scenario("forest-ii"),), kwargs=dict(
@@ -230,15 +237,9 @@ def test_a_served_sensor_stands_and_sends_after_its_track_until_stopped() -> Non
     from tcf_hil.devices.lidar import serve_sensor
     from tcf_hil.scenario import load_scenario
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    udp = []
-    for _ in range(2):
-        u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        u.bind(("127.0.0.1", 0))
+    port, udp = _served_endpoints()
+    for u in udp:
         u.settimeout(60.0)
-        udp.append(u)
     stop, ready = threading.Event(), threading.Event()
     results: list[Any] = []
     worker = threading.Thread(target=serve_sensor, args=(load_scenario("forest-ii"),), kwargs=dict(
