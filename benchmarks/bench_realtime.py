@@ -14,7 +14,10 @@ Per scene and mode:
   packet leaves half a second later), the track's packets 1 ms or more late and its pacing
   p50/p99 (the sender's own histogram over the track, ``manifest.json``), and the bench's CPU
   share during the track: the CPU seconds of the bench process and its helpers (the frame
-  producer, the live score), not the SIC's, per wall second, sampled from ``/proc``.
+  producer, the sender, the live score), not the SIC's, per wall second, sampled from
+  ``/proc``; the sender's own share; frames the producer handed over 1 ms late; and the
+  hypervisor's steal during the track (ms per second, both vCPUs): on a virtual machine a
+  vCPU that is not running sends nothing, whatever the sender's priority.
 
 Medians over the repeats. The machine's other load counts: run it on a quiet machine.
 """
@@ -65,6 +68,14 @@ def _bench_cpu(root: int, sic: set[int]) -> float:
     return total
 
 
+def _steal_s() -> float:
+    """CPU seconds the hypervisor gave to others while this VM's CPUs wanted them (all
+    CPUs, ``/proc/stat``): a vCPU not running is a packet late whatever the sender does."""
+    with open("/proc/stat") as fh:
+        f = fh.readline().split()
+    return int(f[8]) / TICK if len(f) > 8 else 0.0
+
+
 def _render(scene: str, mode: str) -> dict[str, Any]:
     from tcf_hil.devices.lidar import LidarRun
     from tcf_hil.recording.store import RenderStore
@@ -94,7 +105,7 @@ def _run(scene: str, mode: str, duration: float, sic: str, out: Path) -> dict[st
                 "print(json.dumps({'objects': []}), flush=True); signal.pause()\""]
     unix0 = time.time_ns()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    samples: list[tuple[int, float]] = []
+    samples: list[tuple[int, float, float]] = []
     sic_pids: set[int] = set()
     man_path = out / "manifest.json"
     while proc.poll() is None:
@@ -104,21 +115,25 @@ def _run(scene: str, mode: str, duration: float, sic: str, out: Path) -> dict[st
                 sic_pids = {pid} if pid else set()
             except (ValueError, KeyError, TypeError):
                 pass
-        samples.append((time.time_ns(), _bench_cpu(proc.pid, sic_pids)))
+        samples.append((time.time_ns(), _bench_cpu(proc.pid, sic_pids), _steal_s()))
         time.sleep(0.25)
     man = json.loads(man_path.read_text())
     clock, lidar = man["clock"], man["lidar"]
     t_start = clock["unix_ns_at_sim_t0"] + 1_000_000_000  # the track, less its edges
     t_end = clock["unix_ns_at_sim_t0"] + round(lidar["track"]["frames"] / 10 * 1e9) \
         - 1_000_000_000
-    inside = [(t, c) for t, c in samples if t_start <= t <= t_end]
-    share = ((inside[-1][1] - inside[0][1]) / ((inside[-1][0] - inside[0][0]) / 1e9)
-             if len(inside) > 1 else float("nan"))
+    inside = [x for x in samples if t_start <= x[0] <= t_end]
+    wall = (inside[-1][0] - inside[0][0]) / 1e9 if len(inside) > 1 else float("nan")
+    share = (inside[-1][1] - inside[0][1]) / wall if len(inside) > 1 else float("nan")
+    steal = 1000 * (inside[-1][2] - inside[0][2]) / wall if len(inside) > 1 else float("nan")
     return {"to_power_on_s": (clock["unix_ns_at_power_on"] - unix0) / 1e9,
             "late_1ms": lidar["track_packets_late_1ms"],
             "pacing_p50_us": lidar["track_pacing_us_p50_p99"][0],
             "pacing_p99_us": lidar["track_pacing_us_p50_p99"][1],
-            "bench_cpu_share": share, "from_store": lidar["render"]["from_store"],
+            "bench_cpu_share": share, "steal_ms_per_s": steal,
+            "sender_cpu_share": lidar.get("sender_cpu_share", float("nan")),
+            "frames_late_from_producer": lidar.get("frames_late_from_producer", 0),
+            "from_store": lidar["render"]["from_store"],
             "frames": lidar["track"]["frames"]}
 
 
@@ -136,7 +151,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-rt-") as tmp:
         os.environ["TCF_HIL_CACHE"] = str(Path(tmp) / "cache")
         print(f"{'scene':14} {'mode':8} {'render x RT':>11} {'MB/min':>7} {'to on s':>8} "
-              f"{'late>=1ms':>9} {'p50 us':>7} {'p99 us':>7} {'bench CPU':>9}", flush=True)
+              f"{'late>=1ms':>9} {'p50 us':>7} {'p99 us':>7} {'bench CPU':>9} {'sender':>6} "
+              f"{'lateFr':>6} {'steal':>6}", flush=True)
         for scene in a.scenes.split(","):
             for mode in a.modes.split(","):
                 r = _render(scene, mode)
@@ -144,7 +160,8 @@ def main() -> None:
                         for i in range(a.repeat)]
                 med = {k: statistics.median(x[k] for x in runs)
                        for k in ("to_power_on_s", "late_1ms", "pacing_p50_us", "pacing_p99_us",
-                                 "bench_cpu_share")}
+                                 "bench_cpu_share", "steal_ms_per_s", "sender_cpu_share",
+                                 "frames_late_from_producer")}
                 row = {"scene": scene, "mode": mode, **r, **med, "sic": a.sic,
                        "duration_s": a.duration, "repeat": a.repeat,
                        "all_from_store": all(x["from_store"] for x in runs)}
@@ -152,7 +169,9 @@ def main() -> None:
                 print(f"{scene:14} {mode:8} {r['render_x_rt']:11.2f} {r['mb_per_min']:7.0f} "
                       f"{med['to_power_on_s']:8.1f} {med['late_1ms']:9.0f} "
                       f"{med['pacing_p50_us']:7.0f} {med['pacing_p99_us']:7.0f} "
-                      f"{med['bench_cpu_share']:9.2f}", flush=True)
+                      f"{med['bench_cpu_share']:9.2f} {med['sender_cpu_share']:6.2f} "
+                      f"{med['frames_late_from_producer']:6.0f} {med['steal_ms_per_s']:6.1f}",
+                      flush=True)
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
 

@@ -12,6 +12,7 @@ of microseconds without a busy loop holding a core.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Protocol
 
 __all__ = ["Pacer", "SimClockLike"]
@@ -34,15 +35,19 @@ class Pacer:
         clock: a simulation clock shared with the run's other emulators: events are due when
             it says (its speed wins over ``speed``).
         spin_ns: how long before a due time to stop sleeping and yield instead.
+        idle_ns: with an ``idle`` task given to :meth:`wait`, how much time before a due
+            time the task may still start (its own length: short work, tens of
+            microseconds).
     """
 
     def __init__(self, speed: float = 1.0, *, clock: SimClockLike | None = None,
-                 spin_ns: int = 300_000) -> None:
+                 spin_ns: int = 300_000, idle_ns: int = 450_000) -> None:
         if speed < 0:
             raise ValueError(f"speed {speed}; expected >= 0")
         self.clock = clock
         self.speed = clock.speed if clock is not None else speed
         self.spin_ns = spin_ns
+        self.idle_ns = idle_ns
         self._t0: tuple[int, int] | None = None  # (first simulation time, its wall time)
         self._mono_minus_perf = (time.monotonic_ns() - time.perf_counter_ns()
                                  if clock is not None else 0)
@@ -57,12 +62,18 @@ class Pacer:
             return self.clock.monotonic_at(t_ns) - self._mono_minus_perf
         return self._t0[1] + int((t_ns - self._t0[0]) / self.speed)
 
-    def wait(self, t_ns: int) -> int:
-        """Wait until ``t_ns`` is due; how late it was (ns; negative: early, never here)."""
+    def wait(self, t_ns: int, idle: Callable[[], bool] | None = None) -> int:
+        """Wait until ``t_ns`` is due; how late it was (ns; negative: early, never here).
+        ``idle``: housekeeping done while the wait is long enough (``idle_ns`` or more left):
+        called until it returns False (nothing more to do now) or time runs short, so that
+        it never runs just before a packet is due."""
         due = self.due(t_ns)
         if self.speed == 0:
             return 0
         now = time.perf_counter_ns()
+        if idle is not None:
+            while due - now > self.idle_ns and idle():
+                now = time.perf_counter_ns()
         if due - now > self.spin_ns:
             time.sleep((due - now - self.spin_ns) / 1e9)
         while (now := time.perf_counter_ns()) < due:

@@ -36,6 +36,11 @@ class SimClock:
         if d > 0:
             time.sleep(d / 1e9)
 
+    @property
+    def segments(self) -> tuple[tuple[int, int], ...]:
+        """The clock as :class:`RunClock`'s segments (one: it never steps)."""
+        return ((self.t0_ns, self.origin_monotonic_ns),)
+
 
 class RunClock:
     """A run's simulation clock that may step forward: sim time runs at ``speed`` from
@@ -59,6 +64,19 @@ class RunClock:
     def start(cls, t0_ns: int, speed: float = 1.0, *, lead_ns: int = 0) -> RunClock:
         """A clock that reads ``t0_ns`` ``lead_ns`` from now."""
         return cls(t0_ns, time.monotonic_ns() + lead_ns, speed)
+
+    @property
+    def segments(self) -> tuple[tuple[int, int], ...]:
+        """(sim start, monotonic start) of each segment, in order (a snapshot: another
+        process rebuilds the clock from it with :meth:`from_segments`)."""
+        return self._segments
+
+    @classmethod
+    def from_segments(cls, segments: tuple[tuple[int, int], ...], speed: float) -> RunClock:
+        """The clock that :attr:`segments` and ``speed`` describe."""
+        clock = cls(segments[0][0], segments[0][1], speed)
+        clock._segments = tuple((int(s), int(m)) for s, m in segments)
+        return clock
 
     @property
     def steps(self) -> list[tuple[int, int]]:

@@ -17,7 +17,7 @@ import errno
 import os
 import socket
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,10 +51,31 @@ class SendStats:
     #: |actual - scheduled| send time: counts per whole microsecond (the last bin: beyond)
     late_hist: list[int] = field(default_factory=lambda: [0] * (_HIST_US + 1), repr=False)
     late_n: int = 0
+    #: frames the sender got 1 ms or more after their first packet was due (the frame
+    #: source, not the pacing, made those packets late)
+    late_frames: int = 0
+
+    #: while not None, a second histogram as ``late_hist`` (a window of the stream, such as
+    #: an always-on sensor's track: :meth:`open_window`)
+    window_hist: list[int] | None = field(default=None, repr=False)
 
     def add_late(self, ns: int) -> None:
-        self.late_hist[min(abs(ns) // 1000, _HIST_US)] += 1
+        b = min(abs(ns) // 1000, _HIST_US)
+        self.late_hist[b] += 1
         self.late_n += 1
+        if self.window_hist is not None:
+            self.window_hist[b] += 1
+
+    def open_window(self) -> None:
+        """Count the packets from here in :attr:`window_hist` too."""
+        if self.window_hist is None:
+            self.window_hist = [0] * (_HIST_US + 1)
+
+    def close_window(self) -> SendStats | None:
+        """The window's packets (its own :class:`SendStats`; None if none was opened); no
+        more are counted in it."""
+        hist, self.window_hist = self.window_hist, None
+        return None if hist is None else SendStats(late_hist=hist, late_n=sum(hist))
 
     def pacing_us(self, since: list[int] | None = None) -> tuple[float, float]:
         """p50 and p99 of |actual - scheduled| send time, microseconds (1 us resolution:
@@ -91,11 +112,15 @@ class Route:
         self.made = (lidar_port, imu_port)
         self._now: tuple[str, dict[int, int]] = (dest_ip, {})
         self.changes = 0
+        # told of each set (a sender in another process keeps its own copy up to date)
+        self.listeners: list[Callable[[str, int, int], None]] = []
 
     def set(self, dest_ip: str, lidar_port: int, imu_port: int) -> None:
         ports = {self.made[0]: lidar_port, self.made[1]: imu_port}
         self._now = (dest_ip, {k: v for k, v in ports.items() if k != v})  # one atomic swap
         self.changes += 1
+        for fn in list(self.listeners):
+            fn(dest_ip, lidar_port, imu_port)
 
     @property
     def dest_ip(self) -> str:
@@ -123,17 +148,23 @@ class PacedSender:
         realtime: try SCHED_FIFO for the sending thread while it paces (speed > 0 only).
         route: where datagrams go now (a client may move the stream while it runs); default:
             ``dest_ip`` and each datagram's own port.
+        hold_realtime: keep SCHED_FIFO between :meth:`send` calls until :meth:`close` (a
+            process that does nothing but send: leaving SCHED_FIFO after each frame lets the
+            scheduler hand the core to another task for a time slice right then, and the
+            next frame's first packets go out late).
     """
 
     def __init__(self, sensor_ip: str = "127.0.0.1", dest_ip: str = "127.0.0.1", *,
                  speed: float = 1.0, spin_us: int | None = None, realtime: bool = True,
-                 clock: SimClockLike | None = None, route: Route | None = None) -> None:
+                 clock: SimClockLike | None = None, route: Route | None = None,
+                 hold_realtime: bool = False) -> None:
         if speed < 0:
             raise ValueError(f"speed {speed}; expected >= 0")
         self.dest_ip = dest_ip
         self.route = route
         self.speed = speed
         self._want_rt = realtime and speed > 0
+        self._hold_rt = hold_realtime
         self._spin_us = spin_us
         self.spin_ns = (spin_us or 300) * 1000
         self._old_sched: tuple[int, int] | None = None
@@ -143,6 +174,8 @@ class PacedSender:
         self.stats = SendStats()
         self.clock = clock  # one simulation clock with the other emulators of a run
         self.pacer = Pacer(speed, clock=clock, spin_ns=self.spin_ns)
+        #: short housekeeping run between packets when there is time (:meth:`Pacer.wait`)
+        self.idle: Callable[[], bool] | None = None
         self.speed = self.pacer.speed
 
     def _enter_realtime(self) -> None:
@@ -174,14 +207,9 @@ class PacedSender:
     def __exit__(self, *_exc: object) -> None:
         self.close()
 
-    def _wait(self, t_ns: int) -> None:
-        late = self.pacer.wait(t_ns)
-        if self.speed > 0:
-            self.stats.add_late(late)
-
     def send(self, datagrams: Iterable[Datagram]) -> None:
-        """Send in order, each at its due time. Under SCHED_FIFO only while in here: the
-        thread goes back to ordinary scheduling between calls."""
+        """Send in order, each at its due time. Under SCHED_FIFO only while in here (unless
+        ``hold_realtime``): the thread goes back to ordinary scheduling between calls."""
         self._enter_realtime()
         c0, w0 = time.thread_time(), time.perf_counter()
         try:
@@ -189,12 +217,15 @@ class PacedSender:
         finally:
             self.stats.cpu_s += time.thread_time() - c0
             self.stats.wall_s += time.perf_counter() - w0
-            self._leave_realtime()
+            if not self._hold_rt:
+                self._leave_realtime()
 
     def _send(self, datagrams: Iterable[Datagram]) -> None:
-        route = self.route
+        route, idle = self.route, self.idle
         for d in datagrams:
-            self._wait(d.t_ns)
+            late = self.pacer.wait(d.t_ns, idle)
+            if self.speed > 0:
+                self.stats.add_late(late)
             try:
                 self.sock.sendto(d.payload, route.address(d.port) if route is not None
                                  else (self.dest_ip, d.port))

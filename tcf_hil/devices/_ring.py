@@ -13,6 +13,7 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,6 +22,7 @@ import numpy as np
 from emulators.lidar import IMU_PERIOD_NS, Datagram
 from protocols.ouster import IMU_PACKET_BYTES
 from protocols.pcap import PcapWriter, UdpDatagram
+from tcf_hil._io import name_process
 
 __all__ = ["SLOTS", "FrameRing", "PcapTarget", "pcap_records", "produce", "release",
            "slot_bytes"]
@@ -69,6 +71,7 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
     ``stop``, answers ("final", bookkeeping) as of exactly those frames (it runs a few frames
     ahead), and with ``rec`` the pcap holds exactly those frames too."""
     parent = os.getppid()  # a producer whose sender was killed must not live on
+    name_process("tcf-lidar-frames")
     # a terminal's Ctrl-C reaches the whole process group: the sender decides when to stop
     # (and the sender's own handlers, inherited through the fork, are not this process's)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -192,8 +195,12 @@ class FrameRing:
         self._free = ctx.Semaphore(SLOTS)
         self._stop = ctx.Event()
         self._sent = ctx.RawValue("q", 0)  # frames finished by the sender, read by the producer
-        self._held: list[Datagram] = []  # views of the slot being sent
+        # views of the slots being sent, oldest first (the next frame may be taken before
+        # the last one is counted sent)
+        self._held: collections.deque[list[Datagram]] = collections.deque()
         self.done = 0  # frames the sender has finished
+        self.final: tuple[Any, ...] | None = None  # the producer's bookkeeping at the end
+        self._owner = os.getpid()  # the process that forked the producer (may join it)
         self._child: Any = None
         try:
             self._child = ctx.Process(target=produce, args=(
@@ -212,7 +219,7 @@ class FrameRing:
                 return item
         except (EOFError, OSError):
             return ("error", "the frame producer died")
-        if not self._child.is_alive():
+        if os.getpid() == self._owner and not self._child.is_alive():
             return ("error", "the frame producer died")
         return None
 
@@ -228,24 +235,50 @@ class FrameRing:
         return ready
 
     def frame(self, slot: int, meta: np.ndarray) -> list[Datagram]:
-        """A frame's datagrams, as views of its slot (held until :meth:`sent`)."""
+        """A frame's datagrams, as views of its slot (held until :meth:`sent`; frames are
+        counted sent in the order they were taken)."""
         ends = (slot * self.slot_bytes + np.cumsum(meta[:, 2])).tolist()
         starts = [slot * self.slot_bytes, *ends[:-1]] if ends else []
         view = self.shm.buf
         assert view is not None
-        self._held = [Datagram(t, port, view[a:b]) for (t, port, _n), a, b in
-                      zip(meta.tolist(), starts, ends, strict=True)]
+        held = [Datagram(t, port, view[a:b]) for (t, port, _n), a, b in
+                zip(meta.tolist(), starts, ends, strict=True)]
         del view
-        return self._held
+        self._held.append(held)
+        return held
+
+    def frame_stream(self, slot: int, meta: np.ndarray) -> Iterator[Datagram]:
+        """As :meth:`frame`, each datagram made only as it is asked for (a frame's
+        138 datagrams at 2048x10 take a few hundred microseconds to make at once: more than
+        there is between two packets)."""
+        held: list[Datagram] = []
+        self._held.append(held)
+        return self._views(slot, meta.tolist(), held)
+
+    def _views(self, slot: int, meta: list[list[int]], held: list[Datagram]
+               ) -> Iterator[Datagram]:
+        pos = slot * self.slot_bytes
+        view = self.shm.buf
+        assert view is not None
+        for t, port, n in meta:
+            d = Datagram(t, port, view[pos:pos + n])
+            pos += n
+            held.append(d)
+            yield d
 
     def sent(self) -> None:
-        """The frame just sent: counted (before its slot goes back), its views released, its
-        slot handed back to the producer."""
+        """The oldest frame taken and not yet counted: counted sent (before its slot goes
+        back), its views released, its slot handed back to the producer."""
         self._sent.value = self.done + 1
-        release(self._held)
-        self._held = []
+        if self._held:
+            release(self._held.popleft())
         self._free.release()
         self.done += 1
+
+    def release_held(self) -> None:
+        """The views of the frames being sent released (an interrupted send holds them)."""
+        while self._held:
+            release(self._held.popleft())
 
     def finish(self, error: str | None) -> str | None:
         """Stop the producer; it answers with the bookkeeping of exactly the frames sent
@@ -260,19 +293,20 @@ class FrameRing:
             if item[0] == "error":
                 error = item[1]
             elif item[0] == "final":
+                self.final = item[1]
                 self.run.restore(*item[1])
                 break
         else:
             error = error or "the frame producer did not answer"
-        self._child.join(timeout=30.0)
+        if os.getpid() == self._owner:  # (a sender process leaves that to the owner's close)
+            self._child.join(timeout=30.0)
         return error
 
     def close(self) -> None:
         """The producer stopped (terminated if it must be) and the ring freed. Never raises
         for a producer already gone."""
         self._stop.set()
-        release(self._held)  # an interrupted send still holds views of the ring
-        self._held = []
+        self.release_held()  # an interrupted send still holds views of the ring
         with contextlib.suppress(Exception):
             for _ in range(SLOTS):
                 self._free.release()

@@ -5,18 +5,15 @@ visibility and the sensor poses beside them."""
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import csv
 import dataclasses
-import gc
 import io
 import math
 import multiprocessing as mp
 import os
 import signal
 import struct
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -34,7 +31,6 @@ from emulators.lidar import (
     FrameResult,
     Os0Emulator,
     Os0Sensor,
-    PacedSender,
     ReturnModel,
     Route,
     SendStats,
@@ -53,9 +49,16 @@ from protocols.ouster import (
 )
 from protocols.pcap import PcapWriter
 from tcf_hil._crc import fast_crc_rows
-from tcf_hil._io import atomic_path, ensure_dir, write_bytes_atomic, write_json_atomic
+from tcf_hil._io import (
+    atomic_path,
+    ensure_dir,
+    name_process,
+    write_bytes_atomic,
+    write_json_atomic,
+)
 from tcf_hil._rotations import quaternions
 from tcf_hil.devices._ring import SLOTS, FrameRing, PcapTarget, pcap_records
+from tcf_hil.devices._sender import SenderProcess
 from tcf_hil.devices.faults import FaultLog
 from tcf_hil.errors import ConfigError
 from tcf_hil.recording.poses_csv import pose_rows
@@ -129,7 +132,6 @@ class RenderAhead:
         self.process.join(timeout=10.0)
 
 
-SWITCH_INTERVAL_S = 0.0002  # the interpreter's switch interval while the lidar sender runs
 RENDER_BLOCK = 10  # frames a render worker renders in a row (a second at 10 Hz)
 RENDER_AHEAD_BLOCKS = 8  # blocks kept waiting for their turn, at the most (at 2048x10, ~30 MB)
 RENDER_SILENT_S = 300.0  # a render worker that makes no frame this long has failed
@@ -143,6 +145,7 @@ def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any,
     ``i + workers``, ... of :data:`RENDER_BLOCK` frames from ``start``, each frame packed
     and sent, then its end mark. No fault plan runs here (a frame's bytes follow from its
     index); the ray threads are shared out among the workers."""
+    name_process(f"tcf-render-{i}")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when it stops
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     for r in readers:  # the parent's read ends (forked here): with them closed, a parent
@@ -174,6 +177,7 @@ def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any,
 def _render_ahead(run: LidarRun, writer: RenderWriter, upto: int, done: Any,
                   state: Any) -> None:
     """The renderer process of :meth:`LidarRun.render_ahead`."""
+    name_process("tcf-render")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run decides when it stops
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     with contextlib.suppress(OSError):
@@ -243,6 +247,9 @@ class RecordResult:
     refused: int = 0
     realtime: bool = False  # the pacing loop ran under SCHED_FIFO
     sender_cpu_share: float = 0.0  # CPU time of the pacing loop per wall second while sending
+    # frames the frame producer handed over 1 ms or more after their first packet was due
+    # (late packets that the source, not the pacing, caused)
+    frames_late_from_producer: int = 0
     # an always-on sensor's track alone: p50/p99 pacing error (us), packets 1 ms or more late
     track_pacing_us: tuple[float, float] = (0.0, 0.0)
     track_late_1ms: int = 0
@@ -921,10 +928,12 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     """Send the run live over UDP from ``sensor_ip`` to ``dest``, paced from the simulation
     clock (``speed`` 1.0 = real time, 0 = as fast as possible).
 
-    Frames are ray-cast and encoded ahead in a separate, lower-priority process that writes
-    them into a ring of shared-memory slots; this process only waits, sends straight from
-    shared memory and hands the slot back (one thread: nothing competes with the pacing loop
-    for the interpreter lock, and no frame is copied through a pipe). With ``record``, the
+    Frames are ray-cast and encoded (or read from the render store) ahead in a separate,
+    lower-priority process that writes them into a ring of shared-memory slots; a sender
+    process of its own (:mod:`tcf_hil.devices._sender`) only waits, sends straight from
+    shared memory and hands the slot back (nothing competes with the pacing loop for an
+    interpreter lock, and no frame is copied through a pipe); this thread relays its
+    callbacks. With ``record``, the
     sidecar files and an exact pcap of what was sent go there. Stops at the end of the track
     or when ``stop`` is set. ``run``: an already built :class:`LidarRun` (``run_kw`` are then
     ignored); ``clock``: a shared :class:`~emulators.harvester.SimClock` that decides when
@@ -955,55 +964,39 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     stop = stop or threading.Event()
     out = Path(record) if record is not None else None
     ring: FrameRing | None = None
-    frozen = False
-    switch = sys.getswitchinterval()  # (restored as the stream ends)
-    error: str | None = None
-    try:
-        with contextlib.ExitStack() as outputs:  # the pcap renamed into place only if all
+    sender: SenderProcess | None = None
+    with contextlib.ExitStack() as outputs:  # the pcap renamed into place only if all
+        try:
             rec = _pcap_target(out, pcap, pcap_in_place, outputs, sensor_ip, dest)  # succeeds
             ring = FrameRing(run, rec, air)
+            # the pacing loop in a process of its own (tcf_hil.devices._sender): it does not
+            # share an interpreter lock with the run's CAN node, HTTP API and recorder
+            sender = SenderProcess(run, ring, sensor_ip, dest, speed=speed, realtime=realtime,
+                                   clock=clock, route=route)
             if forked is not None:
                 forked.set()
-            ready = ring.prime(stop)
-            # A full collection walks every object of the scene and forest: milliseconds in
-            # which no packet leaves. Freeze what exists now; the loop makes little garbage.
-            gc.collect()
-            gc.freeze()
-            frozen = True
-            # The pacing loop shares the interpreter with the run's other threads (the CAN
-            # node and its log, the HTTP API, the progress line): one that holds the GIL
-            # keeps it up to the switch interval (5 ms by default) after the sender wakes
-            # for a packet. A shorter interval bounds that wait.
-            sys.setswitchinterval(min(switch, SWITCH_INTERVAL_S))
-            with PacedSender(sensor_ip, dest, speed=speed, realtime=realtime,
-                             clock=clock, route=route) as sender:
-                if on_sender is not None:
-                    on_sender(sender.stats)
-                window: list[Any] = [None, None]  # the histogram at the track's ends
-                error, on_wire, track_sent = _send_frames(run, ring, ready, sender, stop,
-                                                          on_fault, progress, on_track_end,
-                                                          window)
-                stats = sender.stats
-            error = ring.finish(error)
-            if error is not None:  # no pcap of a failed run
-                raise RuntimeError(f"lidar frame producer failed: {error}")
-    finally:
-        if frozen:
-            gc.unfreeze()
-            sys.setswitchinterval(switch)
-        if ring is not None:
-            ring.close()
+            if on_sender is not None:
+                on_sender(sender.stats)
+            report = sender.relay(stop, on_fault, progress, on_track_end)
+        finally:
+            if sender is not None:
+                sender.close()
+            if ring is not None:
+                ring.close()
+        if report["error"] is not None:  # no pcap of a failed run
+            raise RuntimeError(f"lidar frame producer failed: {report['error']}")
+    stats: SendStats = report["stats"]
     if out is not None:
-        run.frames = track_sent
+        run.frames = report["track"]
         run.write_sidecars(out)
     track: dict[str, Any] = {}
-    if window[0] is not None:  # the track alone (standing frames around it)
-        end = window[1] if window[1] is not None else stats.snapshot()
-        track_hist = [b - a for a, b in zip(window[0], end, strict=True)]
-        tmp = SendStats(late_hist=track_hist)
-        track = {"track_pacing_us": tmp.pacing_us(), "track_late_1ms": tmp.late_over_us(1000)}
-    return run.result(out, frames=on_wire, pacing_us=stats.pacing_us(), refused=stats.refused,
-                      realtime=stats.realtime,
+    window: SendStats | None = report["window"]
+    if window is not None:  # the track alone (standing frames around it)
+        track = {"track_pacing_us": window.pacing_us(),
+                 "track_late_1ms": window.late_over_us(1000)}
+    return run.result(out, frames=report["on_wire"], pacing_us=stats.pacing_us(),
+                      refused=stats.refused, realtime=stats.realtime,
+                      frames_late_from_producer=stats.late_frames,
                       sender_cpu_share=stats.cpu_s / stats.wall_s if stats.wall_s else 0.0,
                       **track)
 
@@ -1021,55 +1014,6 @@ def _pcap_target(out: Path | None, pcap: bool, in_place: bool, outputs: contextl
         outputs.enter_context(atomic_path(out / "lidar.pcap"))
     lpath = out / LABELS if in_place else outputs.enter_context(atomic_path(out / LABELS))
     return PcapTarget(str(path), sensor_ip, dest, str(lpath))
-
-
-def _send_frames(run: LidarRun, ring: FrameRing, ready: collections.deque[tuple[str, Any]],
-                 sender: PacedSender, stop: threading.Event,
-                 on_fault: Callable[[FaultEvent], None] | None,
-                 progress: Callable[[int, int], None] | None,
-                 on_track_end: Callable[[], None] | None = None,
-                 window: list[Any] | None = None) -> tuple[str | None, int, int]:
-    """The pacing loop: each frame from the ring sent at its time, its fault events logged
-    as it goes out, until the producer is done, fails, or ``stop``. The error (or None),
-    the track's frames that left with lidar packets, and the track's frames handled.
-    ``window`` gets the sender's pacing histogram as the track's first frame goes out and as
-    the first frame after it does (:meth:`~emulators.lidar.SendStats.snapshot`)."""
-    on_wire = track = 0
-    ended = False
-    while not stop.is_set():
-        item = ready.popleft() if ready else ring.receive(1.0)
-        if item is None:
-            continue
-        kind, body = item
-        if kind == "error":
-            return body, on_wire, track
-        if kind == "done":
-            break
-        slot, meta, events, phase = body
-        if window is not None and phase == "track" and window[0] is None:
-            window[0] = sender.stats.snapshot()
-        if phase == "after" and not ended:
-            ended = True
-            if window is not None:
-                window[1] = sender.stats.snapshot()
-            if on_track_end is not None:
-                on_track_end()
-        for ev in events:  # logged as the frame they struck goes out
-            if ev["kind"] == "lidar_reinit":  # the sidecars: the new identity
-                run.meta = run.meta.with_changes(init_id=ev["init_id"])
-            if on_fault is not None:
-                on_fault(ev)
-        sender.send(ring.frame(slot, meta))
-        ring.sent()
-        if phase != "track":
-            continue
-        on_wire += bool(len(meta)) and bool((meta[:, 1] == run.meta.udp_port_lidar).any())
-        track += 1
-        if progress:
-            progress(track, run.frames)
-    if not ended and on_track_end is not None:
-        on_track_end()
-    return None, on_wire, track
 
 
 def _standing_after(run: LidarRun) -> tuple[OnAir, Any, Any]:

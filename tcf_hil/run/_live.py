@@ -432,6 +432,8 @@ class LiveTraffic:
                               "sender_cpu_share": r.sender_cpu_share, "refused": r.refused,
                               "track_pacing_us_p50_p99": list(r.track_pacing_us),
                               "track_packets_late_1ms": r.track_late_1ms,
+                              "sender_realtime": r.realtime,
+                              "frames_late_from_producer": r.frames_late_from_producer,
                               "render": {"mode": self.render, "key": self.run.render_key,
                                          "from_store": self.run.stored is not None,
                                          "rendered_ahead": self.run.ahead is not None},

@@ -53,3 +53,23 @@ def test_a_shared_clock_decides() -> None:
 def test_a_negative_speed_is_refused() -> None:
     with pytest.raises(ValueError, match="speed"):
         Pacer(-1.0)
+
+
+def test_idle_work_runs_only_while_a_wait_is_long_enough() -> None:
+    """Housekeeping between packets never starts with less than ``idle_ns`` to go, and a
+    wait with it still ends on time."""
+    p = Pacer(1.0, spin_ns=200_000, idle_ns=2_000_000)
+    left: list[int] = []
+    t0 = 1_000_000_000
+    p.due(t0)
+
+    def idle() -> bool:
+        left.append(p.due(t0 + 10_000_000) - time.perf_counter_ns())
+        time.sleep(0.001)
+        return True
+
+    late = p.wait(t0 + 10_000_000, idle)
+    assert left and min(left) > 2_000_000
+    assert 3 <= len(left) <= 9
+    assert late >= 0
+    assert p.wait(t0 + 10_000_001, lambda: pytest.fail("no time to spare: not called")) >= 0

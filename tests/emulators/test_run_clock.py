@@ -50,3 +50,23 @@ def test_it_never_steps_back_nor_out_of_order() -> None:
         c.step(1_000, 9_000)
     with pytest.raises(ValueError, match="speed"):
         RunClock(0, 0, 0.0)
+
+
+@settings(max_examples=100, deadline=None)
+@given(t0=st.integers(0, 10**12), speed=st.floats(0.1, 20.0),
+       steps=st.lists(st.tuples(st.integers(1, 10**9), st.integers(0, 10**10)), max_size=4),
+       probe=st.integers(-10**11, 10**13))
+def test_a_clock_rebuilt_from_its_segments_is_the_same_clock(
+        t0: int, speed: float, steps: list[tuple[int, int]], probe: int) -> None:
+    """The lidar sender (a process of its own) rebuilds the run's clock from its segments."""
+    c = RunClock(t0, 1000, speed)
+    at = 1000
+    for gap, jump in steps:
+        at += gap
+        c.step(at, c.segments[-1][0] + round((at - c.segments[-1][1]) * speed) + jump)
+    copy = RunClock.from_segments(c.segments, speed)
+    assert copy.segments == c.segments
+    assert copy.monotonic_at(t0 + probe) == c.monotonic_at(t0 + probe)
+    plain = SimClock(t0, 1000, speed)
+    assert RunClock.from_segments(plain.segments, speed).monotonic_at(t0 + probe) == \
+        plain.monotonic_at(t0 + probe)

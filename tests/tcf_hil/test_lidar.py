@@ -370,3 +370,54 @@ def test_frames_sent_counts_only_the_frames_that_left(tmp_path: Path) -> None:
     left = len(lidar) / meta.packet_format.packets_per_frame
     assert left == int(left) and left < 40  # the gap sent nothing
     assert r.frames == left
+
+
+def test_the_sender_is_a_process_of_its_own_and_follows_a_moved_route() -> None:
+    """The pacing loop runs in a process of its own (no interpreter lock shared with the
+    run's CAN node and HTTP API); a set_config that moves the destination (the sensor's
+    HTTP API sets the run's Route) reaches it at once, mid-frame."""
+    import os
+    import socket
+    import threading
+    import time
+
+    from emulators.lidar import Route
+    from tcf_hil.devices.lidar import stream_lidar
+
+    a, b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM), socket.socket(
+        socket.AF_INET, socket.SOCK_DGRAM)
+    for s in (a, b):
+        s.bind(("127.0.0.1", 0))
+        s.settimeout(10.0)
+    imu = _free_udp_port()
+    route = Route("127.0.0.1", a.getsockname()[1], imu)
+    result = {}
+
+    def go() -> None:
+        result["r"] = stream_lidar(load_scenario("forest-ii"), mode="512x20", max_frames=80,
+                                   udp_port_lidar=a.getsockname()[1], udp_port_imu=imu,
+                                   route=route)
+
+    t = threading.Thread(target=go)
+    t.start()
+    try:
+        a.recv(65536)  # streaming
+        senders = []
+        for task in os.listdir(f"/proc/{os.getpid()}/task"):
+            with open(f"/proc/{os.getpid()}/task/{task}/children") as fh:
+                for pid in fh.read().split():
+                    with open(f"/proc/{pid}/comm") as c:
+                        if c.read().strip() == "tcf-lidar-send":
+                            senders.append(int(pid))
+        assert len(senders) == 1
+        t0 = time.monotonic()
+        route.set("127.0.0.1", b.getsockname()[1], imu)
+        b.recv(65536)
+        assert time.monotonic() - t0 < 0.5  # the next packets (one each 1.6 ms), not a
+        # frame later
+    finally:
+        t.join(timeout=60)
+        a.close()
+        b.close()
+    assert result["r"].frames == 80
+    assert route.listeners == []  # the stream no longer listens
