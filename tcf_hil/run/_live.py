@@ -411,6 +411,13 @@ class LiveTraffic:
         if self.lidar_error is not None:
             raise self.lidar_error
 
+    def release_bus(self) -> None:
+        """The harvester node and its CAN log stopped (the sensor streams on)."""
+        self.harv_stop.set()
+        for th in self.threads:
+            if th.name == "harvester":
+                th.join(timeout=60.0)
+
     def close(self, manifest: Manifest) -> None:
         self.end_stream.set()
         self.harv_stop.set()

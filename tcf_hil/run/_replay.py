@@ -238,10 +238,14 @@ class ReplayTraffic:
             if self.thread is not None:
                 self.thread.join()
 
-    def close(self, manifest: Manifest) -> None:
+    def release_bus(self) -> None:
+        """The recording's sending (its CAN frames with it) and the SDO answers stopped."""
         self.end.set()
         if self.thread is not None:
             self.thread.join(timeout=30.0)
         if self.sdo is not None:
             self.sdo.close()
+
+    def close(self, manifest: Manifest) -> None:
+        self.release_bus()
         manifest.replay_sent = {k: v for k, v in self.sent.items() if k != "at_ns"}

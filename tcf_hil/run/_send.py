@@ -60,9 +60,16 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
                 except OSError:
                     sent["refused"] += 1
             elif bus is not None:
-                with contextlib.suppress(can.CanError):
+                try:
                     bus.send(item)
                     sent["can"] += 1
+                except can.CanError:
+                    pass
+                except OSError:  # the bus is gone (its server closed): the lidar goes on
+                    sent["can_lost"] = sent.get("can_lost", 0) + 1
+                    with contextlib.suppress(Exception):
+                        bus.shutdown()
+                    bus = None
             if on_progress is not None and n % 256 == 0:
                 on_progress(n % total if total else 0, total)
     finally:

@@ -88,6 +88,10 @@ class Traffic(Protocol):
     def finish(self) -> None:
         """Stop sending and wait for it; raises what the sender raised."""
 
+    def release_bus(self) -> None:
+        """Stop everything that uses the CAN bus (the run's own CAN server closes next: a
+        node or a log still on it would fail with a broken pipe). Safe after any failure."""
+
     def close(self, manifest: Manifest) -> None:
         """Release everything; its figures go into ``manifest``. Safe after any failure."""
 
@@ -324,9 +328,12 @@ class RunSession:
                     meta, host.address, host.http_port, fixed=True, on_redirect=redirect)) \
                     if host.http_port >= 0 else None
                 wire = Wire(host, spec, api, st.route, self.stop, self.announce, self.t_mono0)
-                self._start(st, wire, meta, meta_path)
-                self._stream(st)
-                self._finish(st)
+                try:
+                    self._start(st, wire, meta, meta_path)
+                    self._stream(st)
+                    self._finish(st)
+                finally:  # before the bus (the run's own CAN server) closes
+                    self.traffic.release_bus()
         except BaseException as err:
             st.status = RunStatus.INTERRUPTED if isinstance(err, KeyboardInterrupt) \
                 else RunStatus.FAILED
