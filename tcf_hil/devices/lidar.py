@@ -16,7 +16,7 @@ import signal
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from multiprocessing import connection as mp_connection
 from multiprocessing.connection import wait as mp_wait
@@ -102,6 +102,9 @@ class OnAir:
     # run's sensor falls silent once the run could be over, so that a bench left hanging
     # does not go on sending to the ports the next run on the machine takes
     after_frames: int = -1
+    # the track is over already (a sensor re-initialised after it): the machine stands
+    # where the track left it from the first frame (frame_id from 0)
+    track_over: bool = False
 
 
 @dataclass
@@ -222,6 +225,7 @@ class _StandingEmulator:
                  period_ns: int, fmt: Any) -> None:
         self.cycle, self.cycle_start_ns = cycle, cycle_start_ns
         self.start_ns, self.period_ns, self.fmt = start_ns, period_ns, fmt
+        self.from_store = False  # the cycle was read from the render store, not rendered
 
     def frame(self, k: int) -> FrameResult:
         t = self.start_ns + k * self.period_ns
@@ -697,12 +701,58 @@ class LidarRun:
         frame."""
         period = self.emu.period_ns
         start = at_ns - STANDING_CYCLE * period if at_ns < self.track.t0_ns else at_ns
-        emu = Os0Emulator(self.meta, self.scene, _StandingPose(self.track, at_ns), self.model,
-                          seed=self.forest.seed, start_ns=start,
-                          threads=self.scene.caster.threads, sensor=self.sensor)
-        cycle = [emu.frame(i) for i in range(STANDING_CYCLE)]
-        return _StandingEmulator(cycle, start, self.track.t0_ns, period,
-                                 self.meta.packet_format)
+        cycle = self._stored_cycle(at_ns)
+        kept = cycle is not None
+        if cycle is None:
+            emu = Os0Emulator(self.meta, self.scene, _StandingPose(self.track, at_ns),
+                              self.model, seed=self.forest.seed, start_ns=start,
+                              threads=self.scene.caster.threads, sensor=self.sensor)
+            cycle = [emu.frame(i) for i in range(STANDING_CYCLE)]
+            self._store_cycle(at_ns, cycle)
+        standing = _StandingEmulator(cycle, start, self.track.t0_ns, period,
+                                     self.meta.packet_format)
+        standing.from_store = kept
+        return standing
+
+    def _cycle_path(self, at_ns: int) -> Path | None:
+        """Where a standing cycle at ``at_ns`` is kept: beside the track's complete render in
+        the store (the render's key decides its bytes as it does the track's), else
+        nowhere."""
+        if self.stored is None or not self.stored.complete:
+            return None
+        return self.stored.path / f"standing-{at_ns}.npz"
+
+    def _stored_cycle(self, at_ns: int) -> list[FrameResult] | None:
+        """The standing cycle kept in the store (seconds of rendering saved at a natural
+        stand's power-on), or None; one that cannot be read is rendered again."""
+        path = self._cycle_path(at_ns)
+        if path is None or not path.exists():
+            return None
+        try:
+            with np.load(path) as z:
+                names = tuple(str(x) for x in z["field_names"])
+                return [FrameResult(
+                    int(z["frame_index"][i]), z["timestamps_ns"][i], z["stem_id"][i],
+                    z["stem_id2"][i] if "stem_id2" in z else None, z["positions"][i],
+                    z["rotations"][i], z["packets"][i], self.meta.packet_format, names)
+                    for i in range(len(z["frame_index"]))]
+        except (OSError, ValueError, KeyError, IndexError):
+            return None
+
+    def _store_cycle(self, at_ns: int, cycle: list[FrameResult]) -> None:
+        path = self._cycle_path(at_ns)
+        if path is None or not cycle or cycle[0].packet_format != self.meta.packet_format:
+            return
+        arrays: dict[str, Any] = {
+            "frame_index": np.array([fr.frame_index for fr in cycle]),
+            "field_names": np.array(cycle[0].field_names),
+            **{k: np.stack([getattr(fr, k) for fr in cycle])
+               for k in ("timestamps_ns", "stem_id", "positions", "rotations", "packets")}}
+        if cycle[0].stem_id2 is not None:
+            arrays["stem_id2"] = np.stack([fr.stem_id2 for fr in cycle if fr.stem_id2 is not None])
+        with contextlib.suppress(OSError, ValueError), atomic_path(path) as tmp, \
+                open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
 
     def on_air(self, air: OnAir, before: _StandingEmulator, after: _StandingEmulator
                ) -> Iterator[tuple[str, RenderedFrame]]:
@@ -714,8 +764,23 @@ class LidarRun:
         stopped), endless. Standing frames carry no labels, poses nor returns: they are not
         scored."""
         period, t0 = self.emu.period_ns, self.track.t0_ns
-        most = (t0 - air.power_on_ns) // period  # standing frames before, at the most
         crc = fast_crc_rows()
+        last = -1  # the track's last frame_id
+        if not air.track_over:
+            last = yield from self._to_track_end(air, before, crc)
+        end = t0 + self.frames * period
+        sensor = Os0Sensor(after, self.meta, _StandingPose(self.track, end), crc_rows=crc,
+                           first_frame_id=last + 1 - self.frames, first_imu_ns=end)
+        k = self.frames
+        while air.after_frames < 0 or k < self.frames + air.after_frames:
+            yield "after", self._standing_frame(sensor.frame(k))
+            k += 1
+
+    def _to_track_end(self, air: OnAir, before: _StandingEmulator, crc: Any
+                      ) -> Generator[tuple[str, RenderedFrame], None, int]:
+        """:meth:`on_air`'s frames until the track's end; the track's last frame_id."""
+        period, t0 = self.emu.period_ns, self.track.t0_ns
+        most = (t0 - air.power_on_ns) // period  # standing frames before, at the most
         pose = _StandingPose(self.track, t0 - period)
         # frame_id counts the frames since power-on (0 first), on across the clock's step
         sensor = Os0Sensor(before, self.meta, pose, crc_rows=crc, first_frame_id=most,
@@ -763,13 +828,7 @@ class LidarRun:
                         fmt, bytes(d.payload), shift, 0, crc)) if d.port == lp else d
                         for d in rf.datagrams]
             yield "track", rf
-        end = t0 + self.frames * period
-        sensor = Os0Sensor(after, self.meta, _StandingPose(self.track, end), crc_rows=crc,
-                           first_frame_id=last + 1 - self.frames, first_imu_ns=end)
-        k = self.frames
-        while air.after_frames < 0 or k < self.frames + air.after_frames:
-            yield "after", self._standing_frame(sensor.frame(k))
-            k += 1
+        return last
 
     def _standing_frame(self, sf: Any) -> RenderedFrame:
         none = np.zeros(0, np.int64)
@@ -1016,12 +1075,14 @@ def _pcap_target(out: Path | None, pcap: bool, in_place: bool, outputs: contextl
     return PcapTarget(str(path), sensor_ip, dest, str(lpath))
 
 
-def _standing_after(run: LidarRun) -> tuple[OnAir, Any, Any]:
+def _standing_after(run: LidarRun, track_over: bool = False) -> tuple[OnAir, Any, Any]:
     """An always-on plan for a sensor that streams its track at once and then stands where
-    the track left it, sending, until stopped (as a real sensor on a parked machine)."""
+    the track left it, sending, until stopped (as a real sensor on a parked machine);
+    ``track_over``: the stands only (re-initialised after its track)."""
     ctx = mp.get_context("fork")
     period, t0 = run.emu.period_ns, run.track.t0_ns
-    air = OnAir(t0 - period, ctx.RawValue("q", 0), ctx.RawValue("q", 0), -1)
+    air = OnAir(t0 - period, ctx.RawValue("q", 0), ctx.RawValue("q", 0), -1,
+                track_over=track_over)
     after = run.standing(t0 + run.frames * period)
     return air, after, after  # (the track starts at once: nothing stands before it)
 
@@ -1075,6 +1136,7 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
     kw = {k: v for k, v in run_kw.items()
           if k not in ("mode", "profile", "udp_dest", "udp_port_lidar", "udp_port_imu")}
     segment = 0
+    track_over = threading.Event()  # a re-initialisation after it does not drive it again
     try:
         while not stop.is_set():
             reinit.clear()
@@ -1089,7 +1151,8 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
             # ends only when stopped: a crash meanwhile leaves a readable capture)
             r = stream_lidar(scn, sensor_ip=sensor_ip, speed=speed, stop=inner[0],
                              record=out, run=run, pcap_in_place=linger,
-                             air=_standing_after(run) if linger else None)
+                             air=_standing_after(run, track_over.is_set()) if linger
+                             else None, on_track_end=track_over.set)
             if on_result is not None:
                 on_result(r)
             if not reinit.is_set():

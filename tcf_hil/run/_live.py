@@ -142,7 +142,7 @@ class LiveTraffic:
                                     round(self.duration_s * run.meta.frequency_hz)))
         # the standing machine's frames (before and after the track); the second lot timed:
         # how fast this machine renders the scene (the first lot warmed the emulator up)
-        self.announce("the standing machine: rendering its frames ...")
+        self.announce("the standing machine: its frames ...")
         period = run.emu.period_ns
         before = run.standing(run.track.t0_ns - period)
         t_render = time.perf_counter()
@@ -158,8 +158,9 @@ class LiveTraffic:
             ahead = run.render_ahead()
             if ahead is not None:
                 self._lead(run, ahead)
-        self.announce(f"frames: {self._source(run)} (the scene renders at "
-                      f"{rate / need:.1f}x real time here)")
+        rendered = "" if self.standing[1].from_store else (
+            f" (the scene renders at {rate / need:.1f}x real time here)")
+        self.announce(f"frames: {self._source(run)}{rendered}")
         self.run = run
         self.can_faults = world.faults.can if world.faults is not None else None
         if world.faults is not None:

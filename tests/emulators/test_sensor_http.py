@@ -265,3 +265,50 @@ def test_a_served_sensor_stands_and_sends_after_its_track_until_stopped() -> Non
     frames = sorted(set(ids))
     assert frames == list(range(frames[0], frames[0] + 12))  # one count, on past the track
     assert 0.3 < took < 5.0  # 10 Hz: five frames take half a second, not nothing
+
+
+def test_a_reinit_after_the_track_keeps_the_machine_standing() -> None:
+    """A client that re-initialises a parked sensor (ouster-ros does at start) gets the
+    machine standing where the track left it, frame_id from 0 under the new init_id: the
+    track is not driven again."""
+    import threading
+
+    from protocols.ouster import decode_lidar_packet, os0_64_metadata
+    from tcf_hil.devices.lidar import serve_sensor
+    from tcf_hil.scenario import load_scenario
+
+    port, udp = _served_endpoints()
+    for u in udp:
+        u.settimeout(60.0)
+    stop, ready = threading.Event(), threading.Event()
+    results: list[Any] = []
+    worker = threading.Thread(target=serve_sensor, args=(load_scenario("forest-ii"),), kwargs=dict(
+        http_port=port, stop=stop, ready=ready, mode="512x10", max_frames=3,
+        udp_port_lidar=udp[0].getsockname()[1], udp_port_imu=udp[1].getsockname()[1],
+        on_result=results.append))
+    worker.start()
+    fmt = os0_64_metadata("512x10").packet_format
+    try:
+        assert ready.wait(60)
+        for _ in range(6 * 32):  # past the track's three frames
+            udp[0].recv(65536)
+        req = urllib.request.Request(f"http://127.0.0.1:{port}/api/v1/sensor/config?reinit=true",
+                                     data=b'{"lidar_mode": "512x10"}', method="POST")
+        assert urllib.request.urlopen(req, timeout=5).status == 200
+        first = decode_lidar_packet(fmt, udp[0].recv(65536), check_crc=False)
+        while True:  # what the first stream left queued, then the new identity's frames
+            p = decode_lidar_packet(fmt, udp[0].recv(65536), check_crc=False)
+            if p.init_id != first.init_id:
+                break
+        ids = [p.frame_id] + [decode_lidar_packet(fmt, udp[0].recv(65536),
+                                                  check_crc=False).frame_id
+                              for _ in range(6 * 32)]
+    finally:
+        stop.set()
+        worker.join(60)
+        for u in udp:
+            u.close()
+    assert not worker.is_alive() and len(results) == 2
+    assert results[0].frames == 3 and results[1].frames == 0  # no track the second time
+    frames = sorted(set(ids))
+    assert frames[0] == 0 and frames == list(range(len(frames))) and len(frames) >= 6

@@ -374,3 +374,34 @@ def test_an_always_on_sensor_stands_steps_drives_and_stands(tmp_path: Path) -> N
     imu = [d.t_ns for _, rf in first + rest for d in rf.datagrams if d.port == run.ports[1]]
     gaps = sorted({b - a for a, b in itertools.pairwise(imu)})
     assert gaps[0] == 10_000_000 and len(gaps) == 2  # 100 Hz, and the step once
+
+
+def test_a_standing_cycle_kept_in_the_store_is_the_one_rendered(tmp_path: Path) -> None:
+    """The standing machine's frames (rendered at every run's start, seconds on a natural
+    stand) are kept beside the track's complete render and read back bit for bit; a file
+    that cannot be read is rendered again; without a complete render nothing is kept."""
+    scn = _short()
+    store = RenderStore(tmp_path / "cache")
+    kw = {"mode": "512x10", "max_frames": 4}
+    run = LidarRun(scn, store=store, render="stored", **kw)
+    at = run.track.t0_ns - run.emu.period_ns
+    assert run._cycle_path(at) is None  # nothing stored yet: nothing kept
+    run.render_into_store()
+    first = run.standing(at)
+    path = run._cycle_path(at)
+    assert path is not None and path.exists()
+    again = LidarRun(scn, store=store, render="stored", **kw)
+    kept = again.standing(at)
+    plain = LidarRun(scn, **kw).standing(at)  # no store: rendered
+    for k in (0, 3, 17):
+        a, b, c = first.frame(k), kept.frame(k), plain.frame(k)
+        for f in ("packets", "timestamps_ns", "stem_id", "positions", "rotations"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+            np.testing.assert_array_equal(getattr(a, f), getattr(c, f), err_msg=f)
+        assert b.field_names == c.field_names and b.packet_format == c.packet_format
+    path.write_bytes(b"not an npz")
+    third = LidarRun(scn, store=store, render="stored", **kw)
+    np.testing.assert_array_equal(third.standing(at).frame(0).packets, plain.frame(0).packets)
+    for r in (run, again, third):
+        if r.stored is not None:
+            r.stored.close()
