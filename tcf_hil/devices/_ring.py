@@ -42,7 +42,7 @@ def slot_bytes(run: Any) -> int:
     """Upper bound of one frame's datagram bytes (lidar packets plus IMU packets)."""
     fmt = run.meta.packet_format
     packets = fmt.columns_per_frame // fmt.columns_per_packet
-    imu = run.emu.period_ns // IMU_PERIOD_NS + 2
+    imu = run.period_ns // IMU_PERIOD_NS + 2
     dup = 2 if run.udp_faults is not None and run.udp_faults.duplicate else 1
     return dup * (packets * fmt.packet_bytes + imu * IMU_PACKET_BYTES)
 
@@ -87,10 +87,11 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(1)
-    caster = run.scene.caster
-    if caster.threads is not None:  # the same for a ray caster that splits casts itself
-        caster.threads = max(1, caster.threads - 1)
-    run.emu.threads = max(1, run.emu.threads - 1)  # and for the emulator's column chunks
+    if run.renders or run.stored is None or not run.stored.complete:  # (frames cast here)
+        caster = run.scene.caster
+        if caster.threads is not None:  # the same for a ray caster that splits casts itself
+            caster.threads = max(1, caster.threads - 1)
+        run.emu.threads = max(1, run.emu.threads - 1)  # and for the emulator's column chunks
     fh = open(rec.path, "wb") if rec is not None else None  # closed in the finally below
     lh = open(rec.labels, "wb") if rec is not None else None
     writer = PcapWriter()

@@ -8,7 +8,9 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import functools
 import io
+import json
 import math
 import multiprocessing as mp
 import os
@@ -73,6 +75,7 @@ from tcf_hil.recording.store import (
 from tcf_hil.scenario import Scenario
 from tcf_hil.world import World
 from tcf_hil.world.forest import Forest, ground_truth
+from tcf_hil.world.scene import resolve_backend
 from tcf_hil.world.track import warm_up as warm_up_poses
 
 # where a run's frames come from (LidarRun; "ahead": a live run's, LiveTraffic)
@@ -316,7 +319,7 @@ class LidarRun:
             world = World.build(scn, seed=seed, t0_ns=t0_ns, forest=forest, lidar_ports=ports)
         self.world = world
         self.forest: Forest = world.forest
-        self.scene = world.scene(backend)
+        self._backend_asked = backend
         self.track = world.track
         self.meta: SensorMetadata = meta or sensor_metadata(
             scn, mode=mode, profile=profile, seed=self.forest.seed, udp_dest=udp_dest,
@@ -330,16 +333,19 @@ class LidarRun:
             raise ConfigError("sensor", scn.sensor.preset,
                               "'ideal' for a return model of its own (--noise, --max-range)")
         self.sensor = scn.sensor
-        self.emu = Os0Emulator(self.meta, self.scene, self.track, model, seed=self.forest.seed,
-                               start_ns=self.track.t0_ns,
-                               threads=self.scene.caster.threads, sensor=scn.sensor)
-        n = max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
+        self.model = model
+        self._meta0 = self.meta  # what the key is made of (render_doc), computed once
+        # The scene (a natural stand's takes seconds to build) and the emulator on it are
+        # built when first needed: a run whose frames all come from the store never needs
+        # them (:attr:`scene`, :attr:`emu`)
+        self.period_ns = 1_000_000_000 // self.meta.frequency_hz
+        n = max(1, math.ceil(self.track.duration_ns / self.period_ns))
         self.frames = min(n, max_frames) if max_frames is not None else n
-        self.backend = self.scene.backend  # the concrete one: auto resolved
+        self.backend = resolve_backend(backend)[0]  # the concrete one: auto resolved
         self.n_stems = len(self.forest.stems)
-        sc = self.forest.scenery()
-        self.counts = np.zeros(self.n_stems + 1 if sc is None else len(sc.component_of_id),
-                               dtype=np.int64)
+        # returns per object id (grown as ids come: a natural stand's ids reach past its
+        # stems, to its branches, foliage and the rest of its scenery)
+        self.counts = np.zeros(self.n_stems + 1, dtype=np.int64)
         self.packets = 0
         self._poses = io.StringIO()
         self._pw = csv.writer(self._poses, lineterminator="\n")
@@ -352,8 +358,6 @@ class LidarRun:
         self.last_events: list[FaultEvent] = []
         self.last_sent = False
         self.faults_on = faults
-        self.model = model
-        self._meta0 = self.meta  # what the key is made of (render_doc), computed once
         self._doc: dict[str, Any] | None = None
         self._key: str | None = None
         self.store = store if render != "live" else None
@@ -370,6 +374,36 @@ class LidarRun:
             if key is not None:
                 self.stored = self.store.open(key)
 
+    @functools.cached_property
+    def scene(self) -> Any:
+        """The scene the rays hit (the world's, on this run's backend), built when first
+        asked for."""
+        scene = self.world.scene(self._backend_asked)
+        if scene.backend != self.backend:  # (resolve_backend decides as the scene does)
+            raise RuntimeError(f"the scene's backend {scene.backend} is not the run's "
+                               f"{self.backend}")
+        return scene
+
+    @functools.cached_property
+    def emu(self) -> Os0Emulator:
+        """The emulated sensor on :attr:`scene`, built when first asked for."""
+        return Os0Emulator(self._meta0, self.scene, self.track, self.model,
+                           seed=self.forest.seed, start_ns=self.track.t0_ns,
+                           threads=self.scene.caster.threads, sensor=self.sensor)
+
+    @property
+    def renders(self) -> bool:
+        """Whether this run's scene and emulator have been built (a run streamed from the
+        store builds neither)."""
+        return "emu" in self.__dict__ or "scene" in self.__dict__
+
+    def _counts_for(self, size: int) -> np.ndarray:
+        """:attr:`counts`, zeros added up to ``size`` ids."""
+        if len(self.counts) < size:
+            self.counts = np.concatenate([self.counts,
+                                          np.zeros(size - len(self.counts), np.int64)])
+        return self.counts
+
     @property
     def _packets_per_frame(self) -> int:
         return self.meta.packet_format.packets_per_frame
@@ -377,7 +411,7 @@ class LidarRun:
     @property
     def track_frames(self) -> int:
         """Frames of the whole track (a run may send fewer: ``max_frames``)."""
-        return max(1, math.ceil(self.track.duration_ns / self.emu.period_ns))
+        return max(1, math.ceil(self.track.duration_ns / self.period_ns))
 
     def render_doc(self) -> dict[str, Any] | None:
         """Everything that decides this run's frames' bytes (the render store's key is made
@@ -471,6 +505,7 @@ class LidarRun:
         it is is read (the others wait on their pipes). A worker that dies or falls silent
         for :data:`RENDER_SILENT_S` fails the render."""
         ctx = mp.get_context("fork")
+        self.emu.warm_up()  # the scene and the kernels made once, here: the workers share them
         procs: list[Any] = []
         conns: list[Any] = []
         try:
@@ -637,6 +672,7 @@ class LidarRun:
             self.stored = self.store.open(key, partial=True)
             return None
         ctx = mp.get_context("fork")
+        self.emu.warm_up()  # the scene and the kernels made here, shared by the fork
         done, state = ctx.RawValue("q", writer.frames), ctx.RawValue("i", 0)
         proc = ctx.Process(target=_render_ahead, args=(self, writer, upto, done, state),
                            name="lidar-render", daemon=True)
@@ -657,7 +693,7 @@ class LidarRun:
             hit = fr.stem_id[fr.stem_id >= 0]
             if fr.stem_id2 is not None:  # the DUAL profile's second returns count too
                 hit = np.concatenate([hit, fr.stem_id2[fr.stem_id2 >= 0]])
-            per = np.bincount(hit, minlength=len(self.counts))[: len(self.counts)]
+            per = np.bincount(hit, minlength=len(self.counts))
             ids = np.flatnonzero(per).astype(np.int64)
             counts = per[ids].astype(np.int64)
             if poses:
@@ -691,7 +727,8 @@ class LidarRun:
         if not rf.sent:
             return
         self.packets += self._packets_per_frame
-        self.counts[rf.hit_ids] += rf.hit_counts  # (ids once each)
+        if len(rf.hit_ids):
+            self._counts_for(int(rf.hit_ids.max()) + 1)[rf.hit_ids] += rf.hit_counts
         if self.keep_poses:
             self._poses.write(self._poses_csv_rows(rf.poses))
 
@@ -699,7 +736,7 @@ class LidarRun:
         """The machine standing at the track's pose at ``at_ns``: a cycle of
         :data:`STANDING_CYCLE` frames rendered now, sent again with the times of any
         frame."""
-        period = self.emu.period_ns
+        period = self.period_ns
         start = at_ns - STANDING_CYCLE * period if at_ns < self.track.t0_ns else at_ns
         cycle = self._stored_cycle(at_ns)
         kept = cycle is not None
@@ -763,7 +800,7 @@ class LidarRun:
         (:meth:`rendered`, with its bookkeeping) and ``after`` it (standing where it
         stopped), endless. Standing frames carry no labels, poses nor returns: they are not
         scored."""
-        period, t0 = self.emu.period_ns, self.track.t0_ns
+        period, t0 = self.period_ns, self.track.t0_ns
         crc = fast_crc_rows()
         last = -1  # the track's last frame_id
         if not air.track_over:
@@ -779,7 +816,7 @@ class LidarRun:
     def _to_track_end(self, air: OnAir, before: _StandingEmulator, crc: Any
                       ) -> Generator[tuple[str, RenderedFrame], None, int]:
         """:meth:`on_air`'s frames until the track's end; the track's last frame_id."""
-        period, t0 = self.emu.period_ns, self.track.t0_ns
+        period, t0 = self.period_ns, self.track.t0_ns
         most = (t0 - air.power_on_ns) // period  # standing frames before, at the most
         pose = _StandingPose(self.track, t0 - period)
         # frame_id counts the frames since power-on (0 first), on across the clock's step
@@ -842,7 +879,20 @@ class LidarRun:
             yield rf.result, rf.datagrams
 
     def labels_header(self) -> bytes:
-        """``lidar_labels.bin``'s header: the image size and what each object id is."""
+        """``lidar_labels.bin``'s header: the image size and what each object id is (kept
+        beside a complete render in the store: a natural stand's needs its scenery)."""
+        path = self.stored.path / "labels_header.bin" if self.stored is not None and \
+            self.stored.complete else None
+        if path is not None and path.exists():
+            with contextlib.suppress(OSError):
+                return path.read_bytes()
+        head = self._labels_header()
+        if path is not None:
+            with contextlib.suppress(OSError, ValueError):
+                write_bytes_atomic(path, head)
+        return head
+
+    def _labels_header(self) -> bytes:
         sc = self.forest.scenery()
         comp = np.concatenate([[0], np.ones(self.n_stems)]).astype(np.uint8) \
             if sc is None else sc.component_of_id
@@ -879,7 +929,8 @@ class LidarRun:
         sc = self.forest.scenery()
         if sc is None:
             return {"ground": int(self.counts[0]), "stem": int(self.counts[1:].sum())}
-        per = np.bincount(sc.component_of_id, weights=self.counts,
+        per = np.bincount(sc.component_of_id,
+                          weights=self._counts_for(len(sc.component_of_id)),
                           minlength=len(COMPONENTS))
         return {name: int(v) for name, v in zip(COMPONENTS, per.tolist(), strict=True)}
 
@@ -888,7 +939,10 @@ class LidarRun:
         stands: also its branches' and foliage's, and the totals by component)."""
         gt = ground_truth(self.forest)
         n = self.n_stems
-        natural = self.forest.scenery() is not None
+        sc = self.forest.scenery()
+        natural = sc is not None
+        if sc is not None:
+            self._counts_for(len(sc.component_of_id))
         for o in gt["objects"]:
             o["returns"] = int(self.counts[o["id"]])
             if natural:
@@ -907,13 +961,9 @@ class LidarRun:
         write_bytes_atomic(out / "metadata.json", self.meta.dumps().encode())
         write_json_atomic(out / "ground_truth.json", self.ground_truth())
         c = self.counts
-        sc = self.forest.scenery()
         vis: dict[str, Any] = {
             "frames": self.frames, "mode": self.meta.mode, "profile": self.meta.profile,
-            "backend": self.backend, "sensor": self.sensor.preset,
-            "stems_geometry": "curves" if self.scene.curve_count else "mesh",
-            "foliage_as": ("volume" if self.scene.crown_count else "facets")
-            if sc is not None and len(sc.foliage) else "none",
+            "backend": self.backend, "sensor": self.sensor.preset, **self._scene_facts(),
             "terrain_returns": int(c[0]),
             "stem_returns": int(c[1:self.n_stems + 1].sum()), "stems_seen": self.stems_seen(),
             "stems_total": self.n_stems,
@@ -924,6 +974,25 @@ class LidarRun:
             vis["returns_by_component"] = self.returns_by_component()
         write_json_atomic(out / "visibility.json", vis)
         return vis
+
+    def _scene_facts(self) -> dict[str, str]:
+        """How the scene casts stems and foliage (``visibility.json``): kept beside a
+        complete render in the store, so that a run streamed from it does not build the
+        scene (seconds for a natural stand) only to say so."""
+        path = self.stored.path / "scene.json" if self.stored is not None and \
+            self.stored.complete else None
+        if path is not None and "scene" not in self.__dict__ and path.exists():
+            with contextlib.suppress(OSError, ValueError):
+                facts: dict[str, str] = json.loads(path.read_text())
+                return facts
+        sc = self.forest.scenery()
+        facts = {"stems_geometry": "curves" if self.scene.curve_count else "mesh",
+                 "foliage_as": ("volume" if self.scene.crown_count else "facets")
+                 if sc is not None and len(sc.foliage) else "none"}
+        if path is not None:
+            with contextlib.suppress(OSError, ValueError):
+                write_json_atomic(path, facts)
+        return facts
 
     def result(self, out: Path | None, frames: int | None = None, **kw: Any) -> RecordResult:
         """``frames``: those that left (default: every frame of the run)."""
@@ -1015,10 +1084,13 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     """
     run_kw.setdefault("udp_dest", dest)
     run = run or LidarRun(scn, **run_kw)
-    # compiled before the fork: the first frame is not late (the first run on a machine
-    # compiles; seconds)
-    warm_up_kernels(run.meta, run.emu.model, run.emu.sensor)
-    warm_up_poses()
+    if run.stored is None or not run.stored.complete or run.renders:
+        # compiled before the fork: the first frame is not late (the first run on a
+        # machine compiles; seconds). A run streamed from a complete render casts nothing.
+        warm_up_kernels(run.meta, run.model, run.sensor)
+        warm_up_poses()
+        if run.stored is None or not run.stored.complete:
+            run.emu  # noqa: B018  (the scene built before the fork: the producer shares it)
     dest = run.meta.udp_dest
     stop = stop or threading.Event()
     out = Path(record) if record is not None else None
@@ -1080,7 +1152,7 @@ def _standing_after(run: LidarRun, track_over: bool = False) -> tuple[OnAir, Any
     the track left it, sending, until stopped (as a real sensor on a parked machine);
     ``track_over``: the stands only (re-initialised after its track)."""
     ctx = mp.get_context("fork")
-    period, t0 = run.emu.period_ns, run.track.t0_ns
+    period, t0 = run.period_ns, run.track.t0_ns
     air = OnAir(t0 - period, ctx.RawValue("q", 0), ctx.RawValue("q", 0), -1,
                 track_over=track_over)
     after = run.standing(t0 + run.frames * period)

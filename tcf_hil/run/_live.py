@@ -143,7 +143,7 @@ class LiveTraffic:
         # the standing machine's frames (before and after the track); the second lot timed:
         # how fast this machine renders the scene (the first lot warmed the emulator up)
         self.announce("the standing machine: its frames ...")
-        period = run.emu.period_ns
+        period = run.period_ns
         before = run.standing(run.track.t0_ns - period)
         t_render = time.perf_counter()
         self.standing = (before, run.standing(run.track.t0_ns + run.frames * period))
@@ -302,7 +302,7 @@ class LiveTraffic:
         time is unsigned)."""
         from tcf_hil.devices.lidar import OnAir
 
-        period, t0 = run.emu.period_ns, run.track.t0_ns
+        period, t0 = run.period_ns, run.track.t0_ns
         most = min(math.ceil(self.standing_s * 1e9 / period), t0 // period - 1)
         ctx = mp.get_context("fork")
         after = -1 if self.standing_after_s is None else math.ceil(
@@ -326,7 +326,7 @@ class LiveTraffic:
 
         run, speed, clock, air = self.run, self.speed, self.clock, self.air
         assert clock is not None and air is not None
-        period, t0 = run.emu.period_ns, run.track.t0_ns
+        period, t0 = run.period_ns, run.track.t0_ns
         most = (t0 - air.power_on_ns) // period
         now = max(0, math.ceil((clock.now_ns() - air.power_on_ns) / period))
         step = now + RING_SLOTS + 2  # (the producer is at most the ring ahead of the clock)
@@ -359,7 +359,7 @@ class LiveTraffic:
                 model=self.harvester,
                 log_path=self.out / "can.log", speed=self.speed, stop=self.harv_stop,
                 clock=clock, until_stop=True,
-                stand_from_ns=self.run.track.t0_ns + self.run.frames * self.run.emu.period_ns,
+                stand_from_ns=self.run.track.t0_ns + self.run.frames * self.run.period_ns,
                 faults=self.can_faults, on_fault=flog.log if flog is not None else None,
                 on_conflict=self.conflicts.append, on_node=self._on_node)
 

@@ -184,7 +184,8 @@ def test_live_stream_read_by_ouster_sdk(tmp_path: Path, profile: str, mode: str)
     kw = {"mode": mode, "profile": profile, "udp_port_lidar": lp, "udp_port_imu": ip}
     meta = LidarRun(scn, max_frames=1, **kw).meta
     src = sensor.SensorFrameSetSource("127.0.0.1", sensor_info=[core.SensorInfo(meta.dumps())],
-                                      timeout=5.0)
+                                      timeout=15.0)  # (a loaded machine: the scene is built
+    # and the kernels loaded after the source listens)
     result = {}
 
     def go() -> None:

@@ -405,3 +405,34 @@ def test_a_standing_cycle_kept_in_the_store_is_the_one_rendered(tmp_path: Path) 
     for r in (run, again, third):
         if r.stored is not None:
             r.stored.close()
+
+
+@pytest.mark.parametrize("name", ["forest-ii", "forest-ii-natural"])
+def test_a_run_streamed_from_a_complete_render_builds_no_scene(tmp_path: Path,
+                                                               name: str) -> None:
+    """A run whose frames, standing machine, labels header and scene facts are all in the
+    store sends, keeps its bookkeeping and writes its sidecars without building the scene
+    (seconds for a natural stand: the command's time to the first packet), and writes what
+    a run that built it writes."""
+    scn = load_scenario(name)
+    store = RenderStore(tmp_path / "cache")
+    kw = {"mode": "512x10", "max_frames": 4}
+    first = LidarRun(scn, store=store, render="stored", **kw)
+    first.render_into_store()
+    at = first.track.t0_ns - first.period_ns
+    first.standing(at)
+    list(first.rendered())
+    head = first.labels_header()
+    first.write_sidecars(tmp_path / "a")
+    run = LidarRun(scn, store=store, render="stored", **kw)
+    assert not run.renders and run.backend == first.scene.backend
+    run.standing(at)
+    list(run.rendered())
+    assert run.labels_header() == head
+    run.write_sidecars(tmp_path / "b")
+    assert not run.renders  # nothing above built the scene
+    for f in ("visibility.json", "ground_truth.json", "sensor_poses.csv"):
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
+    for r in (first, run):
+        assert r.stored is not None
+        r.stored.close()
