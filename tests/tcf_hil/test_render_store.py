@@ -32,6 +32,14 @@ def _short(faults: bool = False):  # type: ignore[no-untyped-def]
     return scenario_from_dict(d)
 
 
+def _tiny(name: str):  # type: ignore[no-untyped-def]
+    """``name`` with a track of 2 m (about 30 frames at 10 Hz): a whole render in seconds."""
+    d = scenario_to_dict(load_scenario(name))
+    d["track"]["end_m"] = [d["track"]["start_m"][0], d["track"]["start_m"][1] + 2.0,
+                           d["track"]["start_m"][2]]
+    return scenario_from_dict(d)
+
+
 def _files(d: Path) -> dict[str, bytes]:
     return {n: (d / n).read_bytes() for n in SIDECARS if (d / n).exists()}
 
@@ -380,7 +388,7 @@ def test_a_standing_cycle_kept_in_the_store_is_the_one_rendered(tmp_path: Path) 
     """The standing machine's frames (rendered at every run's start, seconds on a natural
     stand) are kept beside the track's complete render and read back bit for bit; a file
     that cannot be read is rendered again; without a complete render nothing is kept."""
-    scn = _short()
+    scn = _tiny("forest-ii")
     store = RenderStore(tmp_path / "cache")
     kw = {"mode": "512x10", "max_frames": 4}
     run = LidarRun(scn, store=store, render="stored", **kw)
@@ -414,7 +422,7 @@ def test_a_run_streamed_from_a_complete_render_builds_no_scene(tmp_path: Path,
     store sends, keeps its bookkeeping and writes its sidecars without building the scene
     (seconds for a natural stand: the command's time to the first packet), and writes what
     a run that built it writes."""
-    scn = load_scenario(name)
+    scn = _tiny(name)
     store = RenderStore(tmp_path / "cache")
     kw = {"mode": "512x10", "max_frames": 4}
     first = LidarRun(scn, store=store, render="stored", **kw)
