@@ -79,15 +79,20 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
     if parent_end is not None:
         parent_end.close()  # the fork's copy of the reading end: a dead reader breaks the pipe
     # The pacing loop and the program under test, not the frame factory, get the CPU when
-    # they want it (reading a stored render at the ordinary priority, the factory took CPU
-    # from the reference SIC at 2048x10 on 2 cores: frames lost at its receiver)
+    # they want it: a producer that casts runs at nice 19. One that only reads a complete
+    # render (the sensor's own cadence: 0.1-0.2 of a core) runs at the program's priority:
+    # at nice 19 beside the reference SIC and its stem worker on 2 cores, it got too little
+    # to keep the ring full (pine-thinning 1024x10: 15 frames handed over late, a stall of
+    # over 100 ms). (Before the sender had a process of its own, reading at the ordinary
+    # priority cost the SIC frames at 2048x10.)
+    casts = run.stored is None or not run.stored.complete
     with contextlib.suppress(OSError):
-        os.nice(19)
+        os.nice(19 if casts else 0)
     with contextlib.suppress(Exception):  # one core stays free for the pacing loop
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(1)
-    if run.renders or run.stored is None or not run.stored.complete:  # (frames cast here)
+    if casts:
         caster = run.scene.caster
         if caster.threads is not None:  # the same for a ray caster that splits casts itself
             caster.threads = max(1, caster.threads - 1)

@@ -495,7 +495,21 @@ class LidarRun:
             self.frames, self.keep_poses = frames, keep
         self._reset_bookkeeping()
         self.stored = self.store.open(key)
+        self._keep_beside()
         return self.track_frames - done
+
+    def _keep_beside(self) -> None:
+        """What a run streamed from this complete render would otherwise build the scene
+        for, kept beside it now that the scene is built: the standing machine at the whole
+        track's start and end, the labels header, the scene's facts (a run of a shorter
+        ``--duration`` renders its own end's cycle once, and keeps it)."""
+        if self.stored is None or not self.stored.complete:
+            return
+        period, t0 = self.period_ns, self.track.t0_ns
+        for at in (t0 - period, t0 + self.track_frames * period):
+            self.standing(at)
+        self.labels_header()
+        self._scene_facts()
 
     def _render_parallel(self, start: int, workers: int) -> Iterator[tuple[int, bytes]]:
         """Frames ``start`` .. of the track, packed (:func:`pack_frame`), in order, from
