@@ -1223,6 +1223,10 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
           if k not in ("mode", "profile", "udp_dest", "udp_port_lidar", "udp_port_imu")}
     segment = 0
     track_over = threading.Event()  # a re-initialisation after it does not drive it again
+
+    def driven(done: int, total: int) -> None:  # (a stream stopped early has not driven it)
+        if done >= total:
+            track_over.set()
     try:
         while not stop.is_set():
             reinit.clear()
@@ -1238,7 +1242,7 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
             r = stream_lidar(scn, sensor_ip=sensor_ip, speed=speed, stop=inner[0],
                              record=out, run=run, pcap_in_place=linger,
                              air=_standing_after(run, track_over.is_set()) if linger
-                             else None, on_track_end=track_over.set)
+                             else None, progress=driven)
             if on_result is not None:
                 on_result(r)
             if not reinit.is_set():
