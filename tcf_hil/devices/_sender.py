@@ -232,7 +232,7 @@ def _sender_main(proc: SenderProcess, conn: Any, ctl_rx: Any, parent_ends: list[
     for end in parent_ends:  # the fork's copies of the run's ends: a dead run breaks pipes
         end.close()
     with contextlib.suppress(OSError):  # ahead of the program under test where SCHED_FIFO
-        os.setpriority(os.PRIO_PROCESS, 0, -10)  # is not allowed (it is tried per frame)
+        os.setpriority(os.PRIO_PROCESS, 0, -10)  # is not allowed (PacedSender tries it)
     run, ring = proc.run, proc.ring
     if proc.route is not None:
         proc.route.listeners.clear()  # (the run's listener, copied by the fork)
