@@ -41,6 +41,9 @@ from tcf_hil._io import name_process
 __all__ = ["SenderProcess", "send_frames"]
 
 _JOIN_S = 10.0  # how long a finished sender may take to exit before it is killed
+# how often the run's process looks for a new clock to pass on: a step is placed six frames
+# ahead (25 ms at --speed 20), and a sender that learns of it late waits on the old clock
+_RELAY_POLL_S = 0.005
 
 
 _LATE_NS = 1_000_000  # a packet this late is late (the figure: late packets > 1 ms)
@@ -295,12 +298,18 @@ class SenderProcess:
         self._rx, tx = ctx.Pipe(duplex=False)
         ctl_rx, self._ctl = ctx.Pipe(duplex=False)
         self._sent_clock = self.clock0
-        if route is not None:
-            route.listeners.append(self._route_changed)
         self._child = ctx.Process(target=_sender_main, args=(
             self, tx, ctl_rx, [self._rx, self._ctl]), name="lidar-sender", daemon=True)
+        if route is not None:
+            route.listeners.append(self._route_changed)
         try:
             self._child.start()
+        except BaseException:
+            if route is not None:
+                route.listeners.remove(self._route_changed)
+            self._rx.close()
+            self._ctl.close()
+            raise
         finally:
             tx.close()
             ctl_rx.close()
@@ -335,8 +344,9 @@ class SenderProcess:
                 self.stop.value = 1
             self._watch_clock()
             try:
-                if not self._rx.poll(0.02):
-                    if not self._child.is_alive():
+                if not self._rx.poll(_RELAY_POLL_S):
+                    # (its end report may have come between the poll and its exit)
+                    if not self._child.is_alive() and not self._rx.poll(0):
                         return {"error": "the lidar sender died "
                                          f"(exit code {self._child.exitcode})"}
                     continue
@@ -371,7 +381,12 @@ class SenderProcess:
         if self.route is not None and self._route_changed in self.route.listeners:
             self.route.listeners.remove(self._route_changed)
         self.stop.value = 1
-        self._child.join(timeout=_JOIN_S)
+        deadline = time.monotonic() + _JOIN_S
+        while self._child.is_alive() and time.monotonic() < deadline:
+            with contextlib.suppress(EOFError, OSError):  # its report read and dropped (a
+                if self._rx.poll(0.05):  # relay that ended early: the sender must not
+                    self._rx.recv()  # block on a full pipe)
+            self._child.join(timeout=0.0)
         if self._child.is_alive():
             self._child.kill()
             self._child.join(timeout=5.0)

@@ -18,6 +18,7 @@ import signal
 import struct
 import threading
 import time
+import zipfile
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from multiprocessing import connection as mp_connection
@@ -787,7 +788,7 @@ class LidarRun:
                     z["stem_id2"][i] if "stem_id2" in z else None, z["positions"][i],
                     z["rotations"][i], z["packets"][i], self.meta.packet_format, names)
                     for i in range(len(z["frame_index"]))]
-        except (OSError, ValueError, KeyError, IndexError):
+        except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile):
             return None
 
     def _store_cycle(self, at_ns: int, cycle: list[FrameResult]) -> None:
