@@ -227,13 +227,12 @@ def test_a_reinit_during_a_recorded_stream_starts_a_new_recording(tmp_path: Path
     assert first["initialization_id"] != second["initialization_id"]
 
 
-def test_a_served_sensor_stands_and_sends_after_its_track_until_stopped() -> None:
-    """As a real sensor on a parked machine: after the track (three frames here) the sensor
-    goes on sending at its cadence, frame_id counting on, until it is stopped; the result
-    counts the track's frames only."""
+def _parked_sensor() -> tuple[int, list[socket.socket], Any, list[Any], Any]:
+    """A served Forest II sensor at 512x10 with a three-frame track that stays on after it
+    (serve_sensor in a thread, listening): its API port, lidar and IMU sockets, its stop
+    event, the list its results go to, and the thread."""
     import threading
 
-    from protocols.ouster import decode_lidar_packet, os0_64_metadata
     from tcf_hil.devices.lidar import serve_sensor
     from tcf_hil.scenario import load_scenario
 
@@ -247,9 +246,20 @@ def test_a_served_sensor_stands_and_sends_after_its_track_until_stopped() -> Non
         udp_port_lidar=udp[0].getsockname()[1], udp_port_imu=udp[1].getsockname()[1],
         on_result=results.append))
     worker.start()
+    assert ready.wait(60)
+    return port, udp, stop, results, worker
+
+
+def test_a_served_sensor_stands_and_sends_after_its_track_until_stopped() -> None:
+    """As a real sensor on a parked machine: after the track (three frames here) the sensor
+    goes on sending at its cadence, frame_id counting on, until it is stopped; the result
+    counts the track's frames only."""
+
+    from protocols.ouster import decode_lidar_packet, os0_64_metadata
+
+    _, udp, stop, results, worker = _parked_sensor()
     fmt = os0_64_metadata("512x10").packet_format
     try:
-        assert ready.wait(60)
         ids = [decode_lidar_packet(fmt, udp[0].recv(65536), check_crc=False).frame_id
                for _ in range(12 * 32)]  # twelve 512x10 frames of 32 packets: 3 of the track
         t0 = time.monotonic()
@@ -271,25 +281,12 @@ def test_a_reinit_after_the_track_keeps_the_machine_standing() -> None:
     """A client that re-initialises a parked sensor (ouster-ros does at start) gets the
     machine standing where the track left it, frame_id from 0 under the new init_id: the
     track is not driven again."""
-    import threading
 
     from protocols.ouster import decode_lidar_packet, os0_64_metadata
-    from tcf_hil.devices.lidar import serve_sensor
-    from tcf_hil.scenario import load_scenario
 
-    port, udp = _served_endpoints()
-    for u in udp:
-        u.settimeout(60.0)
-    stop, ready = threading.Event(), threading.Event()
-    results: list[Any] = []
-    worker = threading.Thread(target=serve_sensor, args=(load_scenario("forest-ii"),), kwargs=dict(
-        http_port=port, stop=stop, ready=ready, mode="512x10", max_frames=3,
-        udp_port_lidar=udp[0].getsockname()[1], udp_port_imu=udp[1].getsockname()[1],
-        on_result=results.append))
-    worker.start()
+    port, udp, stop, results, worker = _parked_sensor()
     fmt = os0_64_metadata("512x10").packet_format
     try:
-        assert ready.wait(60)
         for _ in range(6 * 32):  # past the track's three frames
             udp[0].recv(65536)
         req = urllib.request.Request(f"http://127.0.0.1:{port}/api/v1/sensor/config?reinit=true",
