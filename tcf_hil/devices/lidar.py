@@ -781,13 +781,15 @@ class LidarRun:
         if path is None or not path.exists():
             return None
         try:
-            with np.load(path) as z:
-                names = tuple(str(x) for x in z["field_names"])
-                return [FrameResult(
-                    int(z["frame_index"][i]), z["timestamps_ns"][i], z["stem_id"][i],
-                    z["stem_id2"][i] if "stem_id2" in z else None, z["positions"][i],
-                    z["rotations"][i], z["packets"][i], self.meta.packet_format, names)
-                    for i in range(len(z["frame_index"]))]
+            with np.load(path) as npz:  # each array read once (``npz[k]`` reads it anew)
+                z = {k: npz[k] for k in npz.files}
+            names = tuple(str(x) for x in z["field_names"])
+            two = z.get("stem_id2")
+            return [FrameResult(
+                int(z["frame_index"][i]), z["timestamps_ns"][i], z["stem_id"][i],
+                None if two is None else two[i], z["positions"][i],
+                z["rotations"][i], z["packets"][i], self.meta.packet_format, names)
+                for i in range(len(z["frame_index"]))]
         except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile):
             return None
 
