@@ -3,6 +3,7 @@ shown or freed."""
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from datetime import UTC, datetime
@@ -40,10 +41,16 @@ def _gb(n: int) -> str:
               help="Renderer processes at once, each taking blocks of 10 frames in turn "
                    "(the ray threads shared out among them) [default: one per CPU this "
                    "process may use]; a scenario with fault plans renders in order, in one.")
+@click.option("--executor", default="local", show_default=True,
+              help="local (renderer processes on this machine, --workers of them), or "
+                   "dask://HOST:PORT: blocks of 10 frames as tasks on a running Dask "
+                   "scheduler's workers (each builds the scene once; they need the same "
+                   "tcf-hil installed), written into this machine's store in order.")
 @fault_option
 @sensor_option
 def render_cmd(scenario_name: str, mode: str, profile: str, seed: int | None, backend: str,
-               workers: int | None, faults: tuple[str, ...], sensor: str | None) -> None:
+               workers: int | None, executor: str, faults: tuple[str, ...],
+               sensor: str | None) -> None:
     """Render SCENARIO's whole track into the render store, ahead of a run.
 
     \b
@@ -59,11 +66,21 @@ def render_cmd(scenario_name: str, mode: str, profile: str, seed: int | None, ba
     Example:
       tcf-hil render pine-thinning --mode 1024x10
       tcf-hil run pine-thinning --mode 1024x10 --sic "./my_sic"
+      tcf-hil render spruce-final-felling --executor dask://10.0.0.5:8786
     """
+    from tcf_hil.devices.dask_render import render_on_dask
     from tcf_hil.devices.lidar import LidarRun
+    from tcf_hil.experiments.sweep import parse_executor
     from tcf_hil.recording.store import RenderStore
     from tcf_hil.run import RUN_T0_NS
 
+    try:
+        kind, address = parse_executor(executor)
+    except ValueError:
+        kind, address = "?", None
+    if kind not in ("local", "dask"):
+        raise click.BadParameter(f"{executor!r}: expected local or dask://HOST:PORT",
+                                 param_hint="--executor")
     scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     announce_backend(backend)
     store = RenderStore()
@@ -78,7 +95,9 @@ def render_cmd(scenario_name: str, mode: str, profile: str, seed: int | None, ba
     t0 = time.perf_counter()
     with blame(scenario_name), Progress(f"render {scn.name} {mode}") as bar:
         made = run.render_into_store(progress=bar.counter,
-                                     workers=workers or len(os.sched_getaffinity(0)))
+                                     workers=workers or len(os.sched_getaffinity(0)),
+                                     remote=None if address is None else
+                                     functools.partial(render_on_dask, address=address))
     wall = time.perf_counter() - t0
     sim = made / run.meta.frequency_hz
     info = next(e for e in store.entries() if e["key"] == key)

@@ -163,15 +163,12 @@ def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any,
         if caster.threads is not None:
             caster.threads = max(1, caster.threads // workers)
         run.emu.threads = max(1, run.emu.threads // workers)
-        sensor = run.sensor_at(start)
         a = start + i * RENDER_BLOCK
         while a < run.track_frames:
-            sensor.skip_to(a)
-            for k in range(a, min(a + RENDER_BLOCK, run.track_frames)):
+            for k, packed in run.packed_frames(a, min(a + RENDER_BLOCK, run.track_frames)):
                 if os.getppid() != parent:
                     return
-                rf = run._compact(k, sensor.frame(k), sensor.meta.init_id, True)
-                conn.send_bytes(_FRAME_NO.pack(k) + pack_frame(rf, run.ports))
+                conn.send_bytes(_FRAME_NO.pack(k) + packed)
             a += workers * RENDER_BLOCK
         conn.send_bytes(_FRAME_NO.pack(-1))
     except BaseException as err:
@@ -446,7 +443,9 @@ class LidarRun:
         return self.meta.udp_port_lidar, self.meta.udp_port_imu
 
     def render_into_store(self, progress: Callable[[int, int], None] | None = None,
-                          workers: int = 1) -> int:
+                          workers: int = 1,
+                          remote: Callable[[LidarRun, int], Iterator[tuple[int, bytes]]]
+                          | None = None) -> int:
         """Every frame of the track rendered into the store (resumed after the last whole
         frame a render cut short kept), unless it is there already; then the run sends from
         it. Frames rendered now (0: all were stored). ``workers`` > 1 (``tcf-hil render``:
@@ -455,7 +454,9 @@ class LidarRun:
         the built scene), each taking blocks of :data:`RENDER_BLOCK` frames in turn and
         packing its frames itself, the ray threads shared out among them (Forest X at
         2048x10 on 2 cores: 1.6x real time in one, 2.5x in two; pine-thinning 0.9x and
-        1.1x); a run with fault plans renders in order, in one."""
+        1.1x); a run with fault plans renders in order, in one. ``remote(run, start)``: the
+        frames from ``start``, packed and in order, made elsewhere instead (Dask workers:
+        :func:`tcf_hil.devices.dask_render.render_on_dask`), stored here."""
         if self.store is None:
             raise ConfigError("render", self.render_mode, "'auto' or 'stored' (a store)")
         key = self.render_key
@@ -477,10 +478,16 @@ class LidarRun:
         self.keep_poses = False  # the store keeps the poses; this run's bookkeeping not
         try:
             self.writer = writer
-            if (workers > 1 and self.lidar_faults is None and self.udp_faults is None
-                    and (self.model is None or self.model.noise_sigma_m == 0)
-                    and not mp.current_process().daemon):
-                for k, packed in self._render_parallel(done, workers):
+            blocks: Iterator[tuple[int, bytes]] | None = None
+            if remote is not None:
+                if not self.parallel_render():
+                    raise ConfigError("executor", "a remote one", "local: a render with "
+                                      "fault plans makes every frame in order, in one process")
+                blocks = remote(self, done)
+            elif workers > 1 and self.parallel_render() and not mp.current_process().daemon:
+                blocks = self._render_parallel(done, workers)
+            if blocks is not None:
+                for k, packed in blocks:
                     writer.append_packed(k, packed)
                     if progress is not None:
                         progress(k + 1, self.track_frames)
@@ -577,6 +584,24 @@ class LidarRun:
                 proc.join(10)
             for c in conns:
                 c.close()
+
+    def packed_frames(self, a: int, b: int) -> Iterator[tuple[int, bytes]]:
+        """Frames ``a`` .. ``b`` - 1 of the track as the store keeps them (packed,
+        :func:`pack_frame`), made now without the ones before (no fault plan may run: a
+        frame's bytes then follow from its index alone): a block of a parallel render, here
+        or on a Dask worker (:mod:`tcf_hil.devices.dask_render`)."""
+        if self.lidar_faults is not None or self.udp_faults is not None:
+            raise ValueError("a render with fault plans makes every frame in order")
+        sensor = self.sensor_at(a)
+        for k in range(a, b):
+            rf = self._compact(k, sensor.frame(k), sensor.meta.init_id, True)
+            yield k, pack_frame(rf, self.ports)
+
+    def parallel_render(self) -> bool:
+        """Whether blocks of this run's frames may be rendered apart (by processes or Dask
+        workers): no fault plan and no noise drawn in frame order."""
+        return (self.lidar_faults is None and self.udp_faults is None
+                and (self.model is None or self.model.noise_sigma_m == 0))
 
     def _reset_bookkeeping(self) -> None:
         self.counts[:] = 0

@@ -5,7 +5,9 @@ size limit."""
 
 from __future__ import annotations
 
+import functools
 import os
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -156,6 +158,60 @@ def test_a_render_by_two_workers_is_the_render_in_order(tmp_path: Path) -> None:
     assert again.render_into_store(workers=2) == a.track_frames - 7
     assert (two.path(key) / "frames.bin").read_bytes() == ref
     assert again.stored is not None and again.stored.complete
+
+
+def test_a_render_by_dask_workers_is_the_render_in_order(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Blocks of frames rendered by a running Dask scheduler's worker processes (each builds
+    the scene from the render's recipe) are stored in order, byte for byte the render made
+    here; the CLI names a scheduler that does not answer."""
+    from dask.distributed import LocalCluster
+
+    from tcf_hil.cli import main
+    from tcf_hil.devices.dask_render import render_on_dask
+
+    d = scenario_to_dict(load_scenario("forest-ii"))
+    d["track"].update(end_m=[0.0, -21.0, 2.0], speed_m_s=2.0)  # 20 frames and more, 3 blocks
+    scn = scenario_from_dict(d)
+    here, there = RenderStore(tmp_path / "here"), RenderStore(tmp_path / "there")
+    a = LidarRun(scn, mode="512x10", store=here, render="stored")
+    a.render_into_store(workers=1)
+    b = LidarRun(scn, mode="512x10", store=there, render="stored")
+    seen: list[int] = []
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        remote = functools.partial(render_on_dask, address=cluster.scheduler_address)
+        assert b.render_into_store(progress=lambda k, n: seen.append(k), remote=remote) \
+            == a.track_frames
+    assert seen == list(range(1, a.track_frames + 1))
+    key = a.render_key
+    assert key is not None and key == b.render_key and b.stored is not None
+    for name in ("frames.bin", "frames.idx"):
+        assert (here.path(key) / name).read_bytes() == (there.path(key) / name).read_bytes()
+    monkeypatch.setenv("TCF_HIL_CACHE", str(tmp_path / "cli"))
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        code = main(["render", "forest-ii", "--mode", "512x10",
+                     "--executor", f"dask://127.0.0.1:{port}"])
+    said = capsys.readouterr()
+    assert code != 0 and f"127.0.0.1:{port}" in said.out + said.err
+    assert main(["render", "forest-ii", "--executor", "inline"]) == 2
+    said = capsys.readouterr()
+    assert "--executor" in said.out + said.err
+
+
+def test_a_worker_that_would_make_another_render_refuses_its_block() -> None:
+    """A worker builds the run from the recipe; where that makes another key (other code,
+    another backend), it says so instead of storing other bytes under the key."""
+    from tcf_hil.devices.dask_render import recipe, render_block
+
+    run = LidarRun(_tiny("forest-ii"), mode="512x10")
+    spec = recipe(run)
+    assert [k for k, _ in render_block(spec, 2, 4)] == [2, 3]
+    with pytest.raises(RuntimeError, match="differs from the client's"):
+        render_block({**spec, "key": "0" * 24}, 0, 1)
 
 
 def test_the_cache_keeps_under_its_limit_least_recently_used_first(tmp_path: Path) -> None:
