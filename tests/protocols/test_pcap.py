@@ -56,6 +56,8 @@ def runs_of_datagrams(draw: st.DrawFn) -> list[UdpDatagram]:
             t += draw(st.integers(0, 10**6))
             out.append(UdpDatagram(t, src, dst, *ports, draw(st.binary(min_size=size,
                                                                         max_size=size))))
+    if draw(st.booleans()):  # alike datagrams apart (a frame's lidar packets, IMU between)
+        out = draw(st.permutations(out))
     return out
 
 
