@@ -95,8 +95,10 @@ class PcapWriter:
 
     def records(self, d: UdpDatagram) -> bytes:
         """The pcap record(s) of one UDP datagram (several if it is fragmented)."""
-        self._ip_id = (self._ip_id + 1) & 0xFFFF
-        return self._records_of(d, self._ip_id)
+        ip_id = (self._ip_id + 1) & 0xFFFF
+        out = self._records_of(d, ip_id)  # (a datagram refused takes no id)
+        self._ip_id = ip_id
+        return out
 
     def _records_of(self, d: UdpDatagram, ip_id: int) -> bytes:
         if not 0 <= d.timestamp_ns < (1 << 32) * 1_000_000_000:
@@ -129,8 +131,6 @@ class PcapWriter:
         operations."""
         n = len(datagrams)
         ids = [(self._ip_id + 1 + i) & 0xFFFF for i in range(n)]
-        if n:
-            self._ip_id = ids[-1]
         groups: dict[tuple[Any, ...], list[int]] = {}
         for i, d in enumerate(datagrams):
             groups.setdefault((len(d.payload), d.src_ip, d.dst_ip, d.src_port, d.dst_port),
@@ -145,6 +145,8 @@ class PcapWriter:
                                        np.array([ids[i] for i in idx], np.int64))
             for r, i in enumerate(idx):
                 pieces[i] = rows[r].data
+        if n:  # (datagrams refused take no ids)
+            self._ip_id = ids[-1]
         return b"".join(pieces)
 
     def _alike_records(self, run: Sequence[UdpDatagram], ids: NDArray[np.int64]

@@ -45,7 +45,10 @@ def _gb(n: int) -> str:
               help="local (renderer processes on this machine, --workers of them), or "
                    "dask://HOST:PORT: blocks of 10 frames as tasks on a running Dask "
                    "scheduler's workers (each builds the scene once; they need the same "
-                   "tcf-hil installed), written into this machine's store in order.")
+                   "tcf-hil installed; several worker processes on one host: set "
+                   "TCF_HIL_RAY_THREADS to their share of its cores), written into this "
+                   "machine's store in order. A scenario with fault plans renders locally, "
+                   "in order.")
 @fault_option
 @sensor_option
 def render_cmd(scenario_name: str, mode: str, profile: str, seed: int | None, backend: str,
@@ -88,6 +91,13 @@ def render_cmd(scenario_name: str, mode: str, profile: str, seed: int | None, ba
         run = LidarRun(scn, mode=mode, profile=profile, seed=seed, backend=backend,
                        t0_ns=RUN_T0_NS, store=store, render="stored")
     key = run.render_key
+    if address is not None and not run.parallel_render():
+        raise click.BadParameter(f"{executor}: {scn.name} has fault plans (or noise drawn "
+                                 "frame by frame): it renders in order, here (--executor "
+                                 "local)", param_hint="--executor")
+    if address is not None and workers is not None:
+        raise click.BadParameter("--workers is for --executor local (a Dask cluster has its "
+                                 "own workers)", param_hint="--workers")
     if run.stored is not None:
         console.print(f"{scn.name} {mode} {profile}: already stored ({key}, "
                       f"{run.stored.frames} frames)")

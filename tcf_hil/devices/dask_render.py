@@ -15,7 +15,7 @@ follow from each frame's index) go out in blocks.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from typing import Any
 
 from emulators.lidar import ReturnModel
@@ -67,7 +67,8 @@ def render_block(spec: dict[str, Any], a: int, b: int) -> list[tuple[int, bytes]
         return list(run.packed_frames(a, b))
 
 
-def render_on_dask(run: Any, start: int, address: str) -> Iterator[tuple[int, bytes]]:
+def render_on_dask(run: Any, start: int, address: str
+                   ) -> Generator[tuple[int, bytes], None, None]:
     """Frames ``start`` .. of ``run``'s track, packed, in order, from the workers of the Dask
     scheduler at ``address`` (``tcp://HOST:PORT``): ``render_into_store``'s ``remote``."""
     from dask.distributed import Client, as_completed
@@ -81,28 +82,31 @@ def render_on_dask(run: Any, start: int, address: str) -> Iterator[tuple[int, by
         raise EndpointError(f"--executor: no Dask scheduler answers at {address} "
                             f"({err})") from None
     try:
-        workers = max(1, len(client.scheduler_info().get("workers", {})))
+        workers = max(1, len(client.scheduler_info(n_workers=-1).get("workers", {})))
+        window = BLOCKS_PER_WORKER * workers * RENDER_BLOCK  # frames past the next to store
         todo: Iterator[int] = iter(cuts)
         futures = as_completed()
-        for a in todo:
-            futures.add(client.submit(render_block, spec, a, min(a + RENDER_BLOCK, n),
-                                      pure=False, priority=-a))
-            if futures.count() >= BLOCKS_PER_WORKER * workers:
-                break
         pending: dict[int, bytes] = {}
         nxt = start
+        more = next(todo, None)
+
+        def top_up() -> None:  # blocks submitted only within the window after ``nxt``
+            nonlocal more
+            while more is not None and more < nxt + window:
+                futures.add(client.submit(render_block, spec, more,
+                                          min(more + RENDER_BLOCK, n), pure=False,
+                                          priority=-more))
+                more = next(todo, None)
+
+        top_up()
         for fut in futures:
             for k, packed in fut.result():
                 pending[k] = packed
             fut.release()
-            more = next(todo, None)
-            if more is not None:
-                futures.add(client.submit(render_block, spec, more,
-                                          min(more + RENDER_BLOCK, n), pure=False,
-                                          priority=-more))
             while nxt in pending:
                 yield nxt, pending.pop(nxt)
                 nxt += 1
+            top_up()
         if nxt < n:
             raise RuntimeError(f"the Dask render ended without frame {nxt}")
     finally:

@@ -444,7 +444,8 @@ class LidarRun:
 
     def render_into_store(self, progress: Callable[[int, int], None] | None = None,
                           workers: int = 1,
-                          remote: Callable[[LidarRun, int], Iterator[tuple[int, bytes]]]
+                          remote: Callable[[LidarRun, int],
+                                           Generator[tuple[int, bytes], None, None]]
                           | None = None) -> int:
         """Every frame of the track rendered into the store (resumed after the last whole
         frame a render cut short kept), unless it is there already; then the run sends from
@@ -478,7 +479,7 @@ class LidarRun:
         self.keep_poses = False  # the store keeps the poses; this run's bookkeeping not
         try:
             self.writer = writer
-            blocks: Iterator[tuple[int, bytes]] | None = None
+            blocks: Generator[tuple[int, bytes], None, None] | None = None
             if remote is not None:
                 if not self.parallel_render():
                     raise ConfigError("executor", "a remote one", "local: a render with "
@@ -487,10 +488,11 @@ class LidarRun:
             elif workers > 1 and self.parallel_render() and not mp.current_process().daemon:
                 blocks = self._render_parallel(done, workers)
             if blocks is not None:
-                for k, packed in blocks:
-                    writer.append_packed(k, packed)
-                    if progress is not None:
-                        progress(k + 1, self.track_frames)
+                with contextlib.closing(blocks):  # (its workers or client stop at once)
+                    for k, packed in blocks:
+                        writer.append_packed(k, packed)
+                        if progress is not None:
+                            progress(k + 1, self.track_frames)
             else:
                 for rf in self._render_live(start=done):
                     writer.append(rf, self.ports)
@@ -519,7 +521,8 @@ class LidarRun:
         self.labels_header()
         self._scene_facts()
 
-    def _render_parallel(self, start: int, workers: int) -> Iterator[tuple[int, bytes]]:
+    def _render_parallel(self, start: int, workers: int
+                         ) -> Generator[tuple[int, bytes], None, None]:
         """Frames ``start`` .. of the track, packed (:func:`pack_frame`), in order, from
         ``workers`` forked renderer processes (:func:`_render_part`: worker ``i`` renders
         blocks ``i``, ``i + workers``, ...). Frames that come ahead of their turn wait here,

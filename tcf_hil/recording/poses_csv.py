@@ -179,7 +179,7 @@ def pose_rows(t_ns: NDArray[np.int64], values: NDArray[np.float64],
     if n == 0:
         return ""
     kernel = compiled(_rows_kernel)
-    if kernel is not None and v.ndim == 2 and v.shape[1] == len(decimals) \
+    if kernel is not None and t.ndim == 1 and v.ndim == 2 and v.shape == (n, len(decimals)) \
             and max(decimals, default=0) <= 15:
         d = np.array(decimals, np.int64)
         room = n * (22 + int(np.sum(d + 20)))  # sign, 19 digits, comma, point, decimals

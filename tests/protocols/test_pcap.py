@@ -76,8 +76,12 @@ def test_records_of_many_are_the_records_of_each(ds: list[UdpDatagram], mtu: int
 
 def test_records_of_many_refuse_what_records_refuse() -> None:
     d = UdpDatagram(-1, "10.0.0.1", "10.0.0.2", 7502, 7502, bytes(100))
+    w = PcapWriter()
     with pytest.raises(ValueError, match="timestamp_ns -1"):
-        PcapWriter().records_many([d] * 5)
+        w.records_many([d] * 5)
+    with pytest.raises(ValueError, match="timestamp_ns -1"):
+        w.records(d)
+    assert w._ip_id == 0  # what is refused takes no IP id
     with pytest.raises(ValueError, match="exceeds 65507"):
         PcapWriter().records_many([UdpDatagram(0, "10.0.0.1", "10.0.0.2", 1, 1,
                                                bytes(65508))] * 5)

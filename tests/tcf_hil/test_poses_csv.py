@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
@@ -46,3 +47,8 @@ def test_a_value_it_does_not_cover_falls_back_to_python() -> None:
     v = np.array([[np.nan, np.inf, -np.inf, 1e300, 0.1, 0.2, 0.3]])
     assert pose_rows(np.array([5]), v, DECIMALS) == _python([5], v.tolist())
     assert pose_rows(np.zeros(0, np.int64), np.zeros((0, 7)), DECIMALS) == ""
+
+
+def test_times_and_values_of_other_lengths_are_refused() -> None:
+    with pytest.raises(ValueError):
+        pose_rows(np.arange(2, dtype=np.int64), np.zeros((3, 7)), DECIMALS)

@@ -200,6 +200,13 @@ def test_a_render_by_dask_workers_is_the_render_in_order(
     assert main(["render", "forest-ii", "--executor", "inline"]) == 2
     said = capsys.readouterr()
     assert "--executor" in said.out + said.err
+    # fault plans render in order, here; --workers is the local executor's
+    assert main(["render", "forest-ii", "--mode", "512x10", "--fault", "udp.loss=0.01",
+                 "--executor", f"dask://127.0.0.1:{port}"]) == 2
+    said = capsys.readouterr()
+    assert "fault plans" in said.out + said.err
+    assert main(["render", "forest-ii", "--mode", "512x10", "--workers", "2",
+                 "--executor", f"dask://127.0.0.1:{port}"]) == 2
 
 
 def test_a_worker_that_would_make_another_render_refuses_its_block() -> None:
