@@ -42,6 +42,13 @@ def _tiny(name: str):  # type: ignore[no-untyped-def]
     return scenario_from_dict(d)
 
 
+def _blocks():  # type: ignore[no-untyped-def]
+    """forest-ii driven 2 s and stopped: 20 frames and more, a few render blocks."""
+    d = scenario_to_dict(load_scenario("forest-ii"))
+    d["track"].update(end_m=[0.0, -21.0, 2.0], speed_m_s=2.0)
+    return scenario_from_dict(d)
+
+
 def _files(d: Path) -> dict[str, bytes]:
     return {n: (d / n).read_bytes() for n in SIDECARS if (d / n).exists()}
 
@@ -130,9 +137,7 @@ def test_a_render_cut_short_resumes_after_its_last_whole_frame(tmp_path: Path) -
 
 
 def test_a_render_by_two_workers_is_the_render_in_order(tmp_path: Path) -> None:
-    d = scenario_to_dict(load_scenario("forest-ii"))
-    d["track"].update(end_m=[0.0, -21.0, 2.0], speed_m_s=2.0)  # 2 s and a stop: 20 frames, 2 blocks
-    scn = scenario_from_dict(d)
+    scn = _blocks()  # 2 s and a stop: 20 frames and more, in blocks
     one, two = RenderStore(tmp_path / "one"), RenderStore(tmp_path / "two")
     a = LidarRun(scn, mode="512x10", store=one, render="stored")
     a.render_into_store(workers=1)
@@ -171,9 +176,7 @@ def test_a_render_by_dask_workers_is_the_render_in_order(
     from tcf_hil.cli import main
     from tcf_hil.devices.dask_render import render_on_dask
 
-    d = scenario_to_dict(load_scenario("forest-ii"))
-    d["track"].update(end_m=[0.0, -21.0, 2.0], speed_m_s=2.0)  # 20 frames and more, 3 blocks
-    scn = scenario_from_dict(d)
+    scn = _blocks()
     here, there = RenderStore(tmp_path / "here"), RenderStore(tmp_path / "there")
     a = LidarRun(scn, mode="512x10", store=here, render="stored")
     a.render_into_store(workers=1)
