@@ -9,6 +9,11 @@ Endpoints (FW 3.1 style, shared/research/ouster-wire.md §5.3):
   new init_id, as a real sensor does, and tells the emulator through ``on_reinit``
 * ``GET|PUT|DELETE /api/v1/user/data``; ``GET /api/v1/system/firmware``
 
+``sensor_info.status`` says :attr:`SensorApi.status` where it is set: INITIALIZING while the
+emulator powers on (ouster-sdk's client then asks again once a second until it reads RUNNING,
+as it does at a real sensor's boot; ouster-cli's own replay server says INITIALIZING until
+its UDP sockets are open, too).
+
 A sensor whose configuration is fixed (a scored run's: ``fixed=True``) takes a change of
 where its stream goes (``udp_dest``, ``udp_port_lidar``, ``udp_port_imu``: what ouster-sdk's
 ``SensorFrameSetSource(HOST)`` and ouster-ros set) and hands it to ``on_redirect`` without a
@@ -76,6 +81,9 @@ class SensorApi:
         self.fixed = fixed  # a run's sensor: a reinit may change only where the stream goes
         self.on_redirect = on_redirect
         self.requests: list[str] = []
+        #: what ``sensor_info.status`` says (None: the metadata's own, RUNNING): a sensor
+        #: that is not sending yet says INITIALIZING, and ouster-sdk's client waits for it
+        self.status: str | None = None
         api = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -179,6 +187,8 @@ class SensorApi:
               body: Callable[[], Any] | None, client_ip: str) -> tuple[int, Any]:
         with self._lock:
             doc = self.meta.to_json()
+            if self.status is not None:
+                doc["sensor_info"] = {**doc["sensor_info"], "status": self.status}
             if method == "GET" and path == "/api/v1/sensor/metadata":
                 return 200, doc
             if method == "GET" and path.startswith("/api/v1/sensor/metadata/"):

@@ -258,6 +258,7 @@ def _sender_main(proc: SenderProcess, conn: Any, ctl_rx: Any, parent_ends: list[
                          route=route,  # type: ignore[arg-type]
                          hold_realtime=True) as sender:
             st = sender.stats
+            up("on_air", None)  # the first frame is ready and the sockets are open
 
             def progress(track: int, _total: int) -> None:
                 up("track", (track, st.sent, st.refused, st.errors))
@@ -333,9 +334,11 @@ class SenderProcess:
     def relay(self, stop: threading.Event,
               on_fault: Callable[[dict[str, Any]], None] | None,
               progress: Callable[[int, int], None] | None,
-              on_track_end: Callable[[], None] | None) -> dict[str, Any]:
+              on_track_end: Callable[[], None] | None,
+              on_air: Callable[[], None] | None = None) -> dict[str, Any]:
         """Until the sender ends: its messages as callbacks (a re-initialisation's event
-        moves ``run.meta`` to the new identity first), the route and the clock sent to it,
+        moves ``run.meta`` to the new identity first; ``on_air``: the first frame is about
+        to go out), the route and the clock sent to it,
         ``stop`` passed on. Its end report (``error``, ``on_wire``, ``track``, ``stats``,
         ``window``, ``final``); the run's bookkeeping restored to exactly the frames sent."""
         run = self.run
@@ -363,6 +366,9 @@ class SenderProcess:
                 track, self.stats.sent, self.stats.refused, self.stats.errors = body
                 if progress is not None:
                     progress(track, run.frames)
+            elif kind == "on_air":
+                if on_air is not None:
+                    on_air()
             elif kind == "track_end":
                 if on_track_end is not None:
                     on_track_end()

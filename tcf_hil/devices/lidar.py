@@ -1097,6 +1097,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                  on_sender: Callable[[SendStats], None] | None = None,
                  air: tuple[OnAir, Any, Any] | None = None,
                  on_track_end: Callable[[], None] | None = None,
+                 on_air: Callable[[], None] | None = None,
                  **run_kw: Any) -> RecordResult:
     """Send the run live over UDP from ``sensor_ip`` to ``dest``, paced from the simulation
     clock (``speed`` 1.0 = real time, 0 = as fast as possible).
@@ -1125,7 +1126,8 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     sensor (:class:`OnAir` with its standing machines before and after the track,
     :meth:`LidarRun.standing`): it sends from power-on, the track when the plan says, and
     then stands until ``stop`` (``on_track_end`` is told when the first frame after the
-    track goes out); ``progress`` counts the track's frames.
+    track goes out); ``progress`` counts the track's frames. ``on_air`` is told when the
+    first frame is ready and about to go out (power-on over).
     """
     run_kw.setdefault("udp_dest", dest)
     run = run or LidarRun(scn, **run_kw)
@@ -1153,7 +1155,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
                 forked.set()
             if on_sender is not None:
                 on_sender(sender.stats)
-            report = sender.relay(stop, on_fault, progress, on_track_end)
+            report = sender.relay(stop, on_fault, progress, on_track_end, on_air)
         finally:
             if sender is not None:
                 sender.close()
@@ -1230,13 +1232,19 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
 
     def on_reinit(meta: SensorMetadata) -> None:
         current[0] = meta
+        api.status = "INITIALIZING"  # (as a real sensor until the new stream is out)
         reinit.set()
         inner[0].set()
 
     # compiled before the API answers: a client that connects at once gets packets at once
     warm_up_kernels(first, run_kw.get("model"), scn.sensor)
     warm_up_poses()
-    api = SensorApi(first, http_host, http_port, on_reinit=on_reinit).start()
+    api = SensorApi(first, http_host, http_port, on_reinit=on_reinit)
+    # INITIALIZING until the first frame goes out (a scene to build, a render to read or
+    # make): ouster-sdk's client polls sensor_info once a second until it says RUNNING,
+    # as it does at a real sensor's power-on, instead of giving up after 1 s without data
+    api.status = "INITIALIZING"
+    api.start()
     if on_api is not None:
         on_api(api)
     done = threading.Event()
@@ -1254,6 +1262,9 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
           if k not in ("mode", "profile", "udp_dest", "udp_port_lidar", "udp_port_imu")}
     segment = 0
     track_over = threading.Event()  # a re-initialisation after it does not drive it again
+
+    def running() -> None:
+        api.status = "RUNNING"
 
     def driven(done: int, total: int) -> None:  # (a stream stopped early has not driven it)
         if done >= total:
@@ -1273,7 +1284,7 @@ def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int 
             r = stream_lidar(scn, sensor_ip=sensor_ip, speed=speed, stop=inner[0],
                              record=out, run=run, pcap_in_place=linger,
                              air=_standing_after(run, track_over.is_set()) if linger
-                             else None, progress=driven)
+                             else None, progress=driven, on_air=running)
             if on_result is not None:
                 on_result(r)
             if not reinit.is_set():

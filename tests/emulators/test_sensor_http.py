@@ -54,6 +54,17 @@ def test_metadata_and_sections(api: SensorApi) -> None:
     assert _call(api, "GET", "/api/v1/sensor/cmd/get_config_param")[0] == 404
 
 
+def test_status_says_initializing_until_told_running(api: SensorApi) -> None:
+    assert _call(api, "GET", "/api/v1/sensor/metadata/sensor_info")[1]["status"] == "RUNNING"
+    api.status = "INITIALIZING"
+    for path in ("/api/v1/sensor/metadata/sensor_info", "/api/v1/sensor/metadata"):
+        doc = _call(api, "GET", path)[1]
+        assert doc.get("sensor_info", doc)["status"] == "INITIALIZING"
+    assert api.meta.to_json()["sensor_info"]["status"] == "RUNNING"  # served, not kept
+    api.status = "RUNNING"
+    assert _call(api, "GET", "/api/v1/sensor/metadata")[1] == api.meta.to_json()
+
+
 def test_config_staging_auto_dest_and_reinit(api: SensorApi) -> None:
     old = api.meta.init_id
     code, _ = _call(api, "POST", "/api/v1/sensor/config?reinit=False&persist=False",
@@ -105,7 +116,7 @@ def _port_80_free() -> str | None:
         return None if host.http_port == 80 else host.note
 
 
-def test_stock_ouster_cli_records_from_the_emulated_sensor(tmp_path: Path) -> None:
+def _ouster_cli() -> str:
     why = _port_80_free()
     if why:
         pytest.skip(why)
@@ -114,6 +125,37 @@ def test_stock_ouster_cli_records_from_the_emulated_sensor(tmp_path: Path) -> No
         or shutil.which("ouster-cli")
     if cli is None:
         pytest.skip("ouster-cli is not on PATH")
+    return cli
+
+
+def test_stock_ouster_cli_waits_while_the_sensor_initializes(tmp_path: Path) -> None:
+    # what makes a slow power-on (a scene to build, a render to make) safe for a client that
+    # connects at once: ouster-sdk asks sensor_info again until it says RUNNING
+    import threading
+
+    from tcf_hil.devices.endpoints import claim_sensor_host
+
+    cli = _ouster_cli()
+    with claim_sensor_host() as host, \
+            SensorApi(os0_64_metadata("512x10"), host.address, host.http_port) as api:
+        api.status = "INITIALIZING"
+        hold_s = 2.5
+        timer = threading.Timer(hold_s, lambda: setattr(api, "status", "RUNNING"))
+        t0 = time.monotonic()
+        timer.start()
+        try:  # (nothing streams: it gives up 1 s after RUNNING, exit 0 all the same)
+            subprocess.run([cli, "source", host.address, "slice", "0:1", "save",
+                            str(tmp_path / "p.pcap")], cwd=tmp_path, capture_output=True,
+                           text=True, timeout=60)
+        finally:
+            timer.cancel()
+        took = time.monotonic() - t0
+    polls = [r for r in api.requests if r == "GET /api/v1/sensor/metadata/sensor_info"]
+    assert took >= hold_s and len(polls) >= 3, (took, api.requests)
+
+
+def test_stock_ouster_cli_records_from_the_emulated_sensor(tmp_path: Path) -> None:
+    cli = _ouster_cli()
     cmd = [sys.executable, "-m", "tcf_hil.cli"]
     rec = tmp_path / "rec"
     # the default: the sensor is a loopback host of its own, its HTTP API on port 80 there
@@ -131,8 +173,12 @@ def test_stock_ouster_cli_records_from_the_emulated_sensor(tmp_path: Path) -> No
                 break
             except OSError:
                 time.sleep(0.2)
+        # at once, as a user would: the sensor says INITIALIZING until it streams (a slow
+        # power-on once made ouster-cli give up after 1 s without data, exit 0, no frames)
         out = tmp_path / "x.pcap"
-        proc = subprocess.run([cli, "source", host, "slice", "0:5", "save", str(out)],
+        # (-t: a loaded test machine may hold a frame back past ouster-cli's 1 s default)
+        proc = subprocess.run([cli, "source", "-t", "5", host, "slice", "0:5", "save",
+                               str(out)],
                               cwd=tmp_path, capture_output=True, text=True, timeout=90)
         assert proc.returncode == 0, proc.stdout + proc.stderr
     finally:
