@@ -94,28 +94,33 @@ def flag_edges(ss: Any, step: Any, reach: int, vw: int, every: bool, c0: int, c1
     Each pixel reads its neighbours and writes itself: columns apart run in parallel."""
     W, H = ss.shape
     for c in range(c0, c1):
+        col = ss[c]
         for h in range(H):
-            s = ss[c, h]
-            f = 0
-            for k in range(1, reach + 1):
-                if s != ss[_wrap(c + k, W), h] or s != ss[_wrap(c - k, W), h]:
-                    f = 1
-                    break
-            if h + 1 < H:
-                c2 = _wrap(c + step[h], W)
-                n = 0
-                for k in range(-vw, vw + 1):
-                    n += s != ss[_wrap(c2 + k, W), h + 1]
-                if n == 2 * vw + 1 or (every and n > 0):
-                    f |= 2
-            if h > 0:
-                cp = _wrap(c - step[h - 1], W)  # the previous beam's pixel whose nearest this is
-                n = 0
-                for k in range(-vw, vw + 1):
-                    n += s != ss[_wrap(cp + k, W), h - 1]
-                if n == 2 * vw + 1 or (every and n > 0):
-                    f |= 4
+            out[c, h] = 0
+        # bit 1 a column at a time, without branches (the compiler's vector loop); bits 2
+        # and 4 stop at the first neighbour that decides (most pixels: the first one)
+        for k in range(1, reach + 1):
+            right, left = ss[_wrap(c + k, W)], ss[_wrap(c - k, W)]
+            for h in range(H):
+                out[c, h] |= np.uint8((col[h] != right[h]) | (col[h] != left[h]))
+        for h in range(H):
+            s = col[h]
+            f = out[c, h]
+            if h + 1 < H and _beam_differs(ss, s, _wrap(c + step[h], W), h + 1, vw, every):
+                f |= 2
+            if h > 0 and _beam_differs(ss, s, _wrap(c - step[h - 1], W), h - 1, vw, every):
+                f |= 4  # (cp: the previous beam's pixel whose nearest this is)
             out[c, h] = f
+
+
+def beam_differs(ss: Any, s: int, c2: int, h2: int, vw: int, every: bool) -> bool:
+    """Whether ``s`` differs from all of beam ``h2``'s pixels within ``vw`` columns of
+    ``c2`` (``every``: from any of them)."""
+    W = ss.shape[0]
+    for k in range(-vw, vw + 1):
+        if (s != ss[_wrap(c2 + k, W), h2]) == every:
+            return every
+    return not every
 
 
 def mark_lattice(idx: Any, fl: Any, row_j: Any, grid_j: Any, grid_i: Any, S: int, V: int,
@@ -363,3 +368,4 @@ _surface = compiled(surface)
 if _surface is not None:
     surface = _surface
 _wrap = compiled(wrap) or wrap
+_beam_differs = compiled(beam_differs) or beam_differs

@@ -434,24 +434,29 @@ class Trajectory:
     def sensor_kinematics(self, t_ns: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Sensor velocity and acceleration (n, 3) in the world, angular velocity (n, 3) in the
         sensor frame (rad/s), by central differences over ``DIFF_NS``."""
-        t = np.atleast_1d(np.asarray(t_ns, dtype=np.int64))
+        vel, acc, w, _ = self._kinematics(np.atleast_1d(np.asarray(t_ns, dtype=np.int64)))
+        return vel, acc, w
+
+    def _kinematics(self, t: IntArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """:meth:`sensor_kinematics` and the rotation at ``t``, from one :meth:`sensor_pose`
+        of the three times each needs (element by element: the same bits as three calls)."""
         h = DIFF_NS
-        p0, R0 = self.sensor_pose(t - h)
-        p1, _ = self.sensor_pose(t)
-        p2, R2 = self.sensor_pose(t + h)
+        n = len(t)
+        p, R = self.sensor_pose(np.concatenate([t - h, t, t + h]))
+        p0, p1, p2 = p[:n], p[n:2 * n], p[2 * n:]
+        R0, R1, R2 = R[:n], R[n:2 * n], R[2 * n:]
         hs = h / 1e9
         vel = (p2 - p0) / (2 * hs)
         acc = (p2 - 2 * p1 + p0) / (hs * hs)
         Rrel = np.swapaxes(R0, 1, 2) @ R2
         w = np.stack([Rrel[:, 2, 1] - Rrel[:, 1, 2], Rrel[:, 0, 2] - Rrel[:, 2, 0],
                       Rrel[:, 1, 0] - Rrel[:, 0, 1]], axis=1) / 2.0
-        return vel, acc, w / (2 * hs)
+        return vel, acc, w / (2 * hs), R1
 
     def imu(self, t_ns: IntArray) -> tuple[FloatArray, FloatArray]:
         """What an IMU fixed to the sensor frame reads: specific force in g (gravity included:
         a level sensor at rest reads (0, 0, 1)) and angular rate in deg/s, (n, 3) each."""
-        _, R = self.sensor_pose(t_ns)
-        _, acc, w = self.sensor_kinematics(t_ns)
+        _, acc, w, R = self._kinematics(np.atleast_1d(np.asarray(t_ns, dtype=np.int64)))
         f = acc + np.array([0.0, 0.0, GRAVITY_M_S2])
         accel = np.einsum("nji,nj->ni", R, f) / GRAVITY_M_S2
         return accel, np.degrees(w)
