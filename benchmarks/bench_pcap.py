@@ -1,15 +1,18 @@
 """``tcf-hil lidar pcap`` end to end against a plain embreex cast of the very same rays.
 
 Run: ``python benchmarks/bench_pcap.py [--scene forest-x] [--mode 2048x10]
-[--sensors default,ideal] [--frames 30] [--repeat 3] [--geometry mesh] [--json OUT]``
+[--sensors default,ideal] [--frames 60] [--workers N] [--repeat 3] [--geometry mesh]
+[--json OUT]``
 
 Per sensor, ``--repeat`` times in alternation (side by side, so the machine's other load
 falls on both alike):
 
 - **pcap**: :func:`tcf_hil.devices.lidar.record_pcap`, the function ``tcf-hil lidar pcap``
-  calls, for ``--frames`` frames into a temporary directory; the time of each frame from
-  the progress callback (ray cast, the sensor's physics, packets, pcap records, labels,
-  the poses of ``sensor_poses.csv``), after the first frame (warm-up);
+  calls, for ``--frames`` frames into a temporary directory, rendered by one process per
+  CPU (its default: blocks of 10 frames each; ``--workers 1``: one process, its ray
+  threads over the CPUs); the time a frame from the progress callback (ray cast, the
+  sensor's physics, packets, pcap records, labels, the poses of ``sensor_poses.csv``): the
+  span from the first frame (warm-up) to the last over the frames between;
 - **embreex**: the very rays of those frames (``Os0Emulator.rays``: the centre rays, as
   ``--sensor ideal`` casts them) cast by embreex's own ``run`` on the same meshes.
 
@@ -24,7 +27,6 @@ scenario's own geometry (Forest X's round curves) against embreex on the meshes.
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import statistics
 import tempfile
@@ -49,14 +51,17 @@ def _scenario(scene: str, sensor: str | None, geometry: str) -> Any:
     return scn
 
 
-def _pcap_frames(scn: Any, mode: str, frames: int) -> tuple[list[float], float]:
+def _pcap_frames(scn: Any, mode: str, frames: int, workers: int | None
+                 ) -> tuple[list[float], float]:
     stamps: list[float] = []
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as out:
-        record_pcap(scn, out, mode=mode, max_frames=frames,
+        record_pcap(scn, out, mode=mode, max_frames=frames, workers=workers,
                     progress=lambda k, n: stamps.append(time.perf_counter()))
     wall = time.perf_counter() - t0
-    return [b - a for a, b in itertools.pairwise(stamps[1:])], wall  # after the first
+    # frames come in blocks from several renderer processes: the time per frame is the
+    # span from the first frame to the last over the frames between (the first: warm-up)
+    return [(stamps[-1] - stamps[0]) / (len(stamps) - 1)], wall
 
 
 def _embreex_frames(run: LidarRun, caster: EmbreeCaster, frames: int) -> list[float]:
@@ -77,7 +82,10 @@ def main() -> None:
     ap.add_argument("--mode", default="2048x10")
     ap.add_argument("--sensors", default="default,ideal",
                     help="comma-separated: default (the scenario's own sensor) or a preset")
-    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--frames", type=int, default=60,
+                    help="frames a pcap (60: three blocks of 10 for each of two renderers)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="renderer processes (default: record_pcap's, one per CPU)")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--geometry", choices=["mesh", "as-is"], default="mesh")
     ap.add_argument("--json", default=None)
@@ -97,7 +105,7 @@ def main() -> None:
         walls: list[float] = []
         ratios: list[float] = []
         for _ in range(a.repeat):
-            p, wall = _pcap_frames(scn, a.mode, a.frames)
+            p, wall = _pcap_frames(scn, a.mode, a.frames, a.workers)
             c = _embreex_frames(run, caster, a.frames)
             pcap += p
             cast += c
@@ -107,7 +115,8 @@ def main() -> None:
                "pcap_ms": statistics.median(pcap) * 1e3,
                "embreex_ms": statistics.median(cast) * 1e3,
                "ratio": statistics.median(ratios), "ratios": ratios,
-               "wall_s": statistics.median(walls), "frames": a.frames, "repeat": a.repeat}
+               "wall_s": statistics.median(walls), "frames": a.frames, "repeat": a.repeat,
+               "workers": a.workers}
         rows.append(row)
         print(f"{a.scene:12} {a.mode:8} {name:12} {row['pcap_ms']:8.1f} "
               f"{row['embreex_ms']:10.1f} {row['ratio']:6.2f} {row['wall_s']:7.1f}",

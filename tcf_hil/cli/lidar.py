@@ -53,11 +53,16 @@ def _sensor_options(f: Callable[..., Any]) -> Callable[..., Any]:
               help="IPv4 MTU of the recorded link (larger packets are fragmented).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output directory.")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Renderer processes, each taking blocks of 10 frames in turn (the same "
+                   "bytes as one) [default: one per CPU]. One renders in order, its ray "
+                   "threads over the CPUs; so does a run with fault plans or --noise.")
 @fault_option
 @sensor_option
 def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, backend: str,
                noise: float | None, max_range: float | None, frames: int | None, mtu: int,
-               out: Path, faults: tuple[str, ...], sensor: str | None) -> None:
+               out: Path, workers: int | None, faults: tuple[str, ...], sensor: str | None
+               ) -> None:
     """Drive the sensor along the scenario's track, as fast as the machine allows.
 
     Writes lidar.pcap (lidar UDP to 7502, LEGACY IMU to 7503 at 100 Hz, from 127.0.0.1),
@@ -81,7 +86,8 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
                             max_range_m=50.0 if max_range is None else max_range)
     with blame(scenario_name), Progress(f"{scn.name} {mode} {profile}") as bar:
         r = record_pcap(scn, out, mode=mode, profile=profile, seed=seed, backend=backend,
-                        model=model, max_frames=frames, mtu=mtu, progress=bar.counter)
+                        model=model, max_frames=frames, mtu=mtu, progress=bar.counter,
+                        workers=workers)
     console.print(f"{scn.name}: {r.frames} frames, {r.packets} lidar packets, {r.returns} "
                   f"returns, {r.stems_seen} stems seen ({r.backend}); wrote {out}/")
 

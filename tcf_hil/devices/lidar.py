@@ -147,11 +147,12 @@ _FRAME_NO = struct.Struct("<q")  # before each packed frame a worker sends (-1 i
 
 
 def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any,
-                 readers: list[Any]) -> None:
-    """Renderer ``i`` of ``workers`` of :meth:`LidarRun.render_into_store`: blocks ``i``,
-    ``i + workers``, ... of :data:`RENDER_BLOCK` frames from ``start``, each frame packed
-    and sent, then its end mark. No fault plan runs here (a frame's bytes follow from its
-    index); the ray threads are shared out among the workers."""
+                 readers: list[Any], end: int, compress: bool = True) -> None:
+    """Renderer ``i`` of ``workers`` of :meth:`LidarRun._render_parallel`: blocks ``i``,
+    ``i + workers``, ... of :data:`RENDER_BLOCK` frames from ``start`` to ``end``, each frame
+    packed (``compress``; else its record as is) and sent, then its end mark. No fault plan
+    runs here (a frame's bytes follow from its index); the ray threads are shared out among
+    the workers."""
     name_process(f"tcf-render-{i}")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when it stops
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
@@ -164,8 +165,8 @@ def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any,
             caster.threads = max(1, caster.threads // workers)
         run.emu.threads = max(1, run.emu.threads // workers)
         a = start + i * RENDER_BLOCK
-        while a < run.track_frames:
-            for k, packed in run.packed_frames(a, min(a + RENDER_BLOCK, run.track_frames)):
+        while a < end:
+            for k, packed in run.packed_frames(a, min(a + RENDER_BLOCK, end), compress):
                 if os.getppid() != parent:
                     return
                 conn.send_bytes(_FRAME_NO.pack(k) + packed)
@@ -521,15 +522,18 @@ class LidarRun:
         self.labels_header()
         self._scene_facts()
 
-    def _render_parallel(self, start: int, workers: int
-                         ) -> Generator[tuple[int, bytes], None, None]:
-        """Frames ``start`` .. of the track, packed (:func:`pack_frame`), in order, from
+    def _render_parallel(self, start: int, workers: int, end: int | None = None,
+                         compress: bool = True) -> Generator[tuple[int, bytes], None, None]:
+        """Frames ``start`` .. ``end`` (default: the track's last) of the track, packed
+        (:func:`pack_frame`; without ``compress``, their records as
+        :meth:`RenderedFrame.encode` makes them), in order, from
         ``workers`` forked renderer processes (:func:`_render_part`: worker ``i`` renders
         blocks ``i``, ``i + workers``, ...). Frames that come ahead of their turn wait here,
         at most :data:`RENDER_AHEAD_BLOCKS` blocks of them; then only the worker whose turn
         it is is read (the others wait on their pipes). A worker that dies or falls silent
         for :data:`RENDER_SILENT_S` fails the render."""
         ctx = mp.get_context("fork")
+        end = self.track_frames if end is None else end
         self.emu.warm_up()  # the scene and the kernels made once, here: the workers share them
         procs: list[Any] = []
         conns: list[Any] = []
@@ -537,7 +541,8 @@ class LidarRun:
             for i in range(workers):
                 r, w = ctx.Pipe(duplex=False)
                 proc = ctx.Process(target=_render_part, name=f"lidar-render-{i}", daemon=True,
-                                   args=(self, start, i, workers, w, [*conns, r]))
+                                   args=(self, start, i, workers, w, [*conns, r], end,
+                                         compress))
                 proc.start()
                 w.close()
                 procs.append(proc)
@@ -545,7 +550,7 @@ class LidarRun:
             pending: dict[int, bytes] = {}
             ended: set[int] = set()
             nxt, last = start, time.monotonic()
-            while nxt < self.track_frames:
+            while nxt < end:
                 if nxt in pending:
                     yield nxt, pending.pop(nxt)
                     nxt += 1
@@ -588,17 +593,19 @@ class LidarRun:
             for c in conns:
                 c.close()
 
-    def packed_frames(self, a: int, b: int) -> Iterator[tuple[int, bytes]]:
+    def packed_frames(self, a: int, b: int, compress: bool = True
+                      ) -> Iterator[tuple[int, bytes]]:
         """Frames ``a`` .. ``b`` - 1 of the track as the store keeps them (packed,
-        :func:`pack_frame`), made now without the ones before (no fault plan may run: a
-        frame's bytes then follow from its index alone): a block of a parallel render, here
-        or on a Dask worker (:mod:`tcf_hil.devices.dask_render`)."""
+        :func:`pack_frame`; without ``compress``, their records as
+        :meth:`RenderedFrame.encode` makes them), made now without the ones before (no fault
+        plan may run: a frame's bytes then follow from its index alone): a block of a
+        parallel render, here or on a Dask worker (:mod:`tcf_hil.devices.dask_render`)."""
         if self.lidar_faults is not None or self.udp_faults is not None:
             raise ValueError("a render with fault plans makes every frame in order")
         sensor = self.sensor_at(a)
         for k in range(a, b):
             rf = self._compact(k, sensor.frame(k), sensor.meta.init_id, True)
-            yield k, pack_frame(rf, self.ports)
+            yield k, pack_frame(rf, self.ports) if compress else rf.encode(self.ports)
 
     def parallel_render(self) -> bool:
         """Whether blocks of this run's frames may be rendered apart (by processes or Dask
@@ -613,11 +620,15 @@ class LidarRun:
         self._pw = csv.writer(self._poses, lineterminator="\n")
         self._pw.writerow(["time_ns", "x", "y", "z", "qw", "qx", "qy", "qz"])
 
-    def rendered(self) -> Iterator[RenderedFrame]:
+    def rendered(self, workers: int = 1) -> Iterator[RenderedFrame]:
         """Each frame in the compact form the render store keeps, from the store where this
         run sends a stored render, else rendered now; the bookkeeping (returns per stem,
         packets, poses, fault events) follows each as it is yielded, the same either way.
-        A ``stored`` run whose render is missing renders it into the store first."""
+        A ``stored`` run whose render is missing renders it into the store first.
+        ``workers`` > 1: a live render of more than a block of frames that keeps none in the
+        store is made by that many forked processes at once (:meth:`_render_parallel`, the
+        same bytes), where :meth:`parallel_render` allows it and this is no daemonic
+        process (which may not fork children)."""
         if self.stored is None and self.render_mode == "stored":
             self.render_into_store()
         if self.stored is not None:
@@ -638,6 +649,10 @@ class LidarRun:
                 writer.close()
                 self.store.remove(key)
                 writer = self.store.writer(key, doc, self.track_frames, wait=False)
+        if writer is None and workers > 1 and self.frames > RENDER_BLOCK \
+                and self.parallel_render() and not mp.current_process().daemon:
+            yield from self._rendered_parallel(workers)
+            return
         try:
             self.writer = writer
             for rf in self._render_live():
@@ -651,6 +666,16 @@ class LidarRun:
             self.writer = None
             if writer is not None:
                 writer.close()
+
+    def _rendered_parallel(self, workers: int) -> Iterator[RenderedFrame]:
+        """:meth:`rendered` by ``workers`` processes: their records read back in order."""
+        blocks = self._render_parallel(0, workers, self.frames, compress=False)
+        with contextlib.closing(blocks):  # (its workers stop at once)
+            for k, record in blocks:
+                rf, _ = RenderedFrame.decode(record, 0, f"render worker's frame {k}",
+                                             self.ports)
+                self._take(rf)
+                yield rf
 
     def _wait_for(self, k: int) -> bool:
         """Until the render being written holds frame ``k``: True, or False where
@@ -1049,12 +1074,14 @@ class LidarRun:
 def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
                 sensor_ip: str = "127.0.0.1",
                 progress: Callable[[int, int], None] | None = None,
-                **run_kw: Any) -> RecordResult:
+                workers: int | None = None, **run_kw: Any) -> RecordResult:
     """Drive the sensor along the scenario's track and write ``out_dir``: ``lidar.pcap``
     (lidar to 7502, LEGACY IMU at 100 Hz to 7503, fragmented at ``mtu``), ``metadata.json``,
     ``ground_truth.json`` (with ``returns`` per stem), ``visibility.json`` and
     ``sensor_poses.csv`` (time_ns, x, y, z, qw, qx, qy, qz: the sensor frame in the world at
-    every column time stamp). Keyword arguments go to :class:`LidarRun`."""
+    every column time stamp). ``workers``: renderer processes (default: one per CPU this
+    process may use; :meth:`LidarRun.rendered`). Keyword arguments go to
+    :class:`LidarRun`."""
     out = Path(out_dir)
     ensure_dir(out)
     run = LidarRun(scn, **run_kw)
@@ -1067,7 +1094,8 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
                 atomic_path(out / LABELS) as ltmp, open(ltmp, "wb") as lh:
             fh.write(writer.header())
             lh.write(run.labels_header())
-            for k, rf in enumerate(run.rendered()):
+            cpus = len(os.sched_getaffinity(0)) if workers is None else workers
+            for k, rf in enumerate(run.rendered(cpus)):
                 fh.write(pcap_records(writer, rf.datagrams, sensor_ip, dest))
                 lh.write(rf.labels)
                 if flog is not None:

@@ -165,6 +165,34 @@ def test_a_render_by_two_workers_is_the_render_in_order(tmp_path: Path) -> None:
     assert again.stored is not None and again.stored.complete
 
 
+def test_a_pcap_by_two_renderers_is_the_pcap_in_order(tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """``tcf-hil lidar pcap``'s default on a machine of several CPUs: blocks of frames made
+    by renderer processes at once, written in order: every file the bytes one process
+    writes (a stop mid-block included)."""
+    forked: list[int] = []
+    parallel = LidarRun._render_parallel
+
+    def spy(self, *a, **kw):  # type: ignore[no-untyped-def]
+        forked.append(a[1])  # the workers, and then the real thing
+        return parallel(self, *a, **kw)
+
+    monkeypatch.setattr(LidarRun, "_render_parallel", spy)
+    scn = _blocks()
+    kw = {"mode": "512x10", "max_frames": 15}  # a block and a half
+    seen: list[int] = []
+    one = record_pcap(scn, tmp_path / "one", workers=1, **kw)
+    two = record_pcap(scn, tmp_path / "two", workers=2, progress=lambda k, n: seen.append(k),
+                      **kw)
+    assert seen == list(range(1, 16)) and one.frames == 15 and forked == [2]
+    a, b = _files(tmp_path / "one"), _files(tmp_path / "two")
+    assert a.keys() == b.keys() == set(SIDECARS)
+    for name in a:
+        assert a[name] == b[name], name
+    assert (one.frames, one.packets, one.returns, one.stems_seen) == \
+        (two.frames, two.packets, two.returns, two.stems_seen)
+
+
 def test_a_render_by_dask_workers_is_the_render_in_order(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
