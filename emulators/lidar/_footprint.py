@@ -123,6 +123,52 @@ def beam_differs(ss: Any, s: int, c2: int, h2: int, vw: int, every: bool) -> boo
     return not every
 
 
+def probe_entries(fv: Any, H: int, S: int, V: int, down: int, ent: Any, who: Any,
+                  pv: Any) -> tuple[int, int]:
+    """The probes of the pixels of ``fv`` (flat flags) with bit 2 or 4, in lattice order:
+    ``pv[:m]`` those pixels in order; ``ent[:n]`` the lattice index of each probe (the
+    footprint's outer row on the edge's side: ``down`` rows towards beam h + 1 for bit 2,
+    away for bit 4; the lower index first), ``who[:n]`` its pixel's place in ``pv``.
+    Returns (n, m)."""
+    NR = 2 * V + 1
+    n = 0
+    m = 0
+    step = abs(down)
+    for i in range(fv.shape[0]):
+        f = fv[i]
+        if f & 6:
+            base = ((i // H) * S * H + i % H) * NR + V
+            pv[m] = i
+            first, then = (f & 4, f & 2) if down > 0 else (f & 2, f & 4)
+            if first:
+                ent[n] = base - step
+                who[n] = m
+                n += 1
+            if then:
+                ent[n] = base + step
+                who[n] = m
+                n += 1
+            m += 1
+    return n, m
+
+
+def probe_verdicts(fv: Any, pv: Any, who: Any, ss: Any, ts: Any, ps: Any, stem_of_prim: Any,
+                   surf: bool) -> None:
+    """Each probed pixel ``pv`` (flat flags ``fv``) flagged 3 (the grid) where one of its
+    probes (``who``: its pixel's place in ``pv``; ``ts``, ``ps``: distance and primitive)
+    sees another object than its centre ray (``ss``), else left with bit 1 only."""
+    differs = np.zeros(pv.shape[0], np.bool_)
+    for n in range(who.shape[0]):
+        p = ps[n]
+        sid = stem_of_prim[p] if surf else p  # -1 (and a curve's -2 - j) from the end
+        if not math.isfinite(ts[n]):
+            sid = -1
+        if sid != ss[pv[who[n]]]:
+            differs[who[n]] = True
+    for m in range(pv.shape[0]):
+        fv[pv[m]] = 3 if differs[m] else fv[pv[m]] & 1
+
+
 def mark_lattice(idx: Any, fl: Any, row_j: Any, grid_j: Any, grid_i: Any, S: int, V: int,
                  W: int, H: int, j0: int, j1: int, need: Any) -> None:
     """``need`` (flat lattice, zeroed) set where the flagged pixels ``idx[j0:j1]`` sample a

@@ -492,6 +492,18 @@ class Physics:
         turn, down = self._turns[0], self._turns[1] * g.rows  # down: the row to beam h + 1
         NR = 2 * g.rows + 1
         fv = flags.reshape(-1)
+        if f.k is not None:  # the same, compiled
+            ent_p, who = np.empty(2 * len(fv), np.int64), np.empty(2 * len(fv), np.int64)
+            pv = np.empty(len(fv), np.int64)
+            n, m = f.k.probe_entries(fv, H, g.sub, g.rows, down, ent_p, who, pv)
+            if not m:
+                return
+            ent_p, who, pv = ent_p[:n], who[:n], pv[:m]
+            hits = self._lattice_cast(f.o, f.d, ent_p, W, H, turn, f.cast, f.k, f.run)
+            lat.append((ent_p, *hits))
+            f.k.probe_verdicts(fv, pv, who, ss, hits[2], hits[3], f.sop, f.surf)
+            self.last_probed = len(ent_p)
+            return
         pv = np.flatnonzero((fv & 6) != 0)
         if not len(pv):
             return
@@ -879,12 +891,14 @@ class _Kernels:
     def __init__(self, mod: Any) -> None:
         from emulators.jit import compiled
 
-        for name in ("centre_echoes", "flag_edges", "mark_lattice", "lattice_rays",
-                     "footprint_echoes", "detect"):
+        for name in ("centre_echoes", "flag_edges", "probe_entries", "probe_verdicts",
+                     "mark_lattice", "lattice_rays", "footprint_echoes", "detect"):
             setattr(self, name, compiled(getattr(mod, name)))
 
     centre_echoes: Any
     flag_edges: Any
+    probe_entries: Any
+    probe_verdicts: Any
     mark_lattice: Any
     lattice_rays: Any
     footprint_echoes: Any
