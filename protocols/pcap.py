@@ -46,7 +46,7 @@ class UdpDatagram:
     dst_ip: str
     src_port: int
     dst_port: int
-    payload: bytes | memoryview  # (a view of a frame's packets is not copied first)
+    payload: bytes
 
 
 def _ip_bytes(ip: str) -> bytes:

@@ -32,7 +32,7 @@ def pcap_records(writer: PcapWriter, dgs: list[Datagram], sensor_ip: str, dest: 
                   ) -> bytes:
     """One frame's datagrams as pcap records, each at its simulation time."""
     return writer.records_many([UdpDatagram(d.t_ns, sensor_ip, dest, d.port, d.port,
-                                            d.payload) for d in dgs])
+                                            bytes(d.payload)) for d in dgs])
 
 
 SLOTS = 4  # frames produced ahead of the pacing loop
