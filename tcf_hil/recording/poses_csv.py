@@ -92,6 +92,25 @@ def _int_fields(t: NDArray[np.int64]) -> NDArray[np.uint8] | None:
     return np.concatenate([sign, _digits(np.abs(t), 1)], axis=-1)
 
 
+def put_whole(out: Any, p: int, q: Any, digits: Any) -> int:
+    """The decimal digits of ``q`` (>= 0) into ``out`` from ``p`` (``digits``: scratch of
+    20 or more); where they end."""
+    m = 0
+    while True:
+        digits[m] = 48 + q % 10
+        q //= 10
+        m += 1
+        if q == 0:
+            break
+    for e in range(m - 1, -1, -1):
+        out[p] = digits[e]
+        p += 1
+    return p
+
+
+_put_whole = put_whole  # compiled before the kernel that calls it (:func:`pose_rows`)
+
+
 def _rows_kernel(t: Any, v: Any, scale: Any, limit: Any, unit: Any, decs: Any,
                  out: Any) -> int:
     """The rows of :func:`pose_rows` into ``out`` (bytes enough), compiled: the very
@@ -111,16 +130,7 @@ def _rows_kernel(t: Any, v: Any, scale: Any, limit: Any, unit: Any, decs: Any,
             out[p] = 45  # "-"
             p += 1
             q = -q
-        m = 0
-        while True:
-            digits[m] = 48 + q % 10
-            q //= 10
-            m += 1
-            if q == 0:
-                break
-        for j in range(m - 1, -1, -1):
-            out[p] = digits[j]
-            p += 1
+        p = _put_whole(out, p, q, digits)
         for j in range(k):
             x = v[i, j]
             a = abs(x)
@@ -145,16 +155,7 @@ def _rows_kernel(t: Any, v: Any, scale: Any, limit: Any, unit: Any, decs: Any,
                 out[p] = 45
                 p += 1
             whole, frac = r // unit[j], r % unit[j]
-            m = 0
-            while True:
-                digits[m] = 48 + whole % 10
-                whole //= 10
-                m += 1
-                if whole == 0:
-                    break
-            for e in range(m - 1, -1, -1):
-                out[p] = digits[e]
-                p += 1
+            p = _put_whole(out, p, whole, digits)
             if decs[j] > 0:
                 out[p] = 46  # "."
                 p += 1
@@ -178,6 +179,8 @@ def pose_rows(t_ns: NDArray[np.int64], values: NDArray[np.float64],
     n = len(t)
     if n == 0:
         return ""
+    global _put_whole
+    _put_whole = compiled(put_whole) or put_whole  # (numba calls only compiled functions)
     kernel = compiled(_rows_kernel)
     if kernel is not None and t.ndim == 1 and v.ndim == 2 and v.shape == (n, len(decimals)) \
             and max(decimals, default=0) <= 15:
