@@ -248,11 +248,13 @@ def _build() -> None:
 
 
 def use_compiled_fits(on: bool = True) -> None:
-    """Let the stem algorithm's fits run compiled in this process: offline cells and
-    experiments. A live SIC keeps them in numpy (the same numbers): a cold compile takes
-    about 10 s, and a first tile run stalled that long loses the frames the sensor sends
-    meanwhile (320 frames of 500 at --speed 2, measured), where a warm cache loads in
-    a fraction of a second."""
+    """Let the stem algorithm's fits run compiled in this process (the centre line and
+    breast-height fits here, the field algorithm's in :mod:`tcf_hil.sic._fitkernels`: the
+    same numbers): offline cells, experiments and a live SIC's stems worker process. A live
+    SIC's frame loop keeps them in numpy: a cold compile takes about 10 s, and a first tile
+    run stalled that long in the frame loop loses the frames the sensor sends meanwhile
+    (320 frames of 500 at --speed 2, measured), where a warm cache loads in a fraction of a
+    second; in the worker it delays only the first tile's stems."""
     global _wanted
     _wanted = on
 

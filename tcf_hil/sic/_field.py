@@ -37,6 +37,7 @@ diameter every ``curve_step_m``, as FGI reports harvester stem curves, Remote Se
 from __future__ import annotations
 
 import math
+import threading
 from typing import Any
 
 import numpy as np
@@ -44,6 +45,7 @@ from numpy.typing import NDArray
 
 from tcf_hil.sic._circle import Circle, arc_coverage
 from tcf_hil.sic._fast import column_max, column_min, unique_first
+from tcf_hil.sic._fitkernels import fit_kernels
 from tcf_hil.sic._params import StemParams
 
 FloatArray = NDArray[np.float64]
@@ -109,6 +111,28 @@ _LOCAL_FROM = 200  # a slice with more points than this samples locally too
 _LOCAL_K = 48
 
 
+_rngs = threading.local()  # per thread: {n: (generator, its state as seeded with n)}
+
+
+def _slice_rng(n: int) -> np.random.Generator:
+    """``np.random.default_rng(n)`` as it starts (the same draws) at a tenth of the cost
+    (seeding hashes the seed: 19 us, a fit's own work is a few hundred): a generator kept
+    per ``n`` and this thread, set back to its seeded state."""
+    cache: dict[int, tuple[np.random.Generator, Any]] | None = getattr(
+        _rngs, "cache", None)
+    if cache is None:
+        cache = _rngs.cache = {}
+    hit = cache.get(n)
+    if hit is None:
+        if len(cache) >= 4096:
+            cache.clear()
+        g = np.random.default_rng(n)
+        cache[n] = (g, g.bit_generator.state)
+        return g
+    hit[0].bit_generator.state = hit[1]
+    return hit[0]
+
+
 def ransac_circle(xy: FloatArray, *, r_max: float, tol: float, tries: int = 256,
                   rng: np.random.Generator | None = None, near: FloatArray | None = None,
                   near_m: float = 0.1, local_m: float = 0.1, hollow: bool = True
@@ -122,7 +146,7 @@ def ransac_circle(xy: FloatArray, *, r_max: float, tol: float, tries: int = 256,
     n = len(xy)
     if n < 3:
         return None
-    g = rng or np.random.default_rng(n)
+    g = rng or _slice_rng(n)
     idx = g.integers(0, n, size=(tries, 3))
     if local_m and n > _LOCAL_FROM:
         # in clutter (a stem inside a crown: a tenth of a slice's points on the bark) three
@@ -164,6 +188,13 @@ def ransac_circle(xy: FloatArray, *, r_max: float, tol: float, tries: int = 256,
     c = np.flatnonzero(ok)
     if len(c) == 0:
         return None
+    kernels = fit_kernels()
+    if kernels is not None:  # the same pick, scored without the (tries, n) arrays
+        q = np.ascontiguousarray(xy, dtype=np.float64)
+        j = int(c[kernels["msac_pick"](q, cx, cy, r, c, float(tol), hollow, np.empty(n))])
+        tcj = min(tol, max(0.5 * float(r[j]), 0.005))
+        inl_j = np.abs(np.hypot(q[:, 0] - cx[j], q[:, 1] - cy[j]) - r[j]) <= tcj
+        return float(cx[j]), float(cy[j]), float(r[j]), inl_j
     d = np.hypot(xy[None, :, 0] - cx[c, None], xy[None, :, 1] - cy[c, None])
     sres = d - r[c, None]
     res = np.abs(sres)
@@ -189,7 +220,16 @@ def trimmed_circle(q: FloatArray, c: Circle, *, tol: float, rounds: int = 3) -> 
     while branch stubs, needles and mixed returns lie outside it. Each round takes the noise
     from the points inside the circle (their residuals are noise alone), drops the points
     more than 2.5 of it (at least 5 mm) outside, and refits (``tol``: the noise assumed
-    where fewer than three points lie inside)."""
+    where fewer than three points lie inside). Compiled where the fits are (the same
+    numbers)."""
+    kernels = fit_kernels()
+    if kernels is not None:
+        out = np.empty(4)
+        kernels["trimmed"](np.ascontiguousarray(q, dtype=np.float64), float(c.cx),
+                           float(c.cy), float(c.r), float(c.rms), float(tol), rounds, out)
+        kept = tuple(out) == (c.cx, c.cy, c.r, c.rms)  # else a refit's (arc 0, as refine's)
+        return c if kept else Circle(float(out[0]), float(out[1]), float(out[2]),
+                                     float(out[3]), 0.0)
     for _ in range(rounds):
         d = np.hypot(q[:, 0] - c.cx, q[:, 1] - c.cy)
         res = d - c.r
@@ -220,9 +260,12 @@ def hyper_circle(q: FloatArray) -> Circle | None:
     z = x * x + y * y
     A = np.column_stack([z, x, y, np.ones(len(z))])
     try:
-        _u, s, vt = np.linalg.svd(A, full_matrices=False)
+        # three points: the circle through them, the null vector of the 3 x 4 system
+        _u, s, vt = np.linalg.svd(A, full_matrices=len(q) < 4)
     except np.linalg.LinAlgError:
         return None
+    if len(s) < 4:
+        s = np.append(s, 0.0)
     if s[3] / s[0] < 1e-12:
         a = vt[3]
     else:
@@ -251,7 +294,19 @@ def hyper_circle(q: FloatArray) -> Circle | None:
 def refine_circle(q: FloatArray, cx: float, cy: float, r: float, *, huber_m: float,
                   iterations: int = 5) -> Circle | None:
     """Geometric circle fit (Gauss-Newton on the distances to the circle, Huber weights
-    ``huber_m``) from a start (cx, cy, r); None where it does not converge to a circle."""
+    ``huber_m``) from a start (cx, cy, r); None where it does not converge to a circle.
+    Compiled where the fits are (:mod:`tcf_hil.sic._fitkernels`: the same numbers)."""
+    kernels = fit_kernels()
+    if kernels is not None:
+        out = np.empty(5)
+        try:
+            kernels["refine"](np.ascontiguousarray(q, dtype=np.float64), float(cx), float(cy),
+                              float(r), float(huber_m), iterations, out)
+        except np.linalg.LinAlgError:
+            return None
+        if not out[4]:
+            return None
+        return Circle(float(out[0]), float(out[1]), float(out[2]), float(out[3]), 0.0)
     m = q.mean(axis=0)
     x, y = q[:, 0] - m[0], q[:, 1] - m[1]
     cx, cy = cx - float(m[0]), cy - float(m[1])

@@ -5,9 +5,12 @@ told from branches and needles, and the class from the stem curve."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -142,6 +145,117 @@ def test_a_stem_inside_a_crown_is_found_among_ten_times_as_many_needles() -> Non
             rs[2] - r) < 0.01
     assert ok_field >= 27, ok_field
     assert ok_plain < 15, ok_plain
+
+
+@contextlib.contextmanager
+def _fits(compiled: bool) -> Iterator[None]:
+    """The field fits compiled (:mod:`tcf_hil.sic._fitkernels`) or in numpy, then as they
+    were (``use_compiled_fits`` is a process-wide switch)."""
+    from tcf_hil.sic import _circle
+
+    was = _circle._wanted
+    _circle.use_compiled_fits(compiled)
+    try:
+        yield
+    finally:
+        _circle.use_compiled_fits(was)
+
+
+def _kernels_or_skip() -> None:
+    from tcf_hil.sic._fitkernels import fit_kernels
+
+    with _fits(True):
+        if fit_kernels() is None:
+            pytest.skip("compiled kernels are off (TCF_HIL_NO_JIT or no numba)")
+
+
+@settings(max_examples=200, deadline=None)
+@given(n=st.integers(0, 5000), lo=st.integers(0, 9), scale=st.integers(-8, 8),
+       seed=st.integers(0, 2**32 - 1), signs=st.booleans())
+def test_the_compiled_sum_is_numpys_to_the_bit(n: int, lo: int, scale: int, seed: int,
+                                               signs: bool) -> None:
+    """numpy's pairwise summation, as the compiled fits add up: every length (below 8, one
+    block of 128, halved above), any start, mixed magnitudes and signs."""
+    _kernels_or_skip()
+    from tcf_hil.sic import _fitkernels
+
+    g = np.random.default_rng(seed)
+    a = g.uniform(0.0, 1.0, n + lo) * 10.0 ** g.integers(scale - 4, scale + 4, n + lo)
+    if signs:
+        a -= a.mean() if len(a) else 0.0
+    want = float(a[lo:].sum())
+    assert _fitkernels.pairwise_sum(a, lo, n) == want or (n == 0 and want == 0.0)
+
+
+def _slice(kind: int, seed: int, n: int) -> tuple[np.ndarray, float]:
+    g = np.random.default_rng(seed)
+    r = float(g.uniform(0.03, 0.4))
+    if kind == 0:  # a noisy partial arc
+        xy = _arc(g, 4.0, -3.0, r, float(g.uniform(30.0, 360.0)), n, 0.004)
+    elif kind == 1:  # a stem inside its crown
+        xy, r = _stem_in_a_crown(seed)
+        xy = xy[: max(n, 3)]
+    elif kind == 2:  # repeated points and a straight wall
+        xy = _arc(g, 0.0, 0.0, r, 180.0, n, 0.002)
+        xy[: n // 3] = xy[0]
+        xy[n // 3: 2 * n // 3, 1] = 0.5
+    else:  # a disc of needles
+        rr = 0.3 * np.sqrt(g.uniform(0, 1, n))
+        a = g.uniform(0, 2 * math.pi, n)
+        xy = np.column_stack([rr * np.cos(a), rr * np.sin(a)])
+    return xy, r
+
+
+@settings(max_examples=120, deadline=None)
+@given(kind=st.integers(0, 3), seed=st.integers(0, 2**31 - 1), n=st.integers(3, 900),
+       tol=st.sampled_from([0.005, 0.012, 0.02, 0.04]), near=st.booleans())
+def test_the_compiled_fits_are_the_numpy_ones(kind: int, seed: int, n: int, tol: float,
+                                               near: bool) -> None:
+    """RANSAC's pick, the geometric refit, the shell trimming and a whole slice's fit give
+    the same numbers compiled and in numpy, to the bit: arcs, a stem among needles (local
+    sampling), repeated points and a straight wall (singular steps), a clump with no
+    hollow; ``None`` where numpy gives None."""
+    from tcf_hil.sic._field import refine_circle
+
+    _kernels_or_skip()
+    xy, _r = _slice(kind, seed, n)
+    c0 = np.array([xy[:, 0].mean(), xy[:, 1].mean()]) if near else None
+    width = np.where(np.arange(len(xy)) % 4 == 0, 0.01, 0.0)
+    got = []
+    for compiled in (False, True):
+        with _fits(compiled):
+            rs = ransac_circle(xy, r_max=0.5, tol=tol, near=c0)
+            ref = (refine_circle(xy[rs[3]], rs[0], rs[1], rs[2], huber_m=tol / 2)
+                   if rs is not None and rs[3].sum() >= 3 else None)
+            start = ref or hyper_circle(xy)
+            tr = trimmed_circle(xy, start, tol=tol) if start is not None else None
+            sc = stem_circle(xy, width, r_max=0.5, tol=tol, min_points=6, near=c0)
+            got.append((_floats(rs[:3]) if rs else None, rs[3].tobytes() if rs else None,
+                        _floats(ref), _floats(tr), _floats(sc)))
+    assert got[0] == got[1]
+
+
+def _floats(v: Any) -> tuple[float, ...] | None:
+    """A fit's numbers as Python floats (numpy's scalars and floats compare by value; a
+    float's repr is its bits)."""
+    return None if v is None else tuple(repr(float(x)) for x in v)
+
+
+def test_stems_found_with_compiled_fits_are_the_numpy_ones() -> None:
+    """The whole field algorithm on stems among whorls and needles: the same stems, to the
+    bit, whether its fits run compiled or in numpy."""
+    _kernels_or_skip()
+    g = np.random.default_rng(11)
+    pts = np.vstack([_stem_with_whorls(g, 0.0, 0.0, 0.12), _stem_with_whorls(g, 3.0, 1.0, 0.05),
+                     _stem_with_whorls(g, 1.5, -2.0, 0.2)])
+    keep = pts[:, 2] > PRM.ground_threshold_m
+    width = np.where(np.arange(int(keep.sum())) % 5 == 0, 0.008, 0.0)
+    docs = []
+    for compiled in (False, True):
+        with _fits(compiled):
+            docs.append(repr(field_stems(pts[keep], width, np.zeros(int(keep.sum())), PRM)))
+    assert docs[0] == docs[1]
+    assert docs[0].count("'dbh'") == 3
 
 
 def test_a_circle_through_two_neighbouring_stems_is_no_stem() -> None:
