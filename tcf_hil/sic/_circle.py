@@ -259,6 +259,11 @@ def use_compiled_fits(on: bool = True) -> None:
     _wanted = on
 
 
+def compiled_fits_wanted() -> bool:
+    """Whether :func:`use_compiled_fits` asked for compiled fits in this process."""
+    return _wanted
+
+
 def slice_centres_kernel() -> Any:
     """:func:`slice_centres` compiled, or None where compiled fits are not wanted here
     (:func:`use_compiled_fits`) or kernels are off (the caller fits slice by slice in

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from emulators.jit import jit_enabled, numba_module
-from tcf_hil.sic import _circle
+from tcf_hil.sic._circle import compiled_fits_wanted
 
 # Not registered as a kernel source (emulators.jit.register_kernel_source), for the reason
 # given in _components.py: these kernels call nothing of another file.
@@ -270,7 +270,7 @@ def fit_kernels() -> dict[str, Any] | None:
     """``{"msac_pick": ..., "refine": ..., "trimmed": ...}`` compiled, or None where the
     stem algorithm's fits stay in numpy here (:func:`tcf_hil.sic._circle.use_compiled_fits`
     not called in this process, or kernels off). Called for every fit: cheap once built."""
-    if not _circle._wanted:
+    if not compiled_fits_wanted():
         return None
     if _KERNELS:
         return _KERNELS

@@ -151,14 +151,14 @@ def test_a_stem_inside_a_crown_is_found_among_ten_times_as_many_needles() -> Non
 def _fits(compiled: bool) -> Iterator[None]:
     """The field fits compiled (:mod:`tcf_hil.sic._fitkernels`) or in numpy, then as they
     were (``use_compiled_fits`` is a process-wide switch)."""
-    from tcf_hil.sic import _circle
+    from tcf_hil.sic._circle import compiled_fits_wanted, use_compiled_fits
 
-    was = _circle._wanted
-    _circle.use_compiled_fits(compiled)
+    was = compiled_fits_wanted()
+    use_compiled_fits(compiled)
     try:
         yield
     finally:
-        _circle.use_compiled_fits(was)
+        use_compiled_fits(was)
 
 
 def _kernels_or_skip() -> None:
