@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import fcntl
 import functools
 import io
 import json
@@ -144,6 +145,14 @@ RENDER_AHEAD_BLOCKS = 8  # blocks kept waiting for their turn, at the most (at 2
 RENDER_SILENT_S = 300.0  # a render worker that makes no frame this long has failed
 _FRAME_NO = struct.Struct("<q")  # before each packed frame a worker sends (-1 its end, -2
 # it failed: the reason follows)
+
+
+def _widen_pipe(fd: int) -> None:
+    """A frame's records (a few MB) through a pipe of 1 MiB where the system allows it, not
+    Linux's default 64 KiB: fewer reads and wake-ups in the parent for each frame."""
+    with contextlib.suppress(OSError, AttributeError, ValueError):
+        cap = int(Path("/proc/sys/fs/pipe-max-size").read_text())
+        fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, min(cap, 1 << 20))
 
 
 def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any,
@@ -540,6 +549,7 @@ class LidarRun:
         try:
             for i in range(workers):
                 r, w = ctx.Pipe(duplex=False)
+                _widen_pipe(w.fileno())
                 proc = ctx.Process(target=_render_part, name=f"lidar-render-{i}", daemon=True,
                                    args=(self, start, i, workers, w, [*conns, r], end,
                                          compress))
