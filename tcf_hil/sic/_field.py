@@ -736,9 +736,10 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
     up = (above[np.asarray(up_tree.query_ball_point(last, r_last + prm.follow_radius_m + 1.0),
                            np.int64)] if up_tree is not None else np.zeros(0, np.int64))
     up = up[relall[up] > top_z]
+    rel_up = relall[up]  # (gathered once: the loop below takes a slice of them a step)
     while misses < prm.follow_misses and len(up):
         pred = last + lean * step * (misses + 1)
-        s = up[(np.abs(relall[up] - z) <= half)]
+        s = up[(np.abs(rel_up - z) <= half)]
         if len(s):
             d = np.hypot(p[s, 0] - pred[0], p[s, 1] - pred[1])
             s = s[d <= r_last + prm.follow_radius_m]
