@@ -111,6 +111,11 @@ _LOCAL_FROM = 200  # a slice with more points than this samples locally too
 _LOCAL_K = 48
 
 
+def _kernel_input(q: FloatArray) -> bool:
+    """Points the compiled fits take as numpy's own (C-ordered float64, some)."""
+    return q.dtype == np.float64 and q.flags.c_contiguous and len(q) > 0
+
+
 _rngs = threading.local()  # per thread: {n: (generator, its state as seeded with n)}
 
 
@@ -189,8 +194,9 @@ def ransac_circle(xy: FloatArray, *, r_max: float, tol: float, tries: int = 256,
     if len(c) == 0:
         return None
     kernels = fit_kernels()
-    if kernels is not None:  # the same pick, scored without the (tries, n) arrays
-        q = np.ascontiguousarray(xy, dtype=np.float64)
+    if kernels is not None and _kernel_input(xy) and tol > 0:
+        # the same pick, scored without the (tries, n) arrays
+        q = xy
         j = int(c[kernels["msac_pick"](q, cx, cy, r, c, float(tol), hollow, np.empty(n))])
         tcj = min(tol, max(0.5 * float(r[j]), 0.005))
         inl_j = np.abs(np.hypot(q[:, 0] - cx[j], q[:, 1] - cy[j]) - r[j]) <= tcj
@@ -223,10 +229,10 @@ def trimmed_circle(q: FloatArray, c: Circle, *, tol: float, rounds: int = 3) -> 
     where fewer than three points lie inside). Compiled where the fits are (the same
     numbers)."""
     kernels = fit_kernels()
-    if kernels is not None:
+    if kernels is not None and _kernel_input(q) and tol > 0:
         out = np.empty(4)
-        kernels["trimmed"](np.ascontiguousarray(q, dtype=np.float64), float(c.cx),
-                           float(c.cy), float(c.r), float(c.rms), float(tol), rounds, out)
+        kernels["trimmed"](q, float(c.cx), float(c.cy), float(c.r), float(c.rms), float(tol),
+                           rounds, out)
         kept = tuple(out) == (c.cx, c.cy, c.r, c.rms)  # else a refit's (arc 0, as refine's)
         return c if kept else Circle(float(out[0]), float(out[1]), float(out[2]),
                                      float(out[3]), 0.0)
@@ -297,11 +303,11 @@ def refine_circle(q: FloatArray, cx: float, cy: float, r: float, *, huber_m: flo
     ``huber_m``) from a start (cx, cy, r); None where it does not converge to a circle.
     Compiled where the fits are (:mod:`tcf_hil.sic._fitkernels`: the same numbers)."""
     kernels = fit_kernels()
-    if kernels is not None:
+    if kernels is not None and _kernel_input(q):
         out = np.empty(5)
         try:
-            kernels["refine"](np.ascontiguousarray(q, dtype=np.float64), float(cx), float(cy),
-                              float(r), float(huber_m), iterations, out)
+            kernels["refine"](q, float(cx), float(cy), float(r), float(huber_m), iterations,
+                              out)
         except np.linalg.LinAlgError:
             return None
         if not out[4]:

@@ -11,8 +11,11 @@ Same bits: the element-wise steps are the same IEEE operations in the same order
 :func:`pairwise_sum` is numpy's pairwise summation (blocks of 128 summed in eight lanes,
 halved above that), which ``ndarray.sum`` uses along a contiguous axis, and a mean over the
 rows of an (n, 2) array is a plain running sum, as numpy reduces an outer axis. The 3 x 3
-solve is numpy's LAPACK ``gesv`` through numba. Tests hold the kernels to the numpy forms
-on random slices and on whole tiles.
+solve is LAPACK's ``gesv`` through numba (SciPy's OpenBLAS build there, numpy's here: the
+same bits on 220,000 solves checked, and on every fit of the tests and the tiles). The
+kernels take what the stem algorithm passes (C-ordered float64 points, a positive
+tolerance, at least one point); anything else stays in numpy. Tests hold the kernels to the
+numpy forms on random slices and on whole tiles.
 """
 
 from __future__ import annotations
@@ -283,10 +286,11 @@ def fit_kernels() -> dict[str, Any] | None:
             if not hasattr(pairwise_sum, "py_func"):  # not yet numba's
                 _block_sum = njit(cache=True, nogil=True)(_block_sum)
                 pairwise_sum = njit(cache=True, nogil=True)(pairwise_sum)
-            _KERNELS.update(msac_pick=njit(cache=True, nogil=True)(msac_pick))
             if not hasattr(refine, "py_func"):
                 refine = njit(cache=True, nogil=True)(refine)
-            _KERNELS.update(refine=refine, trimmed=njit(cache=True, nogil=True)(trimmed))
+            built = {"msac_pick": njit(cache=True, nogil=True)(msac_pick), "refine": refine,
+                     "trimmed": njit(cache=True, nogil=True)(trimmed)}
+            _KERNELS.update(built)  # all three at once: a thread that sees one sees all
     return _KERNELS
 
 

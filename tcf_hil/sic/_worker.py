@@ -83,8 +83,10 @@ def _serve(conn: Connection, params: StemParams, nice: int) -> None:
     # gathers its points: a cold compile here delays at most the first tile's stems, never
     # a frame (the frame loop is the parent's)
     use_compiled_fits()
-    with contextlib.suppress(Exception):  # no kernels: the fits stay in numpy
+    try:
         warm_fits()
+    except Exception:  # no working kernels here: the fits stay in numpy
+        use_compiled_fits(False)
     while True:
         try:
             msg = conn.recv()

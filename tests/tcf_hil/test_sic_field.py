@@ -17,7 +17,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from tcf_hil.sic import fit_circle, stem_params
+from tcf_hil.sic import Circle, fit_circle, stem_params
 from tcf_hil.sic._field import (
     arc_fill,
     divergence_of,
@@ -239,6 +239,43 @@ def _floats(v: Any) -> tuple[float, ...] | None:
     """A fit's numbers as Python floats (numpy's scalars and floats compare by value; a
     float's repr is its bits)."""
     return None if v is None else tuple(repr(float(x)) for x in v)
+
+
+def test_a_slice_generator_draws_as_a_fresh_one() -> None:
+    """The fits' seeded generator, kept and set back to its seed, draws what a fresh
+    ``default_rng(n)`` draws, however it was used before and whichever sizes came between."""
+    from tcf_hil.sic._field import _slice_rng
+
+    for n in (3, 250, 3, 4096, 250):
+        g = _slice_rng(n)
+        a = (g.integers(0, n, size=(256, 3)), g.random(7))
+        f = np.random.default_rng(n)
+        b = (f.integers(0, n, size=(256, 3)), f.random(7))
+        assert (a[0] == b[0]).all() and (a[1] == b[1]).all()
+
+
+def test_degenerate_slices_fit_alike_compiled_and_in_numpy() -> None:
+    """Three points (the circle through them), repeated points (a singular step: None),
+    collinear points, float32 and Fortran-ordered points (numpy's path): compiled or not,
+    the same answers."""
+    from tcf_hil.sic._field import refine_circle
+
+    _kernels_or_skip()
+    three = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
+    h = hyper_circle(three)
+    assert h is not None and h.r == pytest.approx(1.0) and abs(h.cx) < 1e-12
+    cases = [three, np.repeat(three[:1], 12, axis=0), np.column_stack(
+        [np.linspace(0, 1, 20), np.zeros(20)]), three.astype(np.float32),
+             np.asfortranarray(np.vstack([three, three + 1e-3]))]
+    for q in cases:
+        got = []
+        for compiled in (False, True):
+            with _fits(compiled):
+                ref = refine_circle(q, 0.1, 0.1, 0.9, huber_m=0.01)
+                tr = trimmed_circle(q, Circle(0.1, 0.1, 0.9, 0.0, 0.0), tol=0.01)
+                rs = ransac_circle(q, r_max=2.0, tol=0.01)
+            got.append((_floats(ref), _floats(tr), _floats(rs[:3]) if rs else None))
+        assert got[0] == got[1], q
 
 
 def test_stems_found_with_compiled_fits_are_the_numpy_ones() -> None:
