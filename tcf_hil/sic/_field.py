@@ -174,6 +174,18 @@ def ransac_circle(xy: FloatArray, *, r_max: float, tol: float, tries: int = 256,
         rows = np.arange(m)
         idx[h:, 1] = np.where(has, nb[rows, np.minimum(j2, _LOCAL_K - 1)], idx[h:, 1])
         idx[h:, 2] = np.where(has, nb[rows, np.minimum(j3, _LOCAL_K - 1)], idx[h:, 2])
+    kernels = fit_kernels()
+    if kernels is not None and _kernel_input(xy) and tol > 0:
+        # the same circles and the same pick, without the (tries, n) arrays
+        out = np.empty(3)
+        nx, ny = (float(near[0]), float(near[1])) if near is not None else (0.0, 0.0)
+        j = kernels["ransac_pick"](xy, idx, float(r_max), nx, ny, float(near_m),
+                                   near is not None, float(tol), hollow, np.empty(n), out)
+        if j < 0:
+            return None
+        cxj, cyj, rj = float(out[0]), float(out[1]), float(out[2])
+        tcj = min(tol, max(0.5 * rj, 0.005))
+        return cxj, cyj, rj, np.abs(np.hypot(xy[:, 0] - cxj, xy[:, 1] - cyj) - rj) <= tcj
     p1, p2, p3 = xy[idx[:, 0]], xy[idx[:, 1]], xy[idx[:, 2]]
     ax, ay = p2[:, 0] - p1[:, 0], p2[:, 1] - p1[:, 1]
     bx, by = p3[:, 0] - p1[:, 0], p3[:, 1] - p1[:, 1]
@@ -193,14 +205,6 @@ def ransac_circle(xy: FloatArray, *, r_max: float, tol: float, tries: int = 256,
     c = np.flatnonzero(ok)
     if len(c) == 0:
         return None
-    kernels = fit_kernels()
-    if kernels is not None and _kernel_input(xy) and tol > 0:
-        # the same pick, scored without the (tries, n) arrays
-        q = xy
-        j = int(c[kernels["msac_pick"](q, cx, cy, r, c, float(tol), hollow, np.empty(n))])
-        tcj = min(tol, max(0.5 * float(r[j]), 0.005))
-        inl_j = np.abs(np.hypot(q[:, 0] - cx[j], q[:, 1] - cy[j]) - r[j]) <= tcj
-        return float(cx[j]), float(cy[j]), float(r[j]), inl_j
     d = np.hypot(xy[None, :, 0] - cx[c, None], xy[None, :, 1] - cy[c, None])
     sres = d - r[c, None]
     res = np.abs(sres)

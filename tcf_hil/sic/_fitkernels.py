@@ -143,6 +143,56 @@ def msac_pick(xy: Any, cx: Any, cy: Any, r: Any, cand: Any, tol: float, hollow: 
     return best
 
 
+def ransac_pick(xy: Any, idx: Any, r_max: float, near_x: float, near_y: float,
+                near_m: float, has_near: bool, tol: float, hollow: bool, buf: Any,
+                out: Any) -> int:
+    """:func:`tcf_hil.sic._field.ransac_circle` from its drawn triples on: each try's circle
+    through ``xy[idx[k]]`` (k, 3) as numpy computes them (the same operations in the same
+    order, element by element), those of radius 0.01 .. ``r_max`` (centred within
+    ``near_m`` of the near point where ``has_near``) scored by :func:`msac_pick`. Returns
+    the try picked, its circle in ``out`` (cx, cy, r), or -1 where no try makes one."""
+    t = idx.shape[0]
+    cx = np.empty(t)
+    cy = np.empty(t)
+    r = np.empty(t)
+    cand = np.empty(t, np.int64)
+    m = 0
+    for k in range(t):
+        p1x = xy[idx[k, 0], 0]
+        p1y = xy[idx[k, 0], 1]
+        ax = xy[idx[k, 1], 0] - p1x
+        ay = xy[idx[k, 1], 1] - p1y
+        bx = xy[idx[k, 2], 0] - p1x
+        by = xy[idx[k, 2], 1] - p1y
+        dd = 2.0 * (ax * by - ay * bx)
+        ok = abs(dd) > 1e-12
+        if not ok:
+            dd = 1.0
+        a2 = ax * ax + ay * ay
+        b2 = bx * bx + by * by
+        ux = (by * a2 - ay * b2) / dd
+        uy = (ax * b2 - bx * a2) / dd
+        rk = math.hypot(ux, uy)
+        ok = ok and rk <= r_max and rk >= 0.01
+        cxk = p1x + ux
+        cyk = p1y + uy
+        if has_near:
+            ok = ok and math.hypot(cxk - near_x, cyk - near_y) <= near_m
+        cx[k] = cxk
+        cy[k] = cyk
+        r[k] = rk
+        if ok:
+            cand[m] = k
+            m += 1
+    if m == 0:
+        return -1
+    j = cand[msac_pick(xy, cx, cy, r, cand[:m], tol, hollow, buf)]
+    out[0] = cx[j]
+    out[1] = cy[j]
+    out[2] = r[j]
+    return j
+
+
 def refine(q: Any, cx: float, cy: float, r: float, huber_m: float, iterations: int,
            out: Any) -> None:
     """:func:`tcf_hil.sic._field.refine_circle`'s Gauss-Newton in one compiled pass, the
@@ -270,25 +320,27 @@ _build_lock = threading.Lock()
 
 
 def fit_kernels() -> dict[str, Any] | None:
-    """``{"msac_pick": ..., "refine": ..., "trimmed": ...}`` compiled, or None where the
-    stem algorithm's fits stay in numpy here (:func:`tcf_hil.sic._circle.use_compiled_fits`
-    not called in this process, or kernels off). Called for every fit: cheap once built."""
+    """The kernels by name (``msac_pick``, ``ransac_pick``, ``refine``, ``trimmed``),
+    compiled, or None where the stem algorithm's fits stay in numpy here
+    (:func:`tcf_hil.sic._circle.use_compiled_fits` not called in this process, or kernels
+    off). Called for every fit: cheap once built."""
     if not compiled_fits_wanted():
         return None
     if _KERNELS:
         return _KERNELS
     if not jit_enabled():
         return None
-    global _block_sum, pairwise_sum, refine
+    global _block_sum, pairwise_sum, msac_pick, refine
     with _build_lock:
         if not _KERNELS:
             njit = numba_module().njit
-            if not hasattr(pairwise_sum, "py_func"):  # not yet numba's
+            if not hasattr(pairwise_sum, "py_func"):  # not yet numba's (kernels call these)
                 _block_sum = njit(cache=True, nogil=True)(_block_sum)
                 pairwise_sum = njit(cache=True, nogil=True)(pairwise_sum)
-            if not hasattr(refine, "py_func"):
+                msac_pick = njit(cache=True, nogil=True)(msac_pick)
                 refine = njit(cache=True, nogil=True)(refine)
-            built = {"msac_pick": njit(cache=True, nogil=True)(msac_pick), "refine": refine,
+            built = {"msac_pick": msac_pick, "refine": refine,
+                     "ransac_pick": njit(cache=True, nogil=True)(ransac_pick),
                      "trimmed": njit(cache=True, nogil=True)(trimmed)}
             _KERNELS.update(built)  # all three at once: a thread that sees one sees all
     return _KERNELS
@@ -303,12 +355,13 @@ def warm() -> None:
         return
     a = np.linspace(0.0, 3.0, 16)
     q = np.column_stack([0.2 * np.cos(a), 0.2 * np.sin(a)])
-    r = np.full(16, 0.2)
-    kernels["msac_pick"](q, q[:, 0] * 0.0, q[:, 1] * 0.0, r, np.arange(16), 0.01, True,
-                         np.empty(16))
+    idx = np.arange(48).reshape(16, 3) % 16
+    kernels["ransac_pick"](q, idx, 0.5, 0.0, 0.0, 0.1, True, 0.01, True, np.empty(16),
+                           np.empty(3))
     out = np.empty(5)
     kernels["refine"](q, 0.01, 0.0, 0.19, 0.005, 5, out)
     kernels["trimmed"](q, 0.01, 0.0, 0.19, 0.0, 0.01, 3, out)
 
 
-__all__ = ["fit_kernels", "msac_pick", "pairwise_sum", "refine", "trimmed", "warm"]
+__all__ = ["fit_kernels", "msac_pick", "pairwise_sum", "ransac_pick", "refine", "trimmed",
+           "warm"]
