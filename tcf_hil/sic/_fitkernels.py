@@ -320,7 +320,7 @@ _build_lock = threading.Lock()
 
 
 def fit_kernels() -> dict[str, Any] | None:
-    """The kernels by name (``msac_pick``, ``ransac_pick``, ``refine``, ``trimmed``),
+    """The kernels the fits call, by name (``ransac_pick``, ``refine``, ``trimmed``),
     compiled, or None where the stem algorithm's fits stay in numpy here
     (:func:`tcf_hil.sic._circle.use_compiled_fits` not called in this process, or kernels
     off). Called for every fit: cheap once built."""
@@ -339,7 +339,7 @@ def fit_kernels() -> dict[str, Any] | None:
                 pairwise_sum = njit(cache=True, nogil=True)(pairwise_sum)
                 msac_pick = njit(cache=True, nogil=True)(msac_pick)
                 refine = njit(cache=True, nogil=True)(refine)
-            built = {"msac_pick": msac_pick, "refine": refine,
+            built = {"refine": refine,
                      "ransac_pick": njit(cache=True, nogil=True)(ransac_pick),
                      "trimmed": njit(cache=True, nogil=True)(trimmed)}
             _KERNELS.update(built)  # all three at once: a thread that sees one sees all
