@@ -48,6 +48,9 @@ INVALID_ID = 0xFFFFFFFF
 TNEAR, TIME, TFAR, MASK, RAY_ID, FLAGS = 3, 7, 8, 9, 10, 11
 NG_X, NG_Y, NG_Z, PRIM_ID, GEOM_ID, INST_ID = 12, 13, 14, 17, 18, 19
 RAYHIT_WORDS = 32  # 128 bytes: room for the largest RTCRayHit Embree 4 builds
+PACKET = 8  # rays a packet (RTCRayHit8: each field 8 words, the fields in RTCRayHit's order)
+PACKET_WORDS = 24 * PACKET  # room for the largest RTCRayHit8
+DEVICE_NATIVE_RAY8 = 33  # RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED
 SCRATCH_WORDS = 4
 """After the RTCRayHit: the ray's key (:func:`emulators.media.ray_key`) and the struct's
 address, which tells :func:`_crown_hit` that the struct it is given is this one."""
@@ -90,7 +93,8 @@ def _lib() -> Any:
                 ("rtcSetGeometryUserPrimitiveCount", None, [vp, uint]),
                 ("rtcSetGeometryUserData", None, [vp, vp]),
                 ("rtcSetGeometryBoundsFunction", None, [vp, vp, vp]),
-                ("rtcSetGeometryIntersectFunction", None, [vp, vp])):
+                ("rtcSetGeometryIntersectFunction", None, [vp, vp]),
+                ("rtcGetDeviceProperty", ctypes.c_ssize_t, [vp, cint])):
             fn = getattr(lib, name)
             fn.restype, fn.argtypes = res, args
         _LIB = lib
@@ -214,13 +218,20 @@ class DirectScene:
         if cut > 0 or not rows or terrain is not None:
             rows.append([self._scene_of(SCENE_FLAG_ROBUST, v, f[:cut], None, terrain), 0, 0,
                          self.terrain_prim])
+        # packets of rays where the library traces them natively and no crowns' callback
+        # (which answers one ray at a time) is in the scene
+        packets = 0
+        if not self.crown_count and lib.rtcGetDeviceProperty(self._device,
+                                                             DEVICE_NATIVE_RAY8) == 1:
+            packets = int(ctypes.cast(lib.rtcIntersect8, ctypes.c_void_p).value or 0)
         self.handles: tuple[Any, ...] = (np.array(rows, np.int64), self.crown_count,
-                                         self.curve_count)
+                                         self.curve_count, packets)
         """What the kernels cast through: (k, 4) each scene's handle, the index in ``faces``
         of its first triangle, the number of its curve segments (its discs' numbers
         follow them) and the primitive its terrain grid answers, in the order a ray enters
         them; then the number of porous crowns and of the curve primitives before them
-        (crown ``c`` is primitive ``-2 - curve_count - c``)."""
+        (crown ``c`` is primitive ``-2 - curve_count - c``), and ``rtcIntersect8``'s
+        address where :func:`intersect_packet` may be used (else 0)."""
         self.intersect: int = int(ctypes.cast(lib.rtcIntersect1, ctypes.c_void_p).value or 0)
 
     def _scene_of(self, flags: int, v: NDArray[np.float32], f: NDArray[np.uint32],
@@ -408,6 +419,86 @@ def intersect1(fn: int, scenes: Any, rf: Any, ru: Any, addr: int, ox: float, oy:
             nn = math.sqrt(nx * nx + ny * ny + nz * nz)
             c = min(abs(nx * dx + ny * dy + nz * dz) / nn, 1.0) if nn > 0.0 else 1.0
     return rf[TFAR], prim, c
+
+
+@intrinsic
+def _call_c4(typingctx: Any, fn: Any, valid: Any, scene: Any, rayhit: Any) -> Any:
+    """``((void (*)(void*, void*, void*, void*)) fn)(valid, scene, rayhit, NULL)``: a
+    packet call (``rtcIntersect8``), the address an argument as in :func:`_call_c`."""
+    sig = types.void(types.intp, types.intp, types.intp, types.intp)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        i8p = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i8p, i8p, i8p])
+        f = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(f, [builder.inttoptr(args[1], i8p), builder.inttoptr(args[2], i8p),
+                         builder.inttoptr(args[3], i8p), ir.Constant(i8p, None)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@_njit
+def new_packet() -> tuple[Any, Any, int, Any, int]:
+    """A 64-byte aligned RTCRayHit8 (its float32 and uint32 words and its address) and
+    its 64-byte aligned valid mask (int32 words and address), for :func:`intersect_packet`."""
+    raw = np.empty(PACKET_WORDS + 16, np.float32)
+    skip = ((-raw.ctypes.data) % 64) // 4
+    f = raw[skip:skip + PACKET_WORDS]
+    vraw = np.empty(PACKET + 16, np.int32)
+    vskip = ((-vraw.ctypes.data) % 64) // 4
+    valid = vraw[vskip:vskip + PACKET]
+    return f, f.view(np.uint32), f.ctypes.data, valid, valid.ctypes.data
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def packet_ray(pf: Any, pu: Any, i: int, ox: float, oy: float, oz: float, dx: float,
+               dy: float, dz: float) -> None:
+    """Lane ``i`` of a packet (:func:`new_packet`) set to the ray from (ox, oy, oz) along
+    the unit (dx, dy, dz), as :func:`intersect1` sets its one ray."""
+    P = PACKET
+    pf[i], pf[P + i], pf[2 * P + i], pf[TNEAR * P + i] = ox, oy, oz, 0.0
+    pf[4 * P + i], pf[5 * P + i], pf[6 * P + i], pf[TIME * P + i] = dx, dy, dz, 0.0
+    pf[TFAR * P + i] = np.inf
+    pu[MASK * P + i], pu[RAY_ID * P + i], pu[FLAGS * P + i] = INVALID_ID, 0, 0
+    pu[PRIM_ID * P + i], pu[INST_ID * P + i] = INVALID_ID, INVALID_ID
+
+
+@numba.njit(cache=True, nogil=True)
+def intersect_packet(scenes: Any, pf: Any, pu: Any, addr: int, valid: Any, vaddr: int,
+                     n: int, t: Any, prim: Any, cn: Any) -> None:
+    """The first ``n`` lanes of a packet (:func:`packet_ray`) through ``rtcIntersect8``
+    (``scenes[3]``; a scene without crowns) into each Embree scene of ``scenes`` in turn,
+    as :func:`intersect1` casts one ray (the same hits, to the bit: Embree answers each
+    lane as it answers the ray alone): their distances, primitives and |cos| into ``t``,
+    ``prim`` and ``cn`` (n,)."""
+    P = PACKET
+    for i in range(P):
+        valid[i] = -1 if i < n else 0
+        prim[i] = -1
+        cn[i] = 0.0
+    rows = scenes[0]
+    for k in range(rows.shape[0]):
+        for i in range(n):
+            pu[GEOM_ID * P + i] = INVALID_ID  # tfar stays: only a nearer hit answers
+        _call_c4(scenes[3], vaddr, rows[k, 0], addr)  # type: ignore[call-arg]
+        for i in range(n):
+            g = pu[GEOM_ID * P + i]
+            if g == 0:
+                prim[i] = np.int32(rows[k, 1] + np.int64(pu[PRIM_ID * P + i]))
+                cn[i] = 0.0
+            elif g != INVALID_ID:  # as intersect1 (no crowns here)
+                prim[i] = np.int32(rows[k, 3] if g == 3 else
+                                   -2 - np.int64(pu[PRIM_ID * P + i])
+                                   - (rows[k, 2] if g == 2 else 0))
+                nx = np.float64(pf[NG_X * P + i])
+                ny = np.float64(pf[NG_Y * P + i])
+                nz = np.float64(pf[NG_Z * P + i])
+                nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+                dx, dy, dz = pf[4 * P + i], pf[5 * P + i], pf[6 * P + i]
+                cn[i] = min(abs(nx * dx + ny * dy + nz * dz) / nn, 1.0) if nn > 0.0 else 1.0
+    for i in range(n):
+        t[i] = pf[TFAR * P + i]
 
 
 @intrinsic

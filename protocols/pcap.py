@@ -46,7 +46,7 @@ class UdpDatagram:
     dst_ip: str
     src_port: int
     dst_port: int
-    payload: bytes
+    payload: bytes  # (a writer reads it as a buffer only: a view serves as well)
 
 
 def _ip_bytes(ip: str) -> bytes:
@@ -66,6 +66,26 @@ def _checksum(header: bytes) -> int:
     return ~s & 0xFFFF
 
 
+@dataclass(frozen=True)
+class _Layout:
+    """The records of one kind of datagram (:meth:`PcapWriter._layout`): ``width`` bytes,
+    of which ``template`` gives those at ``fixed``; the columns of the time stamp (8 a
+    fragment), the IP id's and checksum's high and low bytes (one a fragment), each
+    fragment's header sum without its id (``base``), and where the payload's spans go
+    (``(column, start, end)``)."""
+
+    width: int
+    template: NDArray[np.uint8]
+    fixed: NDArray[np.intp]
+    stamp: NDArray[np.intp]
+    id_hi: NDArray[np.intp]
+    id_lo: NDArray[np.intp]
+    sum_hi: NDArray[np.intp]
+    sum_lo: NDArray[np.intp]
+    base: NDArray[np.int64]
+    payload: list[tuple[int, int, int]]
+
+
 class PcapWriter:
     """Builds a libpcap byte stream; call :meth:`header` once, then :meth:`records`.
 
@@ -83,6 +103,7 @@ class PcapWriter:
         self.nanosecond = nanosecond
         self.snaplen = snaplen
         self._ip_id = 0
+        self._layouts: dict[tuple[Any, ...], _Layout] = {}
 
     def header(self) -> bytes:
         magic = 0xA1B23C4D if self.nanosecond else 0xA1B2C3D4
@@ -129,6 +150,12 @@ class PcapWriter:
         frame's lidar packets, wherever its IMU packets fall between them) built together
         as arrays, so a frame of 128 packets in 2,000 fragments costs a few array
         operations."""
+        return b"".join(self.records_parts(datagrams))
+
+    def records_parts(self, datagrams: Sequence[UdpDatagram]) -> list[bytes | memoryview]:
+        """:meth:`records_many` in pieces, one a datagram, in order (for a gathered write:
+        a frame's few megabytes are not joined into one more copy first). A payload may be
+        any bytes-like object."""
         n = len(datagrams)
         ids = [(self._ip_id + 1 + i) & 0xFFFF for i in range(n)]
         groups: dict[tuple[Any, ...], list[int]] = {}
@@ -147,7 +174,7 @@ class PcapWriter:
                 pieces[i] = rows[r].data
         if n:  # (datagrams refused take no ids)
             self._ip_id = ids[-1]
-        return b"".join(pieces)
+        return pieces
 
     def _alike_records(self, run: Sequence[UdpDatagram], ids: NDArray[np.int64]
                        ) -> NDArray[np.uint8]:
@@ -160,17 +187,39 @@ class PcapWriter:
         bad = (ts < 0) | (ts >= (1 << 32) * 1_000_000_000)
         if bad.any():
             raise ValueError(f"timestamp_ns {int(ts[bad][0])} does not fit a pcap record")
-        src, dst = _ip_bytes(d0.src_ip), _ip_bytes(d0.dst_ip)
+        lay = self._layout(L, d0.src_ip, d0.dst_ip, d0.src_port, d0.dst_port)
         M = len(run)
-        udp = np.empty((M, 8 + L), np.uint8)
-        udp[:, :8] = np.frombuffer(_UDP.pack(d0.src_port, d0.dst_port, 8 + L, 0), np.uint8)
+        payload = np.empty((M, L), np.uint8)
         for r, d in enumerate(run):
-            udp[r, 8:] = np.frombuffer(d.payload, np.uint8)
+            payload[r] = np.frombuffer(d.payload, np.uint8)
         sec, rem = np.divmod(ts, 1_000_000_000)
-        frac = rem if self.nanosecond else rem // 1000
+        stamp = np.empty((M, 2), "<u4")
+        stamp[:, 0], stamp[:, 1] = sec, rem if self.nanosecond else rem // 1000
+        out = np.empty((M, lay.width), np.uint8)
+        out[:, lay.fixed] = lay.template[lay.fixed]
+        out[:, lay.stamp] = np.tile(stamp.view(np.uint8), lay.base.size)
+        total = lay.base[None, :] + ids[:, None]  # each fragment's header sum with its id
+        while (total >> 16).any():
+            total = (total & 0xFFFF) + (total >> 16)
+        csum = ~total & 0xFFFF
+        out[:, lay.id_hi], out[:, lay.id_lo] = (ids >> 8)[:, None], (ids & 0xFF)[:, None]
+        out[:, lay.sum_hi], out[:, lay.sum_lo] = csum >> 8, csum & 0xFF
+        for col, a, b in lay.payload:
+            out[:, col:col + b - a] = payload[:, a:b]
+        return out
+
+    def _layout(self, L: int, src_ip: str, dst_ip: str, src_port: int, dst_port: int
+                ) -> _Layout:
+        """Where each byte of the records of a datagram of ``L`` bytes goes (the same for
+        every such datagram but its time stamp, IP id and checksum): kept for the next."""
+        key = (L, src_ip, dst_ip, src_port, dst_port)
+        lay = self._layouts.get(key)
+        if lay is not None:
+            return lay
+        src, dst = _ip_bytes(src_ip), _ip_bytes(dst_ip)
         room = (self.mtu - 20) // 8 * 8
         size = 8 + L
-        pieces = []  # each fragment's length, then all written into one array of records
+        pieces = []  # each fragment's length
         off = 0
         while True:
             clen = room if size - off > self.mtu - 20 else size - off
@@ -178,33 +227,44 @@ class PcapWriter:
             off += clen
             if off >= size:
                 break
-        out = np.empty((M, sum(50 + c for c in pieces)), np.uint8)
-        col = 0
-        off = 0
+        width = sum(50 + c for c in pieces)
+        template = np.zeros(width, np.uint8)
+        fixed = np.zeros(width, bool)  # the bytes the template gives every record
+        stamp: list[int] = []
+        id_hi: list[int] = []
+        sum_hi: list[int] = []
+        base: list[int] = []
+        spans: list[tuple[int, int, int]] = []
+        col = off = 0
         for clen in pieces:
             more = off + clen < size
             flags_frag = (0x2000 if more else 0) | (off // 8)
-            hdr = np.frombuffer(_IP.pack(0x45, 0, 20 + clen, 0, flags_frag, 64, 17, 0, src,
-                                         dst), np.uint8)
-            words = hdr.reshape(10, 2).astype(np.int64)
-            base = int((words[:, 0] * 256 + words[:, 1]).sum())
-            total = base + ids
-            while (total >> 16).any():
-                total = (total & 0xFFFF) + (total >> 16)
-            csum = ~total & 0xFFFF
-            rec = out[:, col:col + 50 + clen]
-            col += 50 + clen
+            hdr = _IP.pack(0x45, 0, 20 + clen, 0, flags_frag, 64, 17, 0, src, dst)
+            base.append(sum(struct.unpack("!10H", hdr)))
             flen = 14 + 20 + clen
-            head = np.empty((M, 4), "<u4")
-            head[:, 0], head[:, 1], head[:, 2], head[:, 3] = sec, frac, flen, flen
-            rec[:, :16] = head.view(np.uint8).reshape(M, 16)
-            rec[:, 16:30] = np.frombuffer(_ETH.pack(_DST_MAC, _SRC_MAC, 0x0800), np.uint8)
-            rec[:, 30:50] = hdr
-            rec[:, 34], rec[:, 35] = ids >> 8, ids & 0xFF
-            rec[:, 40], rec[:, 41] = csum >> 8, csum & 0xFF
-            rec[:, 50:] = udp[:, off:off + clen]
+            template[col + 8:col + 16] = np.frombuffer(struct.pack("<II", flen, flen), np.uint8)
+            template[col + 16:col + 30] = np.frombuffer(_ETH.pack(_DST_MAC, _SRC_MAC, 0x0800),
+                                                        np.uint8)
+            template[col + 30:col + 50] = np.frombuffer(hdr, np.uint8)
+            fixed[col + 8:col + 50] = True
+            stamp.extend(range(col, col + 8))
+            id_hi.append(col + 34)
+            sum_hi.append(col + 40)
+            fixed[[col + 34, col + 35, col + 40, col + 41]] = False
+            if off == 0:  # the first fragment carries the UDP header
+                template[col + 50:col + 58] = np.frombuffer(
+                    _UDP.pack(src_port, dst_port, size, 0), np.uint8)
+                fixed[col + 50:col + 58] = True
+                spans.append((col + 58, 0, clen - 8))
+            else:
+                spans.append((col + 50, off - 8, off - 8 + clen))
+            col += 50 + clen
             off += clen
-        return out
+        hi, sh = np.array(id_hi, np.intp), np.array(sum_hi, np.intp)
+        lay = _Layout(width, template, np.flatnonzero(fixed), np.array(stamp, np.intp),
+                      hi, hi + 1, sh, sh + 1, np.array(base, np.int64), spans)
+        self._layouts[key] = lay
+        return lay
 
     def encode(self, datagrams: Iterable[UdpDatagram]) -> bytes:
         """A whole file: header and every datagram."""

@@ -117,3 +117,39 @@ def name_process(name: str) -> None:
     with contextlib.suppress(OSError):
         with open("/proc/self/comm", "w") as fh:
             fh.write(name[:15])
+
+
+_IOV_MAX = 1024  # Linux's UIO_MAXIOV: the most pieces one writev takes
+
+
+def write_gathered(fd: int, parts: list[Any]) -> int:
+    """Bytes-like ``parts`` written to the file descriptor ``fd`` one after another, with
+    as few ``writev`` calls as it takes (no joined copy in between; a short write goes on
+    where it stopped); how many bytes."""
+    views = [memoryview(p).cast("B") for p in parts if len(p)]
+    total = sum(len(v) for v in views)
+    i = 0
+    while i < len(views):
+        n = os.writev(fd, views[i:i + _IOV_MAX])
+        while n and i < len(views):
+            if n >= len(views[i]):
+                n -= len(views[i])
+                i += 1
+            else:
+                views[i] = views[i][n:]
+                n = 0
+    return total
+
+
+def read_exact(fd: int, n: int) -> bytearray:
+    """``n`` bytes from the file descriptor ``fd`` read straight into one buffer; EOFError
+    where it ends first."""
+    buf = bytearray(n)
+    view = memoryview(buf)
+    got = 0
+    while got < n:
+        r = os.readv(fd, [view[got:]])
+        if r == 0:
+            raise EOFError(f"end of input after {got} of {n} bytes")
+        got += r
+    return buf

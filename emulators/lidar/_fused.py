@@ -15,7 +15,14 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from emulators.embree import intersect1, new_rayhit
+from emulators.embree import (
+    PACKET,
+    intersect1,
+    intersect_packet,
+    new_packet,
+    new_rayhit,
+    packet_ray,
+)
 from emulators.jit import compiled, numba_module
 from emulators.lidar._footprint import centre_echoes
 from emulators.lidar._kernel import answer_chunk, make_rays
@@ -134,6 +141,10 @@ def cast_answer_blocks(direct: tuple[Any, ...], rays: tuple[Any, ...],
     t = np.empty((width, H), np.float32)
     sid = np.empty((width, H), np.int32)
     rf, ru, addr = new_rayhit()
+    pf, pu, paddr, valid, vaddr = new_packet()
+    pt = np.empty(PACKET, np.float32)
+    pp = np.empty(PACKET, np.int32)
+    pc = np.empty(PACKET, np.float64)
     go = _wait_go(counter)
     while go:
         a = _take_block(blocks, packets, rays, o, d)
@@ -141,13 +152,28 @@ def cast_answer_blocks(direct: tuple[Any, ...], rays: tuple[Any, ...],
             break
         b = a + width
         p0, p1 = a // C, b // C
-        for c in range(width):
+        if scene[3] != 0:  # packets of a beam's neighbouring columns (cast_centre_blocks)
             for h in range(H):
-                t[c, h], prim, _ = intersect1(fn, scene, rf, ru, addr, o[c, h, 0],
-                                              o[c, h, 1], o[c, h, 2], d[c, h, 0], d[c, h, 1],
-                                              d[c, h, 2])
-                sid[c, h] = stem_of_prim[prim]  # -1 (a miss) and a curve's -2 - j: from the end
-                if keep:
+                for c0 in range(0, width, PACKET):
+                    n = min(PACKET, width - c0)
+                    for i in range(n):
+                        c = c0 + i
+                        packet_ray(pf, pu, i, o[c, h, 0], o[c, h, 1], o[c, h, 2], d[c, h, 0],
+                                   d[c, h, 1], d[c, h, 2])
+                    intersect_packet(scene, pf, pu, paddr, valid, vaddr, n, pt, pp, pc)
+                    for i in range(n):
+                        t[c0 + i, h] = pt[i]
+                        sid[c0 + i, h] = stem_of_prim[pp[i]]
+        else:
+            for c in range(width):
+                for h in range(H):
+                    t[c, h], prim, _ = intersect1(fn, scene, rf, ru, addr, o[c, h, 0],
+                                                  o[c, h, 1], o[c, h, 2], d[c, h, 0],
+                                                  d[c, h, 1], d[c, h, 2])
+                    sid[c, h] = stem_of_prim[prim]  # a miss -1, a curve's -2 - j: from the end
+        if keep:
+            for c in range(width):
+                for h in range(H):
                     for q in range(3):
                         o_all[a + c, h, q] = o[c, h, q]
                         d_all[a + c, h, q] = d[c, h, q]
@@ -158,6 +184,20 @@ def cast_answer_blocks(direct: tuple[Any, ...], rays: tuple[Any, ...],
         _fetch_add(counter, 2, 1)  # type: ignore[call-arg]
     if wait_all and go:
         _wait_blocks(counter, starts.shape[0])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _keep_hit(k: int, t: Any, prim: Any, cc: Any, n_m: float, reach: float,
+              hits: tuple[Any, ...]) -> None:
+    """Centre ray ``k``'s hit kept (``hits``: ``prim_all, cn_all, t_all``): its distance
+    and primitive where it is within ``reach`` of the lidar axis, else none."""
+    prim_all, cn_all, t_all = hits
+    cn_all[k] = cc
+    tt = np.float64(t)
+    rr = tt + n_m
+    ok = rr >= 0.0 and rr <= reach
+    t_all[k] = tt if ok else np.inf
+    prim_all[k] = prim if ok else -1
 
 
 @numba.njit(cache=True, nogil=True)
@@ -188,23 +228,37 @@ def cast_centre_blocks(direct: tuple[Any, ...], rays: tuple[Any, ...],
     d = np.empty((width, H, 3), np.float32)
     d_flat = d_all.reshape(-1, 3)
     rf, ru, addr = new_rayhit()
+    pf, pu, paddr, valid, vaddr = new_packet()
+    pt = np.empty(PACKET, np.float32)
+    pp = np.empty(PACKET, np.int32)
+    pc = np.empty(PACKET, np.float64)
     go = _wait_go(counter)
     while go:
         a = _take_block(blocks, packets, rays, o, d)
         if a < 0:
             break
         b = a + width
+        if scene[3] != 0:  # packets of a beam's neighbouring columns (coherent rays:
+            # about a tenth faster than ray by ray, the same hits)
+            for h in range(H):
+                for c0 in range(0, width, PACKET):
+                    n = min(PACKET, width - c0)
+                    for i in range(n):
+                        c = c0 + i
+                        packet_ray(pf, pu, i, o[c, h, 0], o[c, h, 1], o[c, h, 2], d[c, h, 0],
+                                   d[c, h, 1], d[c, h, 2])
+                    intersect_packet(scene, pf, pu, paddr, valid, vaddr, n, pt, pp, pc)
+                    for i in range(n):
+                        _keep_hit((a + c0 + i) * H + h, pt[i], pp[i], pc[i], n_m, reach,
+                                  hits)
+        else:
+            for c in range(width):
+                for h in range(H):
+                    t, prim, cc = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
+                                             o[c, h, 2], d[c, h, 0], d[c, h, 1], d[c, h, 2])
+                    _keep_hit((a + c) * H + h, t, prim, cc, n_m, reach, hits)
         for c in range(width):
             for h in range(H):
-                t, prim, cc = intersect1(fn, scene, rf, ru, addr, o[c, h, 0], o[c, h, 1],
-                                         o[c, h, 2], d[c, h, 0], d[c, h, 1], d[c, h, 2])
-                k = (a + c) * H + h
-                cn_all[k] = cc
-                tt = np.float64(t)
-                rr = tt + n_m
-                ok = rr >= 0.0 and rr <= reach
-                t_all[k] = tt if ok else np.inf
-                prim_all[k] = prim if ok else -1
                 for q in range(3):
                     d_all[a + c, h, q] = d[c, h, q]
             for q in range(3):  # a column's beams all start at its origin

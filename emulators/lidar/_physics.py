@@ -51,6 +51,7 @@ rays, so every path gives the same bytes:
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Literal
@@ -260,7 +261,20 @@ class FootprintGrid:
         ``kernels``/``run``: marked by the compiled kernel over threads."""
         S, V = self.sub, self.rows
         WS, NR = W * S, 2 * V + 1
-        need = np.zeros(WS * H * NR, bool)  # (numpy finds a bool's nonzeros fastest)
+        need, pos = _lattice_scratch(WS * H * NR)
+        try:
+            return self._needed(idx, fl, W, H, kernels, run, cast, need, pos)
+        except BaseException:
+            need[:] = False
+            pos[:] = -1
+            _SCRATCH.touched = []
+            raise
+
+    def _needed(self, idx: NDArray[np.intp], fl: NDArray[np.uint8], W: int, H: int,
+                kernels: Any, run: Any, cast: NDArray[np.intp] | None, need: NDArray[np.bool_],
+                pos: NDArray[np.int32]) -> tuple[NDArray[np.intp], NDArray[np.int32]]:
+        S, V = self.sub, self.rows
+        WS, NR = W * S, 2 * V + 1
         if S == 1:  # a row's samples are all centre rays: only the grid's are cast
             grid = (fl & 2) != 0
             idx, fl = idx[grid], fl[grid]
@@ -282,11 +296,34 @@ class FootprintGrid:
             need[cast] = False
             n0 = len(cast)
         ent = np.flatnonzero(need)
-        pos = np.full(need.size, -1, np.int32)
+        need[ent] = False  # all clear again for the next frame
+        touched = [ent]
         if cast is not None:
             pos[cast] = np.arange(n0, dtype=np.int32)
+            touched.append(cast)
         pos[ent] = np.arange(n0, n0 + len(ent), dtype=np.int32)
+        _SCRATCH.touched = touched
         return ent, pos
+
+
+_SCRATCH = threading.local()
+"""A thread's lattice buffers (:func:`_lattice_scratch`), and the entries of ``pos`` the
+last :meth:`FootprintGrid.needed` set (``touched``)."""
+
+
+def _lattice_scratch(size: int) -> tuple[NDArray[np.bool_], NDArray[np.int32]]:
+    """This thread's ``need`` (all False) and ``pos`` (all -1) of ``size`` lattice slots for
+    :meth:`FootprintGrid.needed`: kept from frame to frame (megabytes a frame, written in
+    a few places) and cleared where the last frame wrote them; the ``pos`` the last call
+    returned is this one, so a caller reads it before the thread's next call."""
+    bufs = getattr(_SCRATCH, "bufs", None)
+    if bufs is None or len(bufs[0]) != size:
+        bufs = _SCRATCH.bufs = (np.zeros(size, bool), np.full(size, -1, np.int32))
+        _SCRATCH.touched = []
+    for at in _SCRATCH.touched:
+        bufs[1][at] = -1
+    _SCRATCH.touched = []
+    return bufs
 
 
 

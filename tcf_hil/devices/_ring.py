@@ -15,7 +15,7 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -24,15 +24,23 @@ from protocols.ouster import IMU_PACKET_BYTES
 from protocols.pcap import PcapWriter, UdpDatagram
 from tcf_hil._io import name_process
 
-__all__ = ["SLOTS", "FrameRing", "PcapTarget", "pcap_records", "produce", "release",
+__all__ = ["SLOTS", "FrameRing", "PcapTarget", "pcap_parts", "pcap_records", "produce",
+           "release",
            "slot_bytes"]
 
 
 def pcap_records(writer: PcapWriter, dgs: list[Datagram], sensor_ip: str, dest: str
                   ) -> bytes:
     """One frame's datagrams as pcap records, each at its simulation time."""
-    return writer.records_many([UdpDatagram(d.t_ns, sensor_ip, dest, d.port, d.port,
-                                            bytes(d.payload)) for d in dgs])
+    return b"".join(pcap_parts(writer, dgs, sensor_ip, dest))
+
+
+def pcap_parts(writer: PcapWriter, dgs: list[Datagram], sensor_ip: str, dest: str
+               ) -> list[bytes | memoryview]:
+    """:func:`pcap_records` in pieces (:meth:`~protocols.pcap.PcapWriter.records_parts`),
+    the payloads read where they are."""
+    return writer.records_parts([UdpDatagram(d.t_ns, sensor_ip, dest, d.port, d.port,
+                                             cast(bytes, d.payload)) for d in dgs])
 
 
 SLOTS = 4  # frames produced ahead of the pacing loop

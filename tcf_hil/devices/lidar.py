@@ -22,7 +22,6 @@ import time
 import zipfile
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
-from multiprocessing import connection as mp_connection
 from multiprocessing.connection import wait as mp_wait
 from pathlib import Path
 from typing import Any
@@ -57,11 +56,13 @@ from tcf_hil._io import (
     atomic_path,
     ensure_dir,
     name_process,
+    read_exact,
     write_bytes_atomic,
+    write_gathered,
     write_json_atomic,
 )
 from tcf_hil._rotations import quaternions
-from tcf_hil.devices._ring import SLOTS, FrameRing, PcapTarget, pcap_records
+from tcf_hil.devices._ring import SLOTS, FrameRing, PcapTarget, pcap_parts
 from tcf_hil.devices._sender import SenderProcess
 from tcf_hil.devices.faults import FaultLog
 from tcf_hil.errors import ConfigError
@@ -143,8 +144,21 @@ class RenderAhead:
 RENDER_BLOCK = 10  # frames a render worker renders in a row (a second at 10 Hz)
 RENDER_AHEAD_BLOCKS = 8  # blocks kept waiting for their turn, at the most (at 2048x10, ~30 MB)
 RENDER_SILENT_S = 300.0  # a render worker that makes no frame this long has failed
-_FRAME_NO = struct.Struct("<q")  # before each packed frame a worker sends (-1 its end, -2
-# it failed: the reason follows)
+_FRAME_HEAD = struct.Struct("<qQ")  # before each packed frame a worker sends: its number
+# (-1 the worker's end, -2 it failed: the reason follows) and the bytes that follow
+
+
+def _send_frame(fd: int, k: int, parts: list[Any]) -> None:
+    """A message of :meth:`LidarRun._render_parallel`'s pipes: frame ``k`` and its bytes,
+    written from its pieces as they are (a frame's few megabytes are not joined first)."""
+    write_gathered(fd, [_FRAME_HEAD.pack(k, sum(memoryview(p).nbytes for p in parts)),
+                        *parts])
+
+
+def _recv_frame(fd: int) -> tuple[int, bytearray]:
+    """The next :func:`_send_frame` message on ``fd``, read straight into one buffer."""
+    k, n = _FRAME_HEAD.unpack(read_exact(fd, _FRAME_HEAD.size))
+    return k, read_exact(fd, n)
 
 
 def _widen_pipe(fd: int) -> None:
@@ -155,8 +169,8 @@ def _widen_pipe(fd: int) -> None:
         fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, min(cap, 1 << 20))
 
 
-def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any,
-                 readers: list[Any], end: int, compress: bool = True) -> None:
+def _render_part(run: LidarRun, start: int, i: int, workers: int, fd: int,
+                 readers: list[int], end: int, compress: bool = True) -> None:
     """Renderer ``i`` of ``workers`` of :meth:`LidarRun._render_parallel`: blocks ``i``,
     ``i + workers``, ... of :data:`RENDER_BLOCK` frames from ``start`` to ``end``, each frame
     packed (``compress``; else its record as is) and sent, then its end mark. No fault plan
@@ -166,7 +180,7 @@ def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any,
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when it stops
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     for r in readers:  # the parent's read ends (forked here): with them closed, a parent
-        r.close()  # that is gone breaks this worker's pipe instead of blocking it for ever
+        os.close(r)  # that is gone breaks this worker's pipe instead of blocking it for ever
     parent = os.getppid()
     try:
         caster = run.scene.caster
@@ -175,17 +189,18 @@ def _render_part(run: LidarRun, start: int, i: int, workers: int, conn: Any,
         run.emu.threads = max(1, run.emu.threads // workers)
         a = start + i * RENDER_BLOCK
         while a < end:
-            for k, packed in run.packed_frames(a, min(a + RENDER_BLOCK, end), compress):
+            for rf in run.compact_frames(a, min(a + RENDER_BLOCK, end)):
                 if os.getppid() != parent:
                     return
-                conn.send_bytes(_FRAME_NO.pack(k) + packed)
+                _send_frame(fd, rf.k, [pack_frame(rf, run.ports)] if compress
+                            else rf.encode_parts(run.ports))
             a += workers * RENDER_BLOCK
-        conn.send_bytes(_FRAME_NO.pack(-1))
+        _send_frame(fd, -1, [])
     except BaseException as err:
         with contextlib.suppress(Exception):
-            conn.send_bytes(_FRAME_NO.pack(-2) + f"{type(err).__name__}: {err}".encode())
+            _send_frame(fd, -2, [f"{type(err).__name__}: {err}".encode()])
     finally:
-        conn.close()
+        os.close(fd)
 
 
 def _render_ahead(run: LidarRun, writer: RenderWriter, upto: int, done: Any,
@@ -455,7 +470,7 @@ class LidarRun:
     def render_into_store(self, progress: Callable[[int, int], None] | None = None,
                           workers: int = 1,
                           remote: Callable[[LidarRun, int],
-                                           Generator[tuple[int, bytes], None, None]]
+                                           Generator[tuple[int, bytes | bytearray], None, None]]
                           | None = None) -> int:
         """Every frame of the track rendered into the store (resumed after the last whole
         frame a render cut short kept), unless it is there already; then the run sends from
@@ -489,7 +504,7 @@ class LidarRun:
         self.keep_poses = False  # the store keeps the poses; this run's bookkeeping not
         try:
             self.writer = writer
-            blocks: Generator[tuple[int, bytes], None, None] | None = None
+            blocks: Generator[tuple[int, bytes | bytearray], None, None] | None = None
             if remote is not None:
                 if not self.parallel_render():
                     raise ConfigError("executor", "a remote one", "local: a render with "
@@ -532,7 +547,8 @@ class LidarRun:
         self._scene_facts()
 
     def _render_parallel(self, start: int, workers: int, end: int | None = None,
-                         compress: bool = True) -> Generator[tuple[int, bytes], None, None]:
+                         compress: bool = True
+                         ) -> Generator[tuple[int, bytes | bytearray], None, None]:
         """Frames ``start`` .. ``end`` (default: the track's last) of the track, packed
         (:func:`pack_frame`; without ``compress``, their records as
         :meth:`RenderedFrame.encode` makes them), in order, from
@@ -545,19 +561,20 @@ class LidarRun:
         end = self.track_frames if end is None else end
         self.emu.warm_up()  # the scene and the kernels made once, here: the workers share them
         procs: list[Any] = []
-        conns: list[Any] = []
+        conns: list[int] = []  # the read ends of the workers' pipes
         try:
             for i in range(workers):
-                r, w = ctx.Pipe(duplex=False)
-                _widen_pipe(w.fileno())
-                proc = ctx.Process(target=_render_part, name=f"lidar-render-{i}", daemon=True,
-                                   args=(self, start, i, workers, w, [*conns, r], end,
-                                         compress))
-                proc.start()
-                w.close()
-                procs.append(proc)
+                r, w = os.pipe()
                 conns.append(r)
-            pending: dict[int, bytes] = {}
+                _widen_pipe(w)
+                proc = ctx.Process(target=_render_part, name=f"lidar-render-{i}", daemon=True,
+                                   args=(self, start, i, workers, w, conns, end, compress))
+                try:
+                    proc.start()
+                finally:
+                    os.close(w)
+                procs.append(proc)
+            pending: dict[int, bytearray] = {}
             ended: set[int] = set()
             nxt, last = start, time.monotonic()
             while nxt < end:
@@ -577,22 +594,21 @@ class LidarRun:
                     raise RuntimeError(f"render worker {owner} made no frame for "
                                        f"{RENDER_SILENT_S:g} s (frame {nxt})")
                 for c in ready:
+                    assert isinstance(c, int)
                     i = conns.index(c)
                     try:
-                        assert isinstance(c, mp_connection.Connection)
-                        msg = c.recv_bytes()
+                        k, msg = _recv_frame(c)
                     except (EOFError, OSError):  # gone without its end mark: killed, crashed
                         procs[i].join(1.0)
                         raise RuntimeError(f"render worker {i} died (exit code "
                                            f"{procs[i].exitcode}) before frame {nxt}") from None
-                    k = _FRAME_NO.unpack_from(msg)[0]
                     if k == -2:
                         raise RuntimeError(f"render worker {i} failed: "
-                                           f"{msg[_FRAME_NO.size:].decode(errors='replace')}")
+                                           f"{msg.decode(errors='replace')}")
                     if k == -1:
                         ended.add(i)
                     else:
-                        pending[k] = msg[_FRAME_NO.size:]
+                        pending[k] = msg
                         last = time.monotonic()
         finally:
             for proc in procs:
@@ -601,7 +617,7 @@ class LidarRun:
             for proc in procs:
                 proc.join(10)
             for c in conns:
-                c.close()
+                os.close(c)
 
     def packed_frames(self, a: int, b: int, compress: bool = True
                       ) -> Iterator[tuple[int, bytes]]:
@@ -610,12 +626,17 @@ class LidarRun:
         :meth:`RenderedFrame.encode` makes them), made now without the ones before (no fault
         plan may run: a frame's bytes then follow from its index alone): a block of a
         parallel render, here or on a Dask worker (:mod:`tcf_hil.devices.dask_render`)."""
+        for rf in self.compact_frames(a, b):
+            yield rf.k, pack_frame(rf, self.ports) if compress else rf.encode(self.ports)
+
+    def compact_frames(self, a: int, b: int) -> Iterator[RenderedFrame]:
+        """Frames ``a`` .. ``b`` - 1 of the track in the store's compact form, made now
+        without the ones before (:meth:`packed_frames`)."""
         if self.lidar_faults is not None or self.udp_faults is not None:
             raise ValueError("a render with fault plans makes every frame in order")
         sensor = self.sensor_at(a)
         for k in range(a, b):
-            rf = self._compact(k, sensor.frame(k), sensor.meta.init_id, True)
-            yield k, pack_frame(rf, self.ports) if compress else rf.encode(self.ports)
+            yield self._compact(k, sensor.frame(k), sensor.meta.init_id, True)
 
     def parallel_render(self) -> bool:
         """Whether blocks of this run's frames may be rendered apart (by processes or Dask
@@ -1100,13 +1121,14 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
     flog = FaultLog(out / "faults.jsonl", run.track.t0_ns) \
         if run.udp_faults or run.lidar_faults else None
     try:
-        with atomic_path(out / "lidar.pcap") as tmp, open(tmp, "wb") as fh, \
+        # unbuffered: a frame's records (a few MB) go from their pieces to the file at once
+        with atomic_path(out / "lidar.pcap") as tmp, open(tmp, "wb", buffering=0) as fh, \
                 atomic_path(out / LABELS) as ltmp, open(ltmp, "wb") as lh:
             fh.write(writer.header())
             lh.write(run.labels_header())
             cpus = len(os.sched_getaffinity(0)) if workers is None else workers
             for k, rf in enumerate(run.rendered(cpus)):
-                fh.write(pcap_records(writer, rf.datagrams, sensor_ip, dest))
+                write_gathered(fh.fileno(), pcap_parts(writer, rf.datagrams, sensor_ip, dest))
                 lh.write(rf.labels)
                 if flog is not None:
                     for ev in run.last_events:

@@ -95,6 +95,10 @@ class RenderedFrame:
         """The frame's record (the module docstring's layout); a datagram to ``ports``
         (the lidar and IMU ports the run was made with) is kept as to port 0 or 1, so that a
         render serves runs on any ports."""
+        return b"".join(self.encode_parts(ports))
+
+    def encode_parts(self, ports: tuple[int, int] = (0, 1)) -> list[bytes | memoryview]:
+        """:meth:`encode` in pieces (the payloads as they are), for a gathered write."""
         tag = {ports[0]: 0, ports[1]: 1}
         dg = np.array([(d.t_ns, tag.get(d.port, d.port), len(d.payload))
                        for d in self.datagrams], np.int64).reshape(-1, 3)
@@ -102,11 +106,11 @@ class RenderedFrame:
         head = _HEAD.pack(_MAGIC, self.k, ACTIONS.index(self.action), self.init_id,
                           len(dg), len(self.labels), len(self.poses), len(self.hit_ids),
                           len(ev))
-        parts = [head, dg.astype("<i8").tobytes()]
-        parts += [bytes(d.payload) for d in self.datagrams]
+        parts: list[bytes | memoryview] = [head, dg.astype("<i8").tobytes()]
+        parts += [d.payload for d in self.datagrams]
         parts += [self.labels, self.poses, self.hit_ids.astype("<i8").tobytes(),
                   self.hit_counts.astype("<i8").tobytes(), ev]
-        return b"".join(parts)
+        return parts
 
     @classmethod
     def decode(cls, buf: Any, offset: int, source: str = "frames.bin",
@@ -308,7 +312,7 @@ class RenderWriter:
         """``rf``, the next frame, made with the lidar and IMU ``ports``."""
         self.append_packed(rf.k, pack_frame(rf, ports))
 
-    def append_packed(self, k: int, z: bytes) -> None:
+    def append_packed(self, k: int, z: bytes | bytearray) -> None:
         """Frame ``k``, the next, as :func:`pack_frame` made it (in any process)."""
         if k != self.frames:
             raise ValueError(f"frame {k} appended after {self.frames} frames")

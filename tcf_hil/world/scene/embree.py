@@ -128,7 +128,7 @@ class EmbreeCaster:
         # a few parts a thread: rays cost by what they meet (a stem's silhouette several
         # times the sky), and two halves of a set of rays are rarely alike
         parts = min(self.PARTS_PER_THREAD * threads, n // self.MIN_RAYS_PER_THREAD)
-        if parts <= 1:
+        if parts <= 1 or threads == 1:  # (one thread: here, with no hand-over)
             self._run(o, d, t, prim, cn)
         else:
             with self._pool_lock:  # casts may come from several threads (column chunks)
