@@ -212,7 +212,7 @@ class PcapWriter:
                 ) -> _Layout:
         """Where each byte of the records of a datagram of ``L`` bytes goes (the same for
         every such datagram but its time stamp, IP id and checksum): kept for the next."""
-        key = (L, src_ip, dst_ip, src_port, dst_port)
+        key = (L, src_ip, dst_ip, src_port, dst_port, self.mtu)
         lay = self._layouts.get(key)
         if lay is not None:
             return lay
@@ -263,6 +263,8 @@ class PcapWriter:
         hi, sh = np.array(id_hi, np.intp), np.array(sum_hi, np.intp)
         lay = _Layout(width, template, np.flatnonzero(fixed), np.array(stamp, np.intp),
                       hi, hi + 1, sh, sh + 1, np.array(base, np.int64), spans)
+        if len(self._layouts) >= 64:  # (a writer sees a few kinds: lidar and IMU packets)
+            self._layouts.clear()
         self._layouts[key] = lay
         return lay
 

@@ -125,7 +125,7 @@ class Os0Sensor:
                 out.append(Datagram(t, ip, encode_imu_packet(ImuPacket(
                     t, t, t, tuple(acc[j].tolist()), tuple(gyro[j].tolist())))))
                 j += 1
-            out.append(Datagram(t_send, lp, memoryview(arr[i])))  # (a frame's own array)
+            out.append(Datagram(t_send, lp, memoryview(arr[i]).toreadonly()))  # (the frame's)
         if len(imu_t):
             self._next_imu = int(imu_t[-1]) + IMU_PERIOD_NS
         return out

@@ -155,9 +155,14 @@ def _send_frame(fd: int, k: int, parts: list[Any]) -> None:
                         *parts])
 
 
+_FRAME_MAX = 1 << 31  # bytes: a message claiming more is no frame (a worker cut off mid-way)
+
+
 def _recv_frame(fd: int) -> tuple[int, bytearray]:
     """The next :func:`_send_frame` message on ``fd``, read straight into one buffer."""
     k, n = _FRAME_HEAD.unpack(read_exact(fd, _FRAME_HEAD.size))
+    if n > _FRAME_MAX or k < -2:
+        raise EOFError(f"not a frame message (frame {k}, {n} bytes)")
     return k, read_exact(fd, n)
 
 
@@ -565,11 +570,12 @@ class LidarRun:
         try:
             for i in range(workers):
                 r, w = os.pipe()
-                conns.append(r)
-                _widen_pipe(w)
-                proc = ctx.Process(target=_render_part, name=f"lidar-render-{i}", daemon=True,
-                                   args=(self, start, i, workers, w, conns, end, compress))
                 try:
+                    conns.append(r)
+                    _widen_pipe(w)
+                    proc = ctx.Process(target=_render_part, name=f"lidar-render-{i}",
+                                       daemon=True,
+                                       args=(self, start, i, workers, w, conns, end, compress))
                     proc.start()
                 finally:
                     os.close(w)
@@ -1124,7 +1130,7 @@ def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
         # unbuffered: a frame's records (a few MB) go from their pieces to the file at once
         with atomic_path(out / "lidar.pcap") as tmp, open(tmp, "wb", buffering=0) as fh, \
                 atomic_path(out / LABELS) as ltmp, open(ltmp, "wb") as lh:
-            fh.write(writer.header())
+            write_gathered(fh.fileno(), [writer.header()])
             lh.write(run.labels_header())
             cpus = len(os.sched_getaffinity(0)) if workers is None else workers
             for k, rf in enumerate(run.rendered(cpus)):

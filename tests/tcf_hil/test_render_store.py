@@ -538,3 +538,60 @@ def test_a_run_streamed_from_a_complete_render_builds_no_scene(tmp_path: Path,
     for r in (first, run):
         assert r.stored is not None
         r.stored.close()
+
+
+def test_a_renderer_that_dies_is_named_with_its_exit_code(tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch
+                                                          ) -> None:
+    """A renderer process that ends mid-render without its end mark (killed, crashed): the
+    render fails naming it and its exit code, and no renderer is left behind."""
+    compact = LidarRun.compact_frames
+
+    def dying(self, a, b):  # type: ignore[no-untyped-def]
+        for rf in compact(self, a, b):
+            yield rf
+            if a >= 10:  # the second renderer, after its first frame
+                os._exit(3)
+
+    monkeypatch.setattr(LidarRun, "compact_frames", dying)
+    run = LidarRun(_blocks(), mode="512x10", max_frames=20)
+    frames = run._render_parallel(0, 2, 20, compress=False)
+    got = []
+    with pytest.raises(RuntimeError, match=r"render worker 1 died \(exit code 3\)"):
+        for k, _ in frames:
+            got.append(k)
+    assert got == list(range(len(got))) and len(got) < 20  # in order, up to the failure
+    import multiprocessing as mp
+    assert not [p for p in mp.active_children() if p.name.startswith("lidar-render")]
+
+
+def test_the_frame_pipe_carries_pieces_and_refuses_what_is_no_frame() -> None:
+    """A frame crosses the renderers' pipe as its pieces (bytes, views of rows, more pieces
+    than one writev takes) and reads back as one buffer; a header that claims more than a
+    frame, or an end mid-message, is the end of that renderer."""
+    import threading
+
+    from tcf_hil.devices import lidar as lidar_mod
+
+    rows = np.arange(3000 * 4, dtype=np.uint32).reshape(3000, 4)
+    parts: list[object] = [b"head", bytearray(b"mid"), b"", *(memoryview(r) for r in rows)]
+    want = b"head" + b"mid" + rows.tobytes()
+    r, w = os.pipe()
+    try:
+        t = threading.Thread(target=lidar_mod._send_frame, args=(w, 7, parts))
+        t.start()
+        k, got = lidar_mod._recv_frame(r)
+        t.join()
+        assert k == 7 and bytes(got) == want
+        os.write(w, lidar_mod._FRAME_HEAD.pack(8, 1 << 40))  # no frame is a terabyte
+        with pytest.raises(EOFError, match="not a frame"):
+            lidar_mod._recv_frame(r)
+        os.write(w, lidar_mod._FRAME_HEAD.pack(9, 100) + bytes(10))
+        os.close(w)
+        w = -1
+        with pytest.raises(EOFError, match="10 of 100 bytes"):
+            lidar_mod._recv_frame(r)
+    finally:
+        os.close(r)
+        if w >= 0:
+            os.close(w)
