@@ -204,6 +204,8 @@ class SensorMetadata:
     prod_pn: str = "840-105000-07"
     build_rev: str = "v3.1.0"
     image_rev: str = "ousteros-image-prod-bootes-v3.1.0"
+    # the emulator's own destination and the sensor's default ports; read from a document
+    # that names none, "" and 0 (as ouster-sdk reads it: "not set")
     udp_dest: str = "127.0.0.1"
     udp_port_lidar: int = 7502
     udp_port_imu: int = 7503
@@ -291,9 +293,6 @@ class SensorMetadata:
                               ("prod_sn", self.prod_sn, 40)):
             if not 0 <= v < 1 << bits:
                 raise MetadataError(f"{name} {v}; expected 0 .. {(1 << bits) - 1}")
-        if not self.udp_dest or not self.udp_port_lidar:
-            raise MetadataError("udp_dest and udp_port_lidar must be set (ouster-sdk turns the "
-                                "profile OFF without them)")
 
     @property
     def columns(self) -> int:
@@ -497,11 +496,21 @@ class SensorMetadata:
         if len(window) != 2 or not all(_is_int(c) and 0 <= c < w for c in window):
             raise MetadataError(f"{ldf_name}.column_window = {_short(window)}; expected two "
                                 f"columns in 0 .. {w - 1}")
-        udp_dest = cp.get("udp_dest", SensorMetadata.udp_dest)
-        port = integer("config_params", "udp_port_lidar", SensorMetadata.udp_port_lidar)
-        if (isinstance(udp_dest, str) and not udp_dest) or port == 0:
-            raise MetadataError("config_params.udp_dest is empty or udp_port_lidar 0: the "
-                                "sensor's lidar profile is OFF (it sends no lidar data)")
+        # Where the sensor sent its data, as ouster-sdk reads it: "" and 0 where the document
+        # names none (a sensor saved before a destination was set, the legacy flat format,
+        # whose files leave the configuration out); firmware 1.12/1.13 called it udp_ip. Who
+        # sends or replays chooses then (a replay sends to 127.0.0.1 and finds the ports in
+        # the capture). Only a lidar profile that is OFF means no lidar data.
+        udp_dest = cp.get("udp_dest", cp.get("udp_ip", ""))
+        if not isinstance(udp_dest, str):
+            raise MetadataError(f"config_params.udp_dest = {_short(udp_dest)}; expected an "
+                                "address (a string)")
+        port = integer("config_params", "udp_port_lidar", 0)
+        for where in (cp, ldf):
+            if where.get("udp_profile_lidar") == "OFF":
+                section = "config_params" if where is cp else ldf_name
+                raise MetadataError(f"{section}.udp_profile_lidar is OFF: the sensor sends no "
+                                    "lidar data")
         transforms = []
         for section, key, default in (("lidar_intrinsics", "lidar_to_sensor_transform",
                                        DEFAULT_LIDAR_TO_SENSOR),
@@ -517,10 +526,9 @@ class SensorMetadata:
             prod_sn=integer("sensor_info", "prod_sn", text_ok=True),
             init_id=integer("sensor_info", "initialization_id"),
             prod_pn=str(si.get("prod_pn", "")), build_rev=str(si.get("build_rev", "")),
-            image_rev=str(si.get("image_rev", "")), udp_dest=str(udp_dest),
+            image_rev=str(si.get("image_rev", "")), udp_dest=udp_dest,
             udp_port_lidar=port,
-            udp_port_imu=integer("config_params", "udp_port_imu",
-                                 SensorMetadata.udp_port_imu),
+            udp_port_imu=integer("config_params", "udp_port_imu", 0),
             beam_altitude_deg=tuple(float(v) for v in alt),
             beam_azimuth_deg=tuple(float(v) for v in az),
             pixel_shift_by_row=tuple(int(v) for v in shift),

@@ -53,6 +53,7 @@ _TIME_KEY = (POSE, 8)
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc")
 _CHECK_BATCH = 256  # lidar packets checked at once
 _MAX_STRAYS = 1000  # lidar packets that do not fit before one does: the metadata is wrong
+_GUESS_SAMPLE = 4096  # UDP datagrams read to find ports the metadata leaves at 0
 
 
 def find_metadata(pcap: Path) -> Path:
@@ -111,6 +112,9 @@ class Recording:
     # a field CAN log's SDO answers: the node that gave them and the values
     sdo_node: int | None = None
     sdo_values: dict[tuple[int, int], bytes] = field(default_factory=dict)
+    # the ports found in the capture where the metadata names none (udp_port_lidar or
+    # udp_port_imu 0: a sensor saved before they were set, a legacy flat file); None: as named
+    guessed_ports: tuple[int, int] | None = None
 
     @property
     def is_run(self) -> bool:
@@ -136,6 +140,8 @@ class Recording:
             rec.can_clock = (0, -round(can_offset_s * 1e9), 1.0)
         if rec.can_log is not None:
             _check_can_log(rec.can_log)
+        if not rec.meta.udp_port_lidar or not rec.meta.udp_port_imu:
+            rec._guess_ports()
         rec._scan(progress)
         return rec
 
@@ -299,6 +305,37 @@ class Recording:
                              f"not a readable CAN log: {_first_line(err)}") from err
         if not self.is_run:
             self.sdo_node, self.sdo_values = recorded_sdo(iter(frames))
+
+    def _guess_ports(self, sample: int = _GUESS_SAMPLE) -> None:
+        """The ports the metadata leaves at 0, found in the capture's first ``sample`` UDP
+        datagrams as ouster-sdk guesses them for a pcap: the lidar port the one most of the
+        datagrams that fit the metadata's lidar packet (its size, then the packet check) go
+        to, the IMU port the one most IMU-sized datagrams go to (0 where there are none)."""
+        meta, crc = self.meta, fast_crc_rows()
+        lidar: Counter[int] = Counter()
+        imu: Counter[int] = Counter()
+        size = meta.packet_format.packet_bytes
+        try:
+            with open(self.pcap, "rb") as f:
+                for i, d in enumerate(UdpReader(f)):
+                    if i == sample:
+                        break
+                    if len(d.payload) == IMU_PACKET_BYTES:
+                        imu[d.dst_port] += 1
+                    elif len(d.payload) == size and self._misfit(d.payload, crc) is None:
+                        lidar[d.dst_port] += 1
+        except PcapError as err:
+            raise InputError(str(self.pcap), "", str(err)) from err
+        except OSError as err:
+            raise InputError(str(self.pcap), "", err.strerror or str(err)) from err
+        lp = meta.udp_port_lidar or (lidar.most_common(1)[0][0] if lidar else 0)
+        if not lp:
+            raise InputError(str(self.pcap), "", (
+                "the metadata names no udp_port_lidar and no datagram in the capture's "
+                f"first {sample} fits its lidar packets ({meta.profile}, {size} bytes)"))
+        ip = meta.udp_port_imu or (imu.most_common(1)[0][0] if imu else 0)
+        self.guessed_ports = (lp, ip)
+        self.meta = meta.with_changes(udp_port_lidar=lp, udp_port_imu=ip)
 
     def _misfit(self, payload: bytes, crc: Any) -> str | None:
         """Why a lidar packet does not fit the metadata (None: it fits)."""

@@ -92,7 +92,10 @@ class ReplayTraffic:
         if dest is None and not _loopback(recorded):
             dest = "127.0.0.1"  # a field recording's udp_dest is the field computer's
         self.note = "" if dest is None or dest == recorded else \
-            f" (recorded udp_dest {recorded}: --dest to change)"
+            f" (recorded udp_dest {recorded or 'not set'}: --dest to change)"
+        if rec.guessed_ports is not None:
+            self.note += (f" (the metadata names no ports; the capture's: lidar "
+                          f"{rec.guessed_ports[0]}, IMU {rec.guessed_ports[1] or 'none'})")
         if dest is not None:
             self.rec.meta = self.rec.meta.with_changes(udp_dest=dest)
         self.meta_served = self.rec.meta

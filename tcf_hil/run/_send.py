@@ -35,7 +35,7 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
     pacer = Pacer(speed)  # read (events), pace (the pacer the live stream uses), send
     rec = rec or Recording.load(run_dir)
     stop = stop or threading.Event()
-    dest = dest or rec.meta.udp_dest
+    dest = dest or rec.meta.udp_dest or "127.0.0.1"  # (a document may name none)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
     sock.bind((sensor_ip, 0))

@@ -565,7 +565,7 @@ class OnboardSic:
         # frame (a second or two where numba's cache is cold), they would hold it up
         warm_voxel_sets()
         meta = self.meta = load_metadata(cfg)
-        port = cfg.lidar_port or meta.udp_port_lidar
+        port = cfg.lidar_port or meta.udp_port_lidar or 7502  # (the sensor's default port)
         track = PoseTrack()
         # on the bus first (imports, connection), then listen for lidar: a bench may start
         # the stream once the port is bound; the datum and mount come from the node by SDO

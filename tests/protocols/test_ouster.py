@@ -150,7 +150,7 @@ def test_missing_keys_take_the_sdks_defaults(drop: str) -> None:
     # a legacy document with one nested section is neither format
     (lambda d: d.__setitem__("calibration_status", {}), "lacks section(s) sensor_info"),
     (lambda d: (d.pop("data_format"), d.pop("lidar_mode")), "columns_per_frame is missing"),
-    (lambda d: d.__setitem__("udp_port_lidar", 0), "OFF"),
+    (lambda d: d["data_format"].__setitem__("udp_profile_lidar", "OFF"), "OFF"),
 ])
 def test_legacy_metadata_the_sdk_refuses_is_one_line_naming_the_field(
         mutate: object, needle: str) -> None:
@@ -163,6 +163,59 @@ def test_legacy_metadata_the_sdk_refuses_is_one_line_naming_the_field(
     if needle != "OFF":  # ouster-sdk reads it, profile OFF: nothing to decode
         with pytest.raises(RuntimeError, match="Critical"):
             core.SensorInfo(json.dumps(flat))
+
+
+def _sdk_destination(text: str) -> tuple[str, int, int]:
+    c = core.SensorInfo(text).config
+    return c.udp_dest or "", c.udp_port_lidar or 0, c.udp_port_imu or 0
+
+
+def _no_dest(d: dict) -> None:  # saved before a destination was set (firmware 2.1.2's file)
+    d["config_params"].update(udp_dest="", udp_ip="")
+
+
+def _no_ports(d: dict) -> None:
+    del d["config_params"]["udp_port_lidar"], d["config_params"]["udp_port_imu"]
+
+
+def _udp_ip(d: dict) -> None:  # firmware 1.12/1.13 named the destination udp_ip
+    d["config_params"]["udp_ip"] = d["config_params"].pop("udp_dest")
+
+
+def _port_zero(d: dict) -> None:
+    d["config_params"]["udp_port_lidar"] = 0
+
+
+@pytest.mark.parametrize("profile", ["LEGACY", "RNG19_RFL8_SIG16_NIR16"])
+@pytest.mark.parametrize("change", [_no_dest, _no_ports, _udp_ip, _port_zero],
+                         ids=["empty udp_dest", "no ports", "udp_ip", "udp_port_lidar 0"])
+@pytest.mark.parametrize("legacy", [False, True], ids=["nested", "legacy flat"])
+def test_a_document_without_a_destination_reads_to_the_sdks_values(
+        profile: str, change: object, legacy: bool) -> None:
+    """An empty udp_dest, ports left out or 0: read as ouster-sdk reads them ("" and 0: not
+    set; the replay chooses), every other value as before. The profile stays the document's:
+    ouster-sdk 1.0.1 turns it OFF where udp_dest is empty or udp_port_lidar 0
+    (``metadata.cpp``), which would leave a recording made that way nothing to decode."""
+    m = o.os0_64_metadata("1024x10", profile, udp_dest="169.254.12.34")
+    doc = m.to_json()
+    change(doc)  # type: ignore[operator]
+    if legacy:
+        cp = doc["config_params"]
+        doc = _legacy({**doc, "config_params": {"lidar_mode": cp["lidar_mode"],
+                                                "udp_port_lidar": cp.get("udp_port_lidar"),
+                                                "udp_port_imu": cp.get("udp_port_imu")}})
+        doc = {k: v for k, v in doc.items() if v is not None}
+    text = json.dumps(doc)
+    got = o.SensorMetadata.loads(text)
+    assert (got.udp_dest, got.udp_port_lidar, got.udp_port_imu) == _sdk_destination(text)
+    assert _our_values(got) == _our_values(m)
+    cp = doc.get("config_params", doc)
+    sdk_off = ("udp_port_lidar" in cp and got.udp_port_lidar == 0) or (
+        ("udp_dest" in cp or "udp_ip" in cp) and got.udp_dest == "")
+    assert _sdk_values(text)[3] == ("OFF" if sdk_off else profile)
+    assert got.profile == profile
+    assert got.packet_format == m.packet_format  # what a replay decodes with
+    assert o.SensorMetadata.loads(got.dumps()) == got  # and written back as read
 
 
 def test_pixel_shifts_scale_with_columns() -> None:
@@ -181,7 +234,9 @@ def test_pixel_shifts_scale_with_columns() -> None:
      "udp_profile_lidar"),
     (lambda d: d["lidar_data_format"].__setitem__("columns_per_frame", 1000), "lidar_mode"),
     (lambda d: d["sensor_info"].__setitem__("prod_sn", "abc"), "prod_sn"),
-    (lambda d: d["config_params"].__setitem__("udp_dest", ""), "udp_dest"),
+    (lambda d: d["config_params"].__setitem__("udp_dest", 7), "udp_dest"),
+    (lambda d: d["config_params"].__setitem__("udp_profile_lidar", "OFF"),
+     "config_params.udp_profile_lidar is OFF"),
     (lambda d: d["lidar_intrinsics"].__setitem__("lidar_to_sensor_transform", [1, 2]),
      "lidar_to_sensor_transform"),
 ])
@@ -413,8 +468,10 @@ def test_ouster_sdk_reads_what_each_emulated_firmware_writes(version: str, profi
                                                              ) -> None:
     m = o.os0_64_metadata("1024x10", profile, firmware=version)
     text = m.dumps()
-    assert ("data_format" in json.loads(text)) == (version < "3.0")  # the legacy flat file
-    assert o.SensorMetadata.loads(text) == m
+    legacy = version < "3.0"
+    assert ("data_format" in json.loads(text)) == legacy  # the legacy flat file
+    # which names no destination (ouster-sdk's legacy files keep the mode and the ports)
+    assert o.SensorMetadata.loads(text) == (m.with_changes(udp_dest="") if legacy else m)
     assert _our_values(o.SensorMetadata.loads(text)) == _sdk_values(text)
     info = core.SensorInfo(text)
     assert info.image_rev == m.image_rev and f"v{version}.0" in info.image_rev

@@ -163,6 +163,53 @@ def test_every_profile_replays_byte_for_byte(tmp_path: Path, layout: tuple[str, 
                                       "refused": 0}
 
 
+@pytest.mark.parametrize("doc_kind", ["nested", "legacy flat"])
+def test_a_recording_whose_metadata_names_no_destination_replays(tmp_path: Path,
+                                                                 doc_kind: str) -> None:
+    """A sensor saved before a destination was set (ouster-sdk's 2_1_2 file: udp_dest ""),
+    its ports not named either: read as ouster-sdk reads it, the ports found in the capture
+    (here not the defaults), sent to loopback byte for byte."""
+    pcap, m, sent = make_recording(tmp_path, "LEGACY", udp_port_lidar=7602, udp_port_imu=7603)
+    doc = m.to_json()
+    doc["config_params"].update(udp_dest="", udp_ip="")
+    del doc["config_params"]["udp_port_lidar"], doc["config_params"]["udp_port_imu"]
+    if doc_kind == "legacy flat":
+        doc = o.legacy_metadata(doc)
+    (tmp_path / "drive.json").write_text(json.dumps(doc))
+    rec = Recording.load(pcap)
+    assert (rec.meta.udp_dest, rec.guessed_ports) == ("", (7602, 7603))
+    assert rec.counts["lidar"] == sum(p == 7602 for p, _b in sent)
+    lidar, imu = _udp_socket(), _udp_socket()
+    port = lidar.getsockname()[1]
+    got: list[tuple[int, bytes]] = []
+    stop = threading.Event()
+    rx = threading.Thread(target=_receive, args=([lidar, imu], got, stop))
+    rx.start()
+    try:
+        r = replay_run(pcap, None, None, lead_s=0.0, sensor_ip="127.0.0.1", http_port=0,
+                       ports=(port, imu.getsockname()[1]))
+        deadline = time.monotonic() + 5
+        while len(got) < len(sent) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        stop.set()
+        rx.join()
+        lidar.close()
+        imu.close()
+    assert [b for p, b in got if p == port] == [b for p, b in sent if p == 7602]
+    assert r.manifest.replay_sent["lidar"] == sum(p == 7602 for p, _b in sent)
+
+
+def test_metadata_that_names_no_ports_and_fits_no_packet_is_one_line(tmp_path: Path) -> None:
+    pcap, m, _sent = make_recording(tmp_path, "LEGACY")
+    doc = o.os0_64_metadata("512x10", "RNG19_RFL8_SIG16_NIR16").to_json()  # another profile
+    del doc["config_params"]["udp_port_lidar"]
+    (tmp_path / "drive.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="names no udp_port_lidar") as err:
+        Recording.load(pcap)
+    assert "\n" not in str(err.value) and "drive.pcap" in str(err.value)
+
+
 def test_a_field_recording_with_a_candump_log_replays_through_the_cli(tmp_path: Path) -> None:
     """pcapng with other traffic, the metadata found beside it, a candump log on a real CAN
     bus between the packets, the recorded document on the HTTP API, sent to loopback
