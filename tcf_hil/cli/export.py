@@ -13,7 +13,8 @@ from tcf_hil.cli._shared import Progress, console, err_console
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="File to write; its suffix picks what and how: .las .laz .ply .pcd (the "
-                   "cloud), .geojson .csv (the stems).")
+                   "cloud), .geojson .csv (the stems), .mcap (the whole run for Foxglove: "
+                   "cloud, transforms, track, stems, score over time).")
 @click.option("--every", type=click.IntRange(min=1), default=1, show_default=True,
               help="Cloud: keep every N-th frame (a long run's cloud is large; 10 keeps one "
                    "frame a second at 10 Hz).")
@@ -39,8 +40,15 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
     with its outcome (correct, misclassified, missed_seen, missed_unseen; matched,
     false_positive), DBH and height true and observed, and its distance from the track.
 
+    The run for Foxglove (.mcap): every frame's cloud coloured by what it hit, the sensor's
+    pose (/tf), the track, the ground-truth stems and each of the SIC's publications as
+    cylinders coloured by outcome, and its score, at the times they had in the run (the
+    topics: README, "Foxglove"), and beside it NAME.layout.json, a Foxglove layout for it
+    (Layouts, Import from file).
+
     \b
     Examples:
+      tcf-hil export runs/forest-v --out forest-v.mcap
       tcf-hil export runs/forest-v --out forest-v.laz --epsg 3067
       tcf-hil export runs/forest-v --out stems.geojson --epsg 3067
       tcf-hil export runs/forest-v --out stems.csv --stems truth
@@ -48,6 +56,17 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
     from tcf_hil.results.export import export
 
     suffix = out.suffix.lower()
+    if suffix == ".mcap":
+        if epsg is not None:
+            raise click.BadParameter("applies to .las, .laz and .geojson (.mcap has no place "
+                                     "for a coordinate system)", param_hint="--epsg")
+        from tcf_hil.results.foxglove import write_mcap
+
+        with Progress(f"export {out.name}", total=None, keep=False) as bar:
+            m = write_mcap(run_dir, out, every=every, progress=bar.counter)
+        console.print(f"{m.frames:,} frames ({m.points:,} points), {m.publications} "
+                      f"publications -> {m.path} (Foxglove layout: {m.layout})")
+        return
     if epsg is not None and suffix not in (".las", ".laz", ".geojson"):
         raise click.BadParameter(f"applies to .las, .laz and .geojson ({suffix or 'no suffix'} "
                                  "has no place for a coordinate system)", param_hint="--epsg")

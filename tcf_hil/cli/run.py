@@ -225,11 +225,20 @@ def _print_side_by_side(a: Any, b: Any, preset: str) -> None:
                                  "height_m,class]) [default: the run directory's].")
 @fault_option
 @sensor_option
+@click.option("--foxglove", "foxglove_port", type=click.IntRange(0, 65535), is_flag=False,
+              flag_value=8765, default=None, metavar="[PORT]",
+              help="Serve the run live to Foxglove (its WebSocket protocol, on 127.0.0.1, "
+                   "port 8765 unless given; 0: a free one): the current frame's cloud "
+                   "coloured by what it hit, the sensor's pose, the track, the ground-truth "
+                   "stems and the SIC's latest, coloured by outcome, and the live score. "
+                   "Open connection in Foxglove, ws://127.0.0.1:PORT; the layout is "
+                   "tcf_hil/report_assets/foxglove-layout.json.")
 def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, profile: str,
             seed: int | None, out: Path | None, speed: float, duration: float | None,
             can_spec: str, grace: float, ready_s: float, replay_dir: Path | None,
             meta: Path | None, can_log: Path | None, can_offset: float, truth: Path | None,
-            faults: tuple[str, ...], sensor: str | None, render: str) -> None:
+            faults: tuple[str, ...], sensor: str | None, render: str,
+            foxglove_port: int | None) -> None:
     """A hardware-in-the-loop run of an onboard SIC program against SCENARIO.
 
     \b
@@ -267,6 +276,10 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
         raise click.BadParameter(str(err), param_hint="--sic") from err
     if replay_dir is None and (truth or meta or can_log):
         raise click.UsageError("--truth, --meta and --can-log go with --replay RECORDING")
+    if replay_dir is not None and foxglove_port is not None:
+        raise click.UsageError("--foxglove shows a live run (its world: the track and the "
+                               "truth); a recording goes to Foxglove with tcf-hil export "
+                               "RUN --out run.mcap")
     out = run_dir(out)
     if replay_dir is not None:
         src = replay_dir
@@ -282,10 +295,37 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
                                "RECORDING")
     scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     announce_backend()
-    finish(_session(lambda stop, say, live: run_bridge(
-        scn, command, out, mode=mode, profile=profile, seed=seed, speed=speed,
-        duration_s=duration, can=can_spec, shell=shell, grace_s=grace, ready_s=ready_s,
-        stop=stop, announce=say, watch=live.watch, render=render), out))
+    view = _foxglove_view(foxglove_port)
+
+    def watch(live: Any) -> Any:
+        if view is None:
+            return live.watch
+        return lambda fig: (live.watch(fig), view.watch(fig))
+
+    try:
+        finish(_session(lambda stop, say, live: run_bridge(
+            scn, command, out, mode=mode, profile=profile, seed=seed, speed=speed,
+            duration_s=duration, can=can_spec, shell=shell, grace_s=grace, ready_s=ready_s,
+            stop=stop, announce=say, watch=watch(live), render=render), out))
+    finally:
+        if view is not None:
+            view.close()
+
+
+def _foxglove_view(port: int | None) -> Any:
+    """The run's live view in Foxglove (None: not asked for)."""
+    if port is None:
+        return None
+    from tcf_hil.results.foxglove import LiveView
+
+    try:
+        view = LiveView(port)
+    except Exception as err:  # (foxglove-sdk raises its own error for a taken port)
+        raise click.BadParameter(f"cannot serve on 127.0.0.1:{port}: {err}",
+                                 param_hint="--foxglove") from err
+    err_console.print(f"Foxglove: ws://127.0.0.1:{view.port} (Open connection, Foxglove "
+                      "WebSocket; the layout: tcf_hil/report_assets/foxglove-layout.json)")
+    return view
 
 
 @click.command("replay")

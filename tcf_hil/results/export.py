@@ -43,6 +43,7 @@ row or point feature each, with the outcome of scoring (:func:`stem_outcomes`).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import itertools
@@ -220,8 +221,10 @@ class _Poses:
         return self.p[i]
 
 
-class _Labels:
-    """``lidar_labels.bin`` walked alongside the capture (both in send order)."""
+class LabelsReader:
+    """``lidar_labels.bin`` walked alongside the capture (both in send order); a reader that
+    follows a growing file opens it afresh each time (a record cut short at the end is not
+    read yet)."""
 
     def __init__(self, path: Path, meta: SensorMetadata) -> None:
         self.path = path
@@ -346,7 +349,7 @@ def run_cloud(run_dir: str | Path, *, every: int = 1,
     meta = _load_meta(run)
     fmt = meta.packet_format
     clock = _clock(run)
-    labels = _Labels(run / "lidar_labels.bin", meta) \
+    labels = LabelsReader(run / "lidar_labels.bin", meta) \
         if (run / "lidar_labels.bin").exists() else None
     try:
         poses = _Poses(run / "sensor_poses.csv")
@@ -367,19 +370,12 @@ def run_cloud(run_dir: str | Path, *, every: int = 1,
 
 
 def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | None,
-            labels: _Labels | None, poses: _Poses, every: int,
+            labels: LabelsReader | None, poses: _Poses, every: int,
             progress: Callable[[int, int], None] | None,
             sample: tuple[int, int] | None = None) -> Iterator[NDArray[np.void]]:
     pcap = run / "lidar.pcap"
     size = pcap.stat().st_size
-    origins, dirs = beam_rays(meta)
-    n_off = meta.lidar_origin_to_beam_origin_mm / 1000.0
-    H = fmt.pixels_per_column
-    names = set(fmt.field_names)
-    dual = "RANGE2" in names
-    # Ouster's calibrated reflectivity is 0-255 in every profile (an 8-bit field, or the low
-    # byte of LEGACY's 16 bits: Ouster's sensor docs, "Calibrated Reflectivity")
-    scale = 256
+    decoder = FrameDecoder(meta, clock)
     asm = FrameAssembler(fmt, column_window=getattr(meta, "column_window", None))
     port = meta.udp_port_lidar
     try:
@@ -411,8 +407,7 @@ def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | 
                 frames = (fr for k, fr in enumerate(assembled()) if k % every == 0)
                 skip = False
             for fr in frames:
-                pts = _frame_points(fr, fmt, meta, origins, dirs, n_off, H, dual, scale,
-                                    clock, labels, poses, pcap, skip)
+                pts = decoder.points(fr, poses, labels, pcap, skip)
                 if len(pts):
                     yield pts
         if progress:
@@ -421,6 +416,37 @@ def _frames(run: Path, meta: SensorMetadata, fmt: Any, clock: tuple[int, int] | 
         poses.close()
         if labels is not None:
             labels.close()
+
+
+def last_frame(pcap: Path, meta: SensorMetadata) -> Any | None:
+    """The last whole lidar frame of a libpcap capture that is being written (a live view
+    of a run): assembled from a window of about the last three frames' bytes, read from the
+    first record boundary in it (:func:`libpcap_resync`). None: no whole frame yet."""
+    fmt = meta.packet_format
+    packets = fmt.columns_per_frame // fmt.columns_per_packet
+    frame_bytes = packets * (fmt.packet_bytes + 16 + 42 * (fmt.packet_bytes // 1400 + 1))
+    try:
+        size = pcap.stat().st_size
+        with open(pcap, "rb") as fh:
+            head = fh.read(24)
+            if len(head) < 24 or head[:4] not in LIBPCAP_MAGICS:
+                return None
+            at = max(24, size - (3 * frame_bytes + (1 << 16)))
+            fh.seek(at)
+            buf = fh.read(size - at)
+    except OSError:
+        return None
+    p = 0 if at == 24 else libpcap_resync(head, buf)
+    if p is None:
+        return None
+    asm = FrameAssembler(fmt, column_window=getattr(meta, "column_window", None))
+    got: list[Any] = []
+    with contextlib.suppress(PcapError):  # the window's cut end
+        for d in UdpReader(io.BytesIO(head + buf[p:])):
+            if d.dst_port == meta.udp_port_lidar:
+                got.extend(asm.feed(d.payload))  # each whole, or ended by the next one
+    # the window's first frame began before it; the last one fed may still be growing
+    return got[-1] if len(got) >= 2 or (got and at == 24) else None
 
 
 def _sampled(fh: BinaryIO, head: bytes, size: int, port: int, fmt: Any,
@@ -455,9 +481,34 @@ def _sampled(fh: BinaryIO, head: bytes, size: int, port: int, fmt: Any,
             yield fr
 
 
+class FrameDecoder:
+    """A capture's assembled frames as world points (:data:`CLOUD_DTYPE`), what
+    :func:`run_cloud` does frame by frame, for readers with poses and labels of their own (a
+    live view following a run as it is written). ``clock``: (sim_t0_ns, unix_ns_at_sim_t0)
+    for GPS time (None: simulation seconds)."""
+
+    def __init__(self, meta: SensorMetadata, clock: tuple[int, int] | None = None) -> None:
+        self.meta, self.fmt, self.clock = meta, meta.packet_format, clock
+        self.origins, self.dirs = beam_rays(meta)
+        self.n_off = meta.lidar_origin_to_beam_origin_mm / 1000.0
+        self.dual = "RANGE2" in set(self.fmt.field_names)
+        # Ouster's calibrated reflectivity is 0-255 in every profile (an 8-bit field, or the
+        # low byte of LEGACY's 16 bits: Ouster's sensor docs, "Calibrated Reflectivity")
+        self.scale = 256
+
+    def points(self, fr: Any, poses: Any, labels: LabelsReader | None = None,
+               source: Path = Path("lidar.pcap"), skip: bool = False) -> NDArray[np.void]:
+        """Frame ``fr``'s returns. ``poses``: ``at(ts)`` gives the sensor pose (n, 7: x, y,
+        z, qw, qx, qy, qz, world) at column times ``ts``, ``first_t`` the first pose's time
+        (earlier frames: none) and ``skip_to(t)``; ``labels``: what each return hit."""
+        return _frame_points(fr, self.fmt, self.meta, self.origins, self.dirs, self.n_off,
+                             self.fmt.pixels_per_column, self.dual, self.scale, self.clock,
+                             labels, poses, source, skip)
+
+
 def _frame_points(fr: Any, fmt: Any, meta: SensorMetadata, origins: NDArray[np.float64],
                   dirs: NDArray[np.float64], n_off: float, H: int, dual: bool, scale: int,
-                  clock: tuple[int, int] | None, labels: _Labels | None,
+                  clock: tuple[int, int] | None, labels: LabelsReader | None,
                   poses: _Poses, pcap: Path, skip: bool = False) -> NDArray[np.void]:
     want = ["RANGE", "REFLECTIVITY"] + (["RANGE2", "REFLECTIVITY2"] if dual else [])
     try:
@@ -653,6 +704,60 @@ def track_xy(run: Path, step: int = 64) -> NDArray[np.float64]:
     return np.array(xy).reshape(-1, 2)
 
 
+def sensor_poses(run: Path, step: int = 256) -> NDArray[np.float64]:
+    """Every ``step``-th row of ``sensor_poses.csv`` (and the last) as (n, 9): time (ns,
+    the run's simulation clock), x, y, z, qw, qx, qy, qz and the row's Unix time (ns; the
+    simulation time where the run has no clock)."""
+    path = run / "sensor_poses.csv"
+    if not path.exists():
+        return np.zeros((0, 9))
+    lines = path.read_bytes().split(b"\n")[1:]  # (split at C speed; few rows parsed)
+    while lines and not lines[-1].strip():
+        lines.pop()
+    pick = lines[::step] + ([lines[-1]] if lines and (len(lines) - 1) % step else [])
+    rows = []
+    for r in pick:
+        f = r.split(b",")
+        if len(f) == 8:
+            try:
+                rows.append([float(v) for v in f])
+            except ValueError:
+                continue
+    out = np.zeros((len(rows), 9))
+    if rows:
+        out[:, :8] = rows
+        clock = _clock(run)
+        out[:, 8] = out[:, 0] if clock is None else clock[1] + (out[:, 0] - clock[0])
+    return out
+
+
+def publication_outcomes(run_dir: str | Path, publication: Path,
+                         gt_doc: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+    """The stems of one of the SIC's publications (``sic/NNNN.json``) with their outcome
+    (``matched``, ``false_positive``) as the run's scoring matches them."""
+    run = Path(run_dir)
+    scored = scored_forest(run, gt_doc, publication=publication)
+    return _sic_rows(scored, track_xy(run))
+
+
+def live_outcomes(gt_doc: dict[str, Any], publication: Path, track: NDArray[np.float64],
+                  cfg: EvalConfig | None = None
+                  ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The truth's stems and one publication's with their outcomes, for a view while the run
+    is under way (``track``: the track's (n, 2) points; ``gt_doc`` without return counts:
+    a stem not matched yet is ``missed_seen``)."""
+    from tcf_hil.evaluation import EvalConfig
+    from tcf_hil.evaluation.scoring import ScoredForest, score_forest
+    from tcf_hil.recording.stems_json import stem_table
+
+    cfg = cfg or EvalConfig()
+    obs_doc = read_json(publication)
+    obs = stem_table(obs_doc, str(publication), "observed")
+    scored = ScoredForest(score_forest(gt_doc, obs, cfg, "ground truth"), obs, obs_doc, gt_doc,
+                          cfg)
+    return _truth_rows(scored, track), _sic_rows(scored, track)
+
+
 def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
                   track: NDArray[np.float64] | None = None, scored: ScoredForest | None = None
                   ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
@@ -679,10 +784,11 @@ def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
     return _truth_rows(scored, track), _sic_rows(scored, track)
 
 
-def scored_forest(run_dir: str | Path, gt_doc: dict[str, Any] | None = None) -> ScoredForest:
+def scored_forest(run_dir: str | Path, gt_doc: dict[str, Any] | None = None, *,
+                  publication: Path | None = None) -> ScoredForest:
     """The final forest of the run in ``run_dir`` scored again from its files: the truth
     (``gt_doc``, else ground_truth.json or inventory.csv), the publication ``score.json``
-    names and the configuration it was scored with."""
+    names (or ``publication``) and the configuration it was scored with."""
     from tcf_hil.evaluation.scoring import ScoredForest, empty_forest, score_forest
     from tcf_hil.recording.stems_json import stem_table
 
@@ -693,7 +799,10 @@ def scored_forest(run_dir: str | Path, gt_doc: dict[str, Any] | None = None) -> 
     n_pub = score.get("scored_publication")
     obs = empty_forest()
     obs_doc: dict[str, Any] = {"objects": []}
-    if n_pub is not None:
+    if publication is not None:
+        obs_doc = read_json(publication)
+        obs = stem_table(obs_doc, str(publication), "observed")
+    elif n_pub is not None:
         pub = next((p for p in sorted((run / "sic").glob("*.json"))
                     if p.stem.isdigit() and int(p.stem) == int(n_pub)), None)
         if pub is None:

@@ -17,7 +17,7 @@ import contextlib
 import multiprocessing as mp
 import os
 import signal
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +50,12 @@ class LiveFigures:
     wc_all: float | None = None
     f1_all: float | None = None
     scored: int | None = None
+    #: the latest valid publication's number (None: none yet)
+    latest_publication: int | None = None
+    #: the run directory (None: a run that records nothing) and the run's world (a live
+    #: run's :class:`~tcf_hil.world.World`; None for recorded traffic): for live views
+    run_dir: Path | None = field(default=None, repr=False)
+    world: Any = field(default=None, repr=False)
 
     def line(self) -> str:
         """One line for a terminal, e.g. ``sim 31.2/100.0 s · frames 312/1000, lost 2 ·

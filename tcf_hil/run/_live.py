@@ -373,6 +373,7 @@ class LiveTraffic:
 
     def figures(self, fig: LiveFigures) -> None:
         run = self.run
+        fig.world = self.world
         fig.sim_total_s = run.frames / run.meta.frequency_hz
         clock = self.late.clock
         fig.frames_sent, fig.frames_total = self.frames_done, run.frames

@@ -201,11 +201,13 @@ class _Live:
         if self.watch is None:
             return
         fig, inbox = self.fig, self.inbox
+        fig.run_dir = self.out
         self.traffic.figures(fig)
         if inbox is not None:
             items = list(inbox.items)  # one snapshot: the server thread appends
             valid = [p for p in items if p.valid]
             fig.publications, fig.invalid = len(items), len(items) - len(valid)
+            fig.latest_publication = valid[-1].n if valid else None
             if self.score is not None:
                 if valid and offer:
                     assert self.out is not None

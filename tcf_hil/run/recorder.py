@@ -32,11 +32,13 @@ class Publication:
     objects: int | None
     table: StemTable | None = field(default=None, repr=False)
     doc: dict[str, Any] | None = field(default=None, repr=False)  # the latest's, with its table
+    unix_ns: int | None = None  # when it arrived, on the clock the capture's times keep
 
     def index_row(self) -> dict[str, Any]:
         return {"n": self.n, "file": self.file, "via": self.via,
                 "arrival_s": round(self.arrival_s, 6), "bytes": self.bytes,
-                "valid": self.valid, "error": self.error, "objects": self.objects}
+                "valid": self.valid, "error": self.error, "objects": self.objects,
+                "unix_ns": self.unix_ns}
 
 
 class Inbox:
@@ -57,6 +59,7 @@ class Inbox:
             name = f"{n:04d}.json"
             write_bytes_atomic(self.dir / name, raw)
             arrival = time.monotonic() - self.t0
+            unix_ns = time.time_ns()
             table: StemTable | None = None
             doc: dict[str, Any] | None = None
             err: str | None = None
@@ -70,7 +73,7 @@ class Inbox:
                     err = str(e)
             pub = Publication(n, name, via, arrival, len(raw), table is not None, err,
                               len(table) if table is not None else None, table,
-                              doc if table is not None else None)
+                              doc if table is not None else None, unix_ns)
             if table is not None:  # only the latest valid table stays in memory (a long run
                 for old in reversed(self.items):  # publishes hundreds): see table_of()
                     if old.table is not None:
