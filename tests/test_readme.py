@@ -50,3 +50,17 @@ def test_the_readme_says_which_ouster_frame_the_mount_places() -> None:
     text = (ROOT / "README.md").read_text()
     can = text[text.index("## The harvester on the CAN bus"):text.index("## Layout")]
     assert re.search(r"0x2002 holds the lidar mount.{0,80}Ouster's\s+sensor frame", can, re.S)
+
+
+def test_the_command_tables_run_rows_list_every_option_of_run() -> None:
+    """`run --help`'s every option is in the README's `run` rows (the live run's and the
+    replay's): `--sensor` was missing once."""
+    from tcf_hil.cli.run import run_cmd
+
+    text = (ROOT / "README.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| `tcf-hil run ")]
+    assert len(rows) >= 2
+    listed = set(re.findall(r"--[a-z][a-z-]*", " ".join(r.split(" | ")[0] for r in rows)))
+    options = {o for p in run_cmd.params for o in p.opts if o.startswith("--")} - {"--help"}
+    assert options - listed == set()
+    assert "run` defaults to 2048x10" in text and "the demo uses 1024x10" in text
