@@ -11,10 +11,11 @@ from tcf_hil.cli._shared import Progress, console, err_console
 
 @click.command("export")
 @click.argument("run_dir", type=click.Path(path_type=Path))
-@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+@click.option("--out", type=click.Path(path_type=Path), required=True,
               help="File to write; its suffix picks what and how: .las .laz .ply .pcd (the "
                    "cloud), .geojson .csv (the stems), .mcap (the whole run for Foxglove: "
-                   "cloud, transforms, track, stems, score over time).")
+                   "cloud, transforms, track, stems, score over time); no suffix (run_bag/): "
+                   "a ROS 2 bag folder (rosbag2, MCAP storage) that ouster-ros plays.")
 @click.option("--every", type=click.IntRange(min=1), default=1, show_default=True,
               help="Cloud: keep every N-th frame (a long run's cloud is large; 10 keeps one "
                    "frame a second at 10 Hz).")
@@ -46,9 +47,15 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
     topics: README, "Foxglove"), and beside it NAME.layout.json, a Foxglove layout for it
     (Layouts, Import from file).
 
+    A ROS 2 bag (a folder: --out run_bag): the Ouster packets as ouster-ros records them
+    (/ouster/lidar_packets, /ouster/imu_packets, /ouster/metadata), the cloud as
+    sensor_msgs/PointCloud2, /tf, the harvester's pose, the stems as MarkerArrays and the CAN
+    frames; ros2 bag play and ouster-ros's replay read it, tcf-hil replay too.
+
     \b
     Examples:
       tcf-hil export runs/forest-v --out forest-v.mcap
+      tcf-hil export runs/forest-v --out forest-v_bag
       tcf-hil export runs/forest-v --out forest-v.laz --epsg 3067
       tcf-hil export runs/forest-v --out stems.geojson --epsg 3067
       tcf-hil export runs/forest-v --out stems.csv --stems truth
@@ -56,6 +63,17 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
     from tcf_hil.results.export import export
 
     suffix = out.suffix.lower()
+    if not suffix:
+        if epsg is not None:
+            raise click.BadParameter("applies to .las, .laz and .geojson (a bag has no place "
+                                     "for a coordinate system)", param_hint="--epsg")
+        from tcf_hil.results.rosbag import write_bag
+
+        with Progress(f"export {out.name}", total=None, keep=False) as bar:
+            b = write_bag(run_dir, out, every=every, progress=bar.counter)
+        console.print(f"{b.packets:,} packets, {b.frames:,} clouds, {b.messages:,} messages "
+                      f"-> {b.path}/ (ros2 bag play {b.path})")
+        return
     if suffix == ".mcap":
         if epsg is not None:
             raise click.BadParameter("applies to .las, .laz and .geojson (.mcap has no place "

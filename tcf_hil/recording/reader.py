@@ -47,6 +47,7 @@ from protocols.pcap import PcapError, UdpReader
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil._io import read_json
 from tcf_hil.errors import InputError
+from tcf_hil.recording.rosbag import bag_to_recording, is_bag
 from tcf_hil.recording.rundir import RunDir
 
 _TIME_KEY = (POSE, 8)
@@ -128,7 +129,11 @@ class Recording:
         ``can.log``) or an Ouster pcap (``meta``: its metadata, found beside it when None;
         ``can_log``: a CAN log to put on the bus), checked in one streaming pass
         (``progress(bytes read, bytes)``)."""
-        if path.is_dir():
+        if path.is_dir() and is_bag(path):  # a ROS 2 bag: its packets as a capture
+            pcap, bag_meta, bag_can = bag_to_recording(path, _work_dir(path))
+            rec = cls(*_read_meta(meta or bag_meta), pcap, can_log or bag_can)
+            rec.can_clock = (0, -round(can_offset_s * 1e9), 1.0)
+        elif path.is_dir():
             rec = cls._run_dir(path, meta, can_log)
             t0, unix0, speed = rec.can_clock
             rec.can_clock = (t0, unix0 - round(can_offset_s * 1e9), speed)
@@ -354,6 +359,18 @@ class Recording:
     def _bad(self, i: int, why: str) -> InputError:
         return InputError(str(self.pcap), f"datagram {i}", f"{why}: the capture does not fit "
                           f"its metadata")
+
+
+def _work_dir(bag: Path) -> Path:
+    """Where a bag's packets are written out as a capture for this process (removed when it
+    exits)."""
+    import atexit
+    import shutil
+    import tempfile
+
+    work = Path(tempfile.mkdtemp(prefix=f"tcf-hil-{bag.name[:40]}-"))
+    atexit.register(shutil.rmtree, work, True)
+    return work
 
 
 def _read_meta(path: Path) -> tuple[SensorMetadata, str]:

@@ -44,8 +44,8 @@ from tcf_hil._io import atomic_path, read_json, write_bytes_atomic
 from tcf_hil.errors import InputError
 from tcf_hil.recording.rundir import RunDir
 
-__all__ = ["COMPONENT_COLOURS", "SCORE_SCHEMA", "TOPICS", "SceneChannels", "layout_bytes",
-           "write_mcap"]
+__all__ = ["COMPONENT_COLOURS", "SCORE_SCHEMA", "TOPICS", "LiveView", "SceneChannels",
+           "frame_time", "layout_bytes", "publication_rows", "publications", "write_mcap"]
 
 WORLD = "world"
 SENSOR = "os_sensor"  # ouster-ros's name for the sensor frame
@@ -277,7 +277,7 @@ def write_mcap(run_dir: str | Path, out: str | Path, *, every: int = 1,
     off[2] = 0.0
     has_truth = (run / RunDir.GROUND_TRUTH).exists() or (run / RunDir.INVENTORY).exists()
     truth, sic_final = stem_outcomes(run.path) if has_truth else ([], [])
-    pubs = _publications(run)
+    pubs = publications(run)
     poses = sensor_poses(run.path, step=max(1, info.meta.columns // 4))
     ctx = foxglove.Context()
     n_frames = n_points = 0
@@ -289,7 +289,7 @@ def write_mcap(run_dir: str | Path, out: str | Path, *, every: int = 1,
             queue = iter(pubs)
             nxt = next(queue, None)
             for pts in frames:
-                t = _frame_time(pts, info.gps_adjusted)
+                t = frame_time(pts, info.gps_adjusted)
                 if first:  # the scene's fixtures, at its first message
                     t_first = min(t, nxt[0]) if nxt is not None else t
                     scene.track(t_first, poses[:, 1:4] if len(poses) else np.zeros((0, 3)))
@@ -314,7 +314,7 @@ def write_mcap(run_dir: str | Path, out: str | Path, *, every: int = 1,
     return McapResult(Path(out), layout, n_frames, n_points, len(pubs), info.labelled)
 
 
-def _frame_time(pts: NDArray[np.void], gps_adjusted: bool) -> int:
+def frame_time(pts: NDArray[np.void], gps_adjusted: bool) -> int:
     """A frame's last return's time, Unix ns (where the run's clock is known; else its
     simulation time)."""
     from tcf_hil.results.export import GPS_MINUS_UNIX_S
@@ -334,7 +334,7 @@ def _pose_at(poses: NDArray[np.float64], t_unix: int, gps_adjusted: bool
     return poses[i, 1:8]
 
 
-def _publications(run: RunDir) -> list[tuple[int, int, dict[str, Any]]]:
+def publications(run: RunDir) -> list[tuple[int, int, dict[str, Any]]]:
     """(Unix ns, n, index row) of every valid publication with a timeline score."""
     index = run / "sic" / "index.ndjson"
     if not index.exists():
@@ -379,17 +379,19 @@ def _iso_ns(text: Any) -> int:
 
 def _log_publication(scene: SceneChannels, run: RunDir, pub: tuple[int, int, dict[str, Any]],
                      truth: list[dict[str, Any]], sic_final: list[dict[str, Any]]) -> None:
-    """A publication's stems (the final one coloured by its outcome; earlier ones matched
-    against the truth as the run's timeline scored them) and its score."""
+    """A publication's stems and its score."""
     t, n, row = pub
-    path = run / "sic" / str(row.get("file", f"{n:04d}.json"))
-    scored = _scored_rows(run, path, truth) if truth else None
-    if scored is None:
-        rows = [dict(r, outcome="matched") for r in _stem_rows(path)]
-    else:
-        rows = scored
-    scene.stems(t, rows, sic=True)
+    scene.stems(t, publication_rows(run, n, row, scored=bool(truth)), sic=True)
     scene.score(t, row)
+
+
+def publication_rows(run: RunDir, n: int, row: dict[str, Any], scored: bool = True
+                     ) -> list[dict[str, Any]]:
+    """Publication ``n``'s stems, each with its outcome as the run's scoring matches it
+    against the truth (``matched``, ``false_positive``; without a truth, all ``matched``)."""
+    path = run / "sic" / str(row.get("file", f"{n:04d}.json"))
+    rows = _scored_rows(run, path) if scored else None
+    return rows if rows is not None else [dict(r, outcome="matched") for r in _stem_rows(path)]
 
 
 def _stem_rows(path: Path) -> list[dict[str, Any]]:
@@ -403,8 +405,7 @@ def _stem_rows(path: Path) -> list[dict[str, Any]]:
              "dbh_m": obs.dbh[j], "height_m": obs.h[j]} for j in range(len(obs.ids))]
 
 
-def _scored_rows(run: RunDir, path: Path, truth: list[dict[str, Any]]
-                 ) -> list[dict[str, Any]] | None:
+def _scored_rows(run: RunDir, path: Path) -> list[dict[str, Any]] | None:
     """A publication's stems with ``matched``/``false_positive`` as the run's scoring
     matches them (its configuration from ``score.json``)."""
     from tcf_hil.results.export import publication_outcomes
