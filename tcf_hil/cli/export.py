@@ -14,7 +14,8 @@ from tcf_hil.cli._shared import Progress, console, err_console
 @click.option("--out", type=click.Path(path_type=Path), required=True,
               help="File to write; its suffix picks what and how: .las .laz .ply .pcd (the "
                    "cloud), .geojson .csv (the stems), .mcap (the whole run for Foxglove: "
-                   "cloud, transforms, track, stems, score over time); no suffix (run_bag/): "
+                   "cloud, transforms, track, stems, score over time), .osf (Ouster's own "
+                   "format, written by ouster-sdk); no suffix (run_bag/): "
                    "a ROS 2 bag folder (rosbag2, MCAP storage) that ouster-ros plays.")
 @click.option("--every", type=click.IntRange(min=1), default=1, show_default=True,
               help="Cloud: keep every N-th frame (a long run's cloud is large; 10 keeps one "
@@ -73,6 +74,16 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
             b = write_bag(run_dir, out, every=every, progress=bar.counter)
         console.print(f"{b.packets:,} packets, {b.frames:,} clouds, {b.messages:,} messages "
                       f"-> {b.path}/ (ros2 bag play {b.path})")
+        return
+    if suffix == ".osf":
+        if epsg is not None:
+            raise click.BadParameter("applies to .las, .laz and .geojson (.osf has no place "
+                                     "for a coordinate system)", param_hint="--epsg")
+        from tcf_hil.results.osf import write_osf
+
+        with Progress(f"export {out.name}", total=None, keep=False) as bar:
+            o = write_osf(run_dir, out, progress=bar.counter)
+        console.print(f"{o.frames:,} frames -> {o.path} (ouster-cli source {o.path} info)")
         return
     if suffix == ".mcap":
         if epsg is not None:

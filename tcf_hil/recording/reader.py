@@ -47,6 +47,7 @@ from protocols.pcap import PcapError, UdpReader
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil._io import read_json
 from tcf_hil.errors import InputError
+from tcf_hil.recording.osf import is_osf, osf_to_recording
 from tcf_hil.recording.rosbag import bag_to_recording, is_bag
 from tcf_hil.recording.rundir import RunDir
 
@@ -132,6 +133,10 @@ class Recording:
         if path.is_dir() and is_bag(path):  # a ROS 2 bag: its packets as a capture
             pcap, bag_meta, bag_can = bag_to_recording(path, _work_dir(path))
             rec = cls(*_read_meta(meta or bag_meta), pcap, can_log or bag_can)
+            rec.can_clock = (0, -round(can_offset_s * 1e9), 1.0)
+        elif is_osf(path):  # Ouster's OSF: its frames as the packets of its profile
+            pcap, osf_meta = osf_to_recording(path, _work_dir(path))
+            rec = cls(*_read_meta(meta or osf_meta), pcap, can_log)
             rec.can_clock = (0, -round(can_offset_s * 1e9), 1.0)
         elif path.is_dir():
             rec = cls._run_dir(path, meta, can_log)
