@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -64,41 +65,13 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
     from tcf_hil.results.export import export
 
     suffix = out.suffix.lower()
-    if not suffix:
-        if epsg is not None:
-            raise click.BadParameter("applies to .las, .laz and .geojson (a bag has no place "
-                                     "for a coordinate system)", param_hint="--epsg")
-        from tcf_hil.results.rosbag import write_bag
-
-        with Progress(f"export {out.name}", total=None, keep=False) as bar:
-            b = write_bag(run_dir, out, every=every, progress=bar.counter)
-        console.print(f"{b.packets:,} packets, {b.frames:,} clouds, {b.messages:,} messages "
-                      f"-> {b.path}/ (ros2 bag play {b.path})")
-        return
-    if suffix == ".osf":
-        if epsg is not None:
-            raise click.BadParameter("applies to .las, .laz and .geojson (.osf has no place "
-                                     "for a coordinate system)", param_hint="--epsg")
-        from tcf_hil.results.osf import write_osf
-
-        with Progress(f"export {out.name}", total=None, keep=False) as bar:
-            o = write_osf(run_dir, out, progress=bar.counter)
-        console.print(f"{o.frames:,} frames -> {o.path} (ouster-cli source {o.path} info)")
-        return
-    if suffix == ".mcap":
-        if epsg is not None:
-            raise click.BadParameter("applies to .las, .laz and .geojson (.mcap has no place "
-                                     "for a coordinate system)", param_hint="--epsg")
-        from tcf_hil.results.foxglove import write_mcap
-
-        with Progress(f"export {out.name}", total=None, keep=False) as bar:
-            m = write_mcap(run_dir, out, every=every, progress=bar.counter)
-        console.print(f"{m.frames:,} frames ({m.points:,} points), {m.publications} "
-                      f"publications -> {m.path} (Foxglove layout: {m.layout})")
-        return
     if epsg is not None and suffix not in (".las", ".laz", ".geojson"):
-        raise click.BadParameter(f"applies to .las, .laz and .geojson ({suffix or 'no suffix'} "
+        raise click.BadParameter(f"applies to .las, .laz and .geojson ({suffix or 'a bag'} "
                                  "has no place for a coordinate system)", param_hint="--epsg")
+    if suffix in ("", ".osf", ".mcap"):  # the whole run, for ROS 2, ouster-sdk or Foxglove
+        with Progress(f"export {out.name}", total=None, keep=False) as bar:
+            console.print(_whole_run(run_dir, out, every, bar.counter))
+        return
     with Progress(f"export {out.name}", total=None, keep=False) as bar:
         r = export(run_dir, out, every=every, stems=stems, epsg=epsg, progress=bar.counter)
     if r.kind == "cloud":
@@ -115,3 +88,25 @@ def export_cmd(run_dir: Path, out: Path, every: int, stems: str, epsg: int | Non
                               "GPS time is simulation seconds (GPS week time).")
     else:
         console.print(f"{r.count:,} stems -> {r.path}")
+
+
+def _whole_run(run_dir: Path, out: Path, every: int, progress: Any) -> str:
+    """Write the whole run as a ROS 2 bag (no suffix), an OSF or an MCAP file for Foxglove;
+    the line that says what was written."""
+    suffix = out.suffix.lower()
+    if not suffix:
+        from tcf_hil.results.rosbag import write_bag
+
+        b = write_bag(run_dir, out, every=every, progress=progress)
+        return (f"{b.packets:,} packets, {b.frames:,} clouds, {b.messages:,} messages -> "
+                f"{b.path}/ (ros2 bag play {b.path})")
+    if suffix == ".osf":
+        from tcf_hil.results.osf import write_osf
+
+        o = write_osf(run_dir, out, progress=progress)
+        return f"{o.frames:,} frames -> {o.path} (ouster-cli source {o.path} info)"
+    from tcf_hil.results.foxglove import write_mcap
+
+    m = write_mcap(run_dir, out, every=every, progress=progress)
+    return (f"{m.frames:,} frames ({m.points:,} points), {m.publications} publications -> "
+            f"{m.path} (Foxglove layout: {m.layout})")
