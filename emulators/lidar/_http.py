@@ -242,6 +242,12 @@ class SensorApi:
             new = self.meta.with_changes(**kw)
         except (MetadataError, TypeError, ValueError) as err:
             raise _HttpError(HTTPStatus.BAD_REQUEST, f"config rejected: {err}") from err
+        for name in ("udp_port_lidar", "udp_port_imu"):  # (a document may say 0: not set;
+            if not 1 <= getattr(new, name) <= 0xFFFF:     # a sensor sends to a real port)
+                raise _HttpError(HTTPStatus.BAD_REQUEST, f"config rejected: {name} "
+                                 f"{getattr(new, name)}; expected 1 .. 65535")
+        if not new.udp_dest:
+            raise _HttpError(HTTPStatus.BAD_REQUEST, "config rejected: udp_dest is empty")
         if new.columns_per_packet != self.meta.columns_per_packet and \
                 new.columns_per_packet not in EMULATED_COLUMNS_PER_PACKET:
             raise _HttpError(HTTPStatus.BAD_REQUEST, (

@@ -506,6 +506,11 @@ class SensorMetadata:
             raise MetadataError(f"config_params.udp_dest = {_short(udp_dest)}; expected an "
                                 "address (a string)")
         port = integer("config_params", "udp_port_lidar", 0)
+        imu_port = integer("config_params", "udp_port_imu", 0)
+        for name, v in (("udp_port_lidar", port), ("udp_port_imu", imu_port)):
+            if not 0 <= v <= 0xFFFF:
+                raise MetadataError(f"config_params.{name} = {v}; expected 0 .. 65535 (0: "
+                                    "not set)")
         for where in (cp, ldf):
             if where.get("udp_profile_lidar") == "OFF":
                 section = "config_params" if where is cp else ldf_name
@@ -528,7 +533,7 @@ class SensorMetadata:
             prod_pn=str(si.get("prod_pn", "")), build_rev=str(si.get("build_rev", "")),
             image_rev=str(si.get("image_rev", "")), udp_dest=udp_dest,
             udp_port_lidar=port,
-            udp_port_imu=integer("config_params", "udp_port_imu", 0),
+            udp_port_imu=imu_port,
             beam_altitude_deg=tuple(float(v) for v in alt),
             beam_azimuth_deg=tuple(float(v) for v in az),
             pixel_shift_by_row=tuple(int(v) for v in shift),

@@ -3,6 +3,7 @@ driving one :class:`tcf_hil.run.RunSession`."""
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Any
 
@@ -232,7 +233,8 @@ def _print_side_by_side(a: Any, b: Any, preset: str) -> None:
                    "coloured by what it hit, the sensor's pose, the track, the ground-truth "
                    "stems and the SIC's latest, coloured by outcome, and the live score. "
                    "Open connection in Foxglove, ws://127.0.0.1:PORT; the layout is "
-                   "tcf_hil/report_assets/foxglove-layout.json.")
+                   "tcf_hil/report_assets/foxglove-layout.json. (Before SCENARIO give the "
+                   "port: --foxglove 8765 forest-v.)")
 def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, profile: str,
             seed: int | None, out: Path | None, speed: float, duration: float | None,
             can_spec: str, grace: float, ready_s: float, replay_dir: Path | None,
@@ -298,9 +300,18 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     view = _foxglove_view(foxglove_port)
 
     def watch(live: Any) -> Any:
-        if view is None:
-            return live.watch
-        return lambda fig: (live.watch(fig), view.watch(fig))
+        """The terminal's line (None off a terminal) and the Foxglove view, each told
+        separately (one that fails does not keep the figures from the other)."""
+        fns = [fn for fn in (live.watch, view.watch if view is not None else None)
+               if fn is not None]
+        if len(fns) < 2:
+            return fns[0] if fns else None
+
+        def both(fig: Any) -> None:
+            for fn in fns:
+                with contextlib.suppress(Exception):  # a display never stops a run
+                    fn(fig)
+        return both
 
     try:
         finish(_session(lambda stop, say, live: run_bridge(
@@ -310,6 +321,9 @@ def run_cmd(scenario_name: str | None, sic: str | None, shell: bool, mode: str, 
     finally:
         if view is not None:
             view.close()
+            if view.errors:
+                err_console.print(f"Foxglove: the live view missed {view.errors} update(s); "
+                                  f"the first: {view.first_error}")
 
 
 def _foxglove_view(port: int | None) -> Any:

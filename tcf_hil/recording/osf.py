@@ -39,8 +39,8 @@ def osf_to_recording(path: Path, work: Path) -> tuple[Path, Path]:
     """The OSF file ``path`` as ``lidar.pcap`` and ``metadata.json`` in ``work`` (its first
     lidar stream; packets from the sensor to the metadata's ports, 7502 where it names
     none)."""
-    from protocols.ouster import MetadataError, SensorMetadata, encode_lidar_frame
-    from protocols.pcap import PcapWriter, UdpDatagram
+    from protocols.ouster import MetadataError, SensorMetadata
+    from protocols.pcap import PcapWriter
 
     osf = ouster_sdk()
     try:
@@ -63,26 +63,52 @@ def osf_to_recording(path: Path, work: Path) -> tuple[Path, Path]:
     w = PcapWriter()
     dest = meta.udp_dest or "127.0.0.1"
     n = 0
-    with open(work / "lidar.pcap", "wb") as out:
-        out.write(w.header())
-        for fs in src:
-            fr = fs[0] if len(fs) else None
-            if fr is None:
-                continue
-            fields = {name: np.asarray(fr.field(name)).astype(np.uint32)
-                      for name in fmt.field_names if fr.has_field(name)}
-            ts = np.asarray(fr.timestamp, np.uint64)
-            arr = encode_lidar_frame(fmt, fields, ts, frame_id=int(fr.frame_id) %
-                                     fmt.frame_id_modulus, init_id=meta.init_id,
-                                     prod_sn=meta.prod_sn,
-                                     status=np.asarray(fr.status, np.uint32))
-            sent = np.asarray(fr.packet_timestamp, np.int64)
-            cpp = fmt.columns_per_packet
-            for i in range(arr.shape[0]):
-                t = int(sent[i]) if i < len(sent) and sent[i] else int(ts[i * cpp])
-                out.write(w.records(UdpDatagram(t, "169.254.0.1", dest, 7502,
-                                                meta.udp_port_lidar, arr[i].tobytes())))
-            n += 1
+    try:
+        with open(work / "lidar.pcap", "wb") as out:
+            out.write(w.header())
+            for fr in _frames(src):
+                n += _write_frame(out, w, fr, meta, fmt, dest)
+    except (RuntimeError, ValueError) as err:  # ouster-sdk's errors on a damaged file
+        raise InputError(str(path), f"frame {n}", f"cannot be read: {err}") from err
+    finally:
+        close = getattr(src, "close", None)
+        if close is not None:
+            close()
     if not n:
         raise InputError(str(path), "", "holds no lidar frame")
     return work / "lidar.pcap", work / "metadata.json"
+
+
+def _frames(src: Any) -> Any:
+    for fs in src:
+        fr = fs[0] if len(fs) else None
+        if fr is not None:
+            yield fr
+
+
+def _write_frame(out: Any, w: Any, fr: Any, meta: Any, fmt: Any, dest: str) -> int:
+    """One frame's packets into the capture; the packets the sensor never sent (no valid
+    column: lost on the way, or outside a column window) are left out."""
+    from protocols.ouster import encode_lidar_frame
+    from protocols.pcap import UdpDatagram
+
+    fields = {name: np.asarray(fr.field(name)).astype(np.uint32)
+              for name in fmt.field_names if fr.has_field(name)}
+    ts = np.asarray(fr.timestamp, np.uint64)
+    status = np.asarray(fr.status, np.uint32)
+    arr = encode_lidar_frame(fmt, fields, ts, frame_id=int(fr.frame_id) %
+                             fmt.frame_id_modulus, init_id=meta.init_id,
+                             prod_sn=meta.prod_sn, status=status)
+    sent = np.asarray(fr.packet_timestamp, np.int64)
+    cpp = fmt.columns_per_packet
+    written = 0
+    for i in range(arr.shape[0]):
+        cols = slice(i * cpp, (i + 1) * cpp)
+        valid = np.flatnonzero(status[cols] & 1)
+        if not len(valid):
+            continue
+        t = int(sent[i]) if i < len(sent) and sent[i] else int(ts[cols][valid[0]])
+        out.write(w.records(UdpDatagram(t, "169.254.0.1", dest, 7502,
+                                        meta.udp_port_lidar, arr[i].tobytes())))
+        written += 1
+    return 1 if written else 0

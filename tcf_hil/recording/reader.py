@@ -130,15 +130,9 @@ class Recording:
         ``can.log``) or an Ouster pcap (``meta``: its metadata, found beside it when None;
         ``can_log``: a CAN log to put on the bus), checked in one streaming pass
         (``progress(bytes read, bytes)``)."""
-        if path.is_dir() and is_bag(path):  # a ROS 2 bag: its packets as a capture
-            pcap, bag_meta, bag_can = bag_to_recording(path, _work_dir(path))
-            rec = cls(*_read_meta(meta or bag_meta), pcap, can_log or bag_can)
-            rec.can_clock = (0, -round(can_offset_s * 1e9), 1.0)
-        elif is_osf(path):  # Ouster's OSF: its frames as the packets of its profile
-            pcap, osf_meta = osf_to_recording(path, _work_dir(path))
-            rec = cls(*_read_meta(meta or osf_meta), pcap, can_log)
-            rec.can_clock = (0, -round(can_offset_s * 1e9), 1.0)
-        elif path.is_dir():
+        if (path.is_dir() and is_bag(path)) or is_osf(path):
+            return cls._written_out(path, meta, can_log, can_offset_s, progress)
+        if path.is_dir():
             rec = cls._run_dir(path, meta, can_log)
             t0, unix0, speed = rec.can_clock
             rec.can_clock = (t0, unix0 - round(can_offset_s * 1e9), speed)
@@ -153,6 +147,33 @@ class Recording:
         if not rec.meta.udp_port_lidar or not rec.meta.udp_port_imu:
             rec._guess_ports()
         rec._scan(progress)
+        return rec
+
+    @classmethod
+    def _written_out(cls, path: Path, meta: Path | None, can_log: Path | None,
+                     can_offset_s: float, progress: Callable[[int, int], None] | None
+                     ) -> Recording:
+        """A ROS 2 bag (its packets) or an OSF file (its frames as the packets of its
+        profile), written out as a capture in a folder of this process's and read as a field
+        recording; an error in it names ``path``."""
+        work = _work_dir(path)
+        try:
+            if path.is_dir():
+                pcap, own_meta, own_can = bag_to_recording(path, work)
+            else:
+                (pcap, own_meta), own_can = osf_to_recording(path, work), None
+            rec = cls(*_read_meta(meta or own_meta), pcap, can_log or own_can)
+            rec.can_clock = (0, -round(can_offset_s * 1e9), 1.0)
+            if rec.can_log is not None:
+                _check_can_log(rec.can_log)
+            if not rec.meta.udp_port_lidar or not rec.meta.udp_port_imu:
+                rec._guess_ports()
+            rec._scan(progress)
+        except InputError as err:
+            if err.path.startswith(str(work)):
+                raise InputError(str(path), err.field, f"{err.problem} (in its packets "
+                                 "written out as a capture)") from err
+            raise
         return rec
 
     @classmethod

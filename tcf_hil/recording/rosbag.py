@@ -49,9 +49,6 @@ def bag_to_recording(bag: Path, work: Path) -> tuple[Path, Path, Path | None]:
     ``can_msgs/msg/Frame`` topic's frames, candump format; None without one)."""
     from rosbags.rosbag2 import Reader
 
-    from protocols.ouster import MetadataError, SensorMetadata
-    from protocols.pcap import PcapWriter, UdpDatagram
-
     store = typestore()
     try:
         reader = Reader(bag)
@@ -59,48 +56,61 @@ def bag_to_recording(bag: Path, work: Path) -> tuple[Path, Path, Path | None]:
     except Exception as err:  # rosbags raises its own errors for a bag it cannot read
         raise InputError(str(bag), "metadata.yaml", f"not a readable rosbag2: {err}") from err
     try:
-        conns = reader.connections
-        meta_c = [c for c in conns if c.msgtype == "std_msgs/msg/String"
-                  and c.topic.rstrip("/").endswith("metadata")]
-        pkt_c = [c for c in conns if c.msgtype in PACKET_TYPES]
-        if not meta_c or not pkt_c:
-            raise InputError(str(bag), "", "no Ouster metadata topic (std_msgs/msg/String "
-                             "ending in 'metadata') or no packet topic (ouster-ros's "
-                             "PacketMsg): not a bag of an Ouster sensor")
-        text = ""
-        for c, _t, raw in reader.messages(connections=meta_c[:1]):
-            text = store.deserialize_cdr(raw, c.msgtype).data
-            break
-        try:
-            meta = SensorMetadata.loads(text)
-        except MetadataError as err:
-            raise InputError(str(bag), meta_c[0].topic, str(err)) from err
-        lp, ip = meta.udp_port_lidar or 7502, meta.udp_port_imu or 7503
-        if (lp, ip) != (meta.udp_port_lidar, meta.udp_port_imu):
-            text = meta.with_changes(udp_port_lidar=lp, udp_port_imu=ip).dumps()
-        work.mkdir(parents=True, exist_ok=True)
-        (work / "metadata.json").write_text(text, encoding="utf-8")
-        w = PcapWriter()
-        dst = meta.udp_dest or "127.0.0.1"
-        with open(work / "lidar.pcap", "wb") as out:
-            out.write(w.header())
-            for c, t, raw in reader.messages(connections=pkt_c):
-                buf = bytes(store.deserialize_cdr(raw, c.msgtype).buf)
-                port = ip if "imu" in c.topic else lp
-                out.write(w.records(UdpDatagram(t, "169.254.0.1", dst, 7502, port, buf)))
-        can_c = [c for c in conns if c.msgtype == CAN_FRAME_MSG]
-        can_log = None
-        if can_c:
-            can_log = work / "can.log"
-            with open(can_log, "w", encoding="ascii") as out:
-                for c, t, raw in reader.messages(connections=can_c):
-                    f = store.deserialize_cdr(raw, c.msgtype)
-                    if f.is_error:
-                        continue
-                    ident = f"{f.id:08X}" if f.is_extended else f"{f.id:03X}"
-                    body = "R" if f.is_rtr else bytes(f.data[:f.dlc]).hex().upper()
-                    out.write(f"({t // 10**9}.{t % 10**9 // 1000:06d}) "
-                              f"{f.header.frame_id or 'can0'} {ident}#{body}\n")
+        return _written_out(bag, reader, store, work)
+    except InputError:
+        raise
+    except Exception as err:  # rosbags' errors on a damaged bag or message
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise InputError(str(bag), "", f"cannot be read: {first}") from err
     finally:
         reader.close()
+
+
+def _written_out(bag: Path, reader: Any, store: Any, work: Path
+                 ) -> tuple[Path, Path, Path | None]:
+    from protocols.ouster import MetadataError, SensorMetadata
+    from protocols.pcap import PcapWriter, UdpDatagram
+
+    conns = reader.connections
+    meta_c = [c for c in conns if c.msgtype == "std_msgs/msg/String"
+              and c.topic.rstrip("/").endswith("metadata")]
+    pkt_c = [c for c in conns if c.msgtype in PACKET_TYPES]
+    if not meta_c or not pkt_c:
+        raise InputError(str(bag), "", "no Ouster metadata topic (std_msgs/msg/String "
+                         "ending in 'metadata') or no packet topic (ouster-ros's "
+                         "PacketMsg): not a bag of an Ouster sensor")
+    text = ""
+    for c, _t, raw in reader.messages(connections=meta_c[:1]):
+        text = store.deserialize_cdr(raw, c.msgtype).data
+        break
+    try:
+        meta = SensorMetadata.loads(text)
+    except MetadataError as err:
+        raise InputError(str(bag), meta_c[0].topic, str(err)) from err
+    lp, ip = meta.udp_port_lidar or 7502, meta.udp_port_imu or 7503
+    if (lp, ip) != (meta.udp_port_lidar, meta.udp_port_imu):
+        text = meta.with_changes(udp_port_lidar=lp, udp_port_imu=ip).dumps()
+    work.mkdir(parents=True, exist_ok=True)
+    (work / "metadata.json").write_text(text, encoding="utf-8")
+    w = PcapWriter()
+    dst = meta.udp_dest or "127.0.0.1"
+    with open(work / "lidar.pcap", "wb") as out:
+        out.write(w.header())
+        for c, t, raw in reader.messages(connections=pkt_c):
+            buf = bytes(store.deserialize_cdr(raw, c.msgtype).buf)
+            port = ip if "imu" in c.topic else lp
+            out.write(w.records(UdpDatagram(t, "169.254.0.1", dst, 7502, port, buf)))
+    can_c = [c for c in conns if c.msgtype == CAN_FRAME_MSG]
+    can_log = None
+    if can_c:
+        can_log = work / "can.log"
+        with open(can_log, "w", encoding="ascii") as out:
+            for c, t, raw in reader.messages(connections=can_c):
+                f = store.deserialize_cdr(raw, c.msgtype)
+                if f.is_error:
+                    continue
+                ident = f"{f.id:08X}" if f.is_extended else f"{f.id:03X}"
+                body = "R" if f.is_rtr else bytes(f.data[:f.dlc]).hex().upper()
+                out.write(f"({t // 10**9}.{t % 10**9 // 1000:06d}) "
+                          f"{f.header.frame_id or 'can0'} {ident}#{body}\n")
     return work / "lidar.pcap", work / "metadata.json", can_log

@@ -711,18 +711,18 @@ def sensor_poses(run: Path, step: int = 256) -> NDArray[np.float64]:
     path = run / "sensor_poses.csv"
     if not path.exists():
         return np.zeros((0, 9))
-    lines = path.read_bytes().split(b"\n")[1:]  # (split at C speed; few rows parsed)
-    while lines and not lines[-1].strip():
-        lines.pop()
-    pick = lines[::step] + ([lines[-1]] if lines and (len(lines) - 1) % step else [])
     rows = []
-    for r in pick:
-        f = r.split(b",")
-        if len(f) == 8:
-            try:
-                rows.append([float(v) for v in f])
-            except ValueError:
+    last: bytes = b""
+    with open(path, "rb") as fh:  # (a line at a time: a long run's file is gigabytes)
+        fh.readline()
+        for k, line in enumerate(fh):
+            last = line
+            if k % step:
                 continue
+            last = b""
+            _pose_row(line, rows)
+    if last:
+        _pose_row(last, rows)
     out = np.zeros((len(rows), 9))
     if rows:
         out[:, :8] = rows
@@ -731,21 +731,34 @@ def sensor_poses(run: Path, step: int = 256) -> NDArray[np.float64]:
     return out
 
 
+def _pose_row(line: bytes, rows: list[list[float]]) -> None:
+    f = line.split(b",")
+    if len(f) == 8:
+        try:
+            rows.append([float(v) for v in f])
+        except ValueError:
+            pass
+
+
 def publication_outcomes(run_dir: str | Path, publication: Path,
-                         gt_doc: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+                         gt_doc: dict[str, Any] | None = None,
+                         track: NDArray[np.float64] | None = None) -> list[dict[str, Any]]:
     """The stems of one of the SIC's publications (``sic/NNNN.json``) with their outcome
-    (``matched``, ``false_positive``) as the run's scoring matches them."""
+    (``matched``, ``false_positive``) as the run's scoring matches them (``gt_doc``,
+    ``track``: the truth and :func:`track_xy` when the caller has read them already)."""
     run = Path(run_dir)
     scored = scored_forest(run, gt_doc, publication=publication)
-    return _sic_rows(scored, track_xy(run))
+    return _sic_rows(scored, track_xy(run) if track is None else track)
 
 
 def live_outcomes(gt_doc: dict[str, Any], publication: Path, track: NDArray[np.float64],
                   cfg: EvalConfig | None = None
-                  ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """The truth's stems and one publication's with their outcomes, for a view while the run
-    is under way (``track``: the track's (n, 2) points; ``gt_doc`` without return counts:
-    a stem not matched yet is ``missed_seen``)."""
+                  ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, Any]]:
+    """The truth's stems and one publication's with their outcomes, and the publication's
+    score (``wc_all``, ``wc_seen``, ``f1_all``, ``f1_seen``), for a view while the run is
+    under way (``track``: the track's (n, 2) points; ``gt_doc`` without return counts: a
+    stem not matched yet is ``missed_seen``; ``cfg``: the scoring's, default
+    :class:`~tcf_hil.evaluation.EvalConfig`)."""
     from tcf_hil.evaluation import EvalConfig
     from tcf_hil.evaluation.scoring import ScoredForest, score_forest
     from tcf_hil.recording.stems_json import stem_table
@@ -753,9 +766,12 @@ def live_outcomes(gt_doc: dict[str, Any], publication: Path, track: NDArray[np.f
     cfg = cfg or EvalConfig()
     obs_doc = read_json(publication)
     obs = stem_table(obs_doc, str(publication), "observed")
-    scored = ScoredForest(score_forest(gt_doc, obs, cfg, "ground truth"), obs, obs_doc, gt_doc,
-                          cfg)
-    return _truth_rows(scored, track), _sic_rows(scored, track)
+    scores = score_forest(gt_doc, obs, cfg, "ground truth")
+    scored = ScoredForest(scores, obs, obs_doc, gt_doc, cfg)
+    score = {"wc_all": scores.all.metrics["evaluation_score_percent"],
+             "wc_seen": scores.seen.metrics["evaluation_score_percent"],
+             "f1_all": scores.all.metrics["f1"], "f1_seen": scores.seen.metrics["f1"]}
+    return _truth_rows(scored, track), _sic_rows(scored, track), score
 
 
 def stem_outcomes(run_dir: str | Path, gt_doc: dict[str, Any] | None = None,
@@ -793,7 +809,7 @@ def scored_forest(run_dir: str | Path, gt_doc: dict[str, Any] | None = None, *,
     from tcf_hil.recording.stems_json import stem_table
 
     run = Path(run_dir)
-    gt_doc, gt_path = _truth(run, gt_doc)
+    gt_doc, gt_path = run_truth(run, gt_doc)
     score = read_json(run / "score.json") if (run / "score.json").exists() else {}
     cfg = _eval_config(score, run / "score.json")
     n_pub = score.get("scored_publication")
@@ -814,7 +830,8 @@ def scored_forest(run_dir: str | Path, gt_doc: dict[str, Any] | None = None, *,
                         cfg)
 
 
-def _truth(run: Path, gt_doc: dict[str, Any] | None) -> tuple[dict[str, Any], Path]:
+def run_truth(run: Path, gt_doc: dict[str, Any] | None = None
+              ) -> tuple[dict[str, Any], Path]:
     """The run's truth document and its file: ground_truth.json, else a field recording's
     inventory.csv."""
     gt_path = run / "ground_truth.json"

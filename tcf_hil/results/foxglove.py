@@ -10,7 +10,8 @@ channels' metadata names, ``offset_m``, so that float32 points keep millimetres)
                        (the colour of what it hit: ``COMPONENT_COLOURS``; grey by intensity
                        where the truth is not known)
 ``/tf``                ``foxglove.FrameTransforms``: ``world`` -> ``os_sensor`` (the
-                       sensor's pose at the frame's middle column)
+                       sensor's pose at the frame's time: a finished run's at its last
+                       return, from a pose sampled four times a frame; live, at its middle)
 ``/sensor/pose``       ``foxglove.PoseInFrame``: the same pose, for the Plot panel
 ``/track``             ``foxglove.SceneUpdate``: the sensor's track as a line
 ``/stems/truth``       ``foxglove.SceneUpdate``: the ground-truth stems as cylinders (DBH
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -230,8 +232,12 @@ class SceneChannels:
             log_time=int(t_ns))
 
     def score(self, t_ns: int, row: dict[str, Any]) -> None:
-        self.score_ch.log({k: row.get(k) for k in SCORE_SCHEMA["properties"]},
-                          log_time=int(t_ns))
+        """A publication's score (:data:`SCORE_SCHEMA`; what is not known, null)."""
+        out: dict[str, Any] = {}
+        for k in SCORE_SCHEMA["properties"]:
+            v = row.get(k)
+            out[k] = float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
+        self.score_ch.log(out, log_time=int(t_ns))
 
 
 def _finite(v: Any, default: float) -> float:
@@ -268,47 +274,57 @@ def write_mcap(run_dir: str | Path, out: str | Path, *, every: int = 1,
     package's Foxglove layout beside it (``<name>.layout.json``)."""
     import foxglove
 
-    from tcf_hil.results.export import run_cloud, sensor_poses, stem_outcomes
+    from tcf_hil.results.export import run_cloud, run_truth, sensor_poses, stem_outcomes, track_xy
 
     run = RunDir(run_dir).require(RunDir.LIDAR, RunDir.METADATA, RunDir.POSES,
                                   missing="not a run directory with its lidar recorded")
-    info, frames = run_cloud(run.path, every=every, progress=progress)
+    has_truth = (run / RunDir.GROUND_TRUTH).exists() or (run / RunDir.INVENTORY).exists()
+    facts = None
+    truth: list[dict[str, Any]] = []
+    if has_truth:  # the truth, its final outcomes and the track read once
+        gt_doc, _path = run_truth(run.path)
+        track = track_xy(run.path)
+        truth, _sic = stem_outcomes(run.path, gt_doc, track)
+        facts = (gt_doc, track)
+    pubs = publications(run)
+    poses = sensor_poses(run.path, step=max(1, _columns(run) // 4))
+    info, frames = run_cloud(run.path, every=every, progress=progress)  # (opens files: last)
     off = np.round(info.first_position / 1000.0) * 1000.0
     off[2] = 0.0
-    has_truth = (run / RunDir.GROUND_TRUTH).exists() or (run / RunDir.INVENTORY).exists()
-    truth, sic_final = stem_outcomes(run.path) if has_truth else ([], [])
-    pubs = publications(run)
-    poses = sensor_poses(run.path, step=max(1, info.meta.columns // 4))
     ctx = foxglove.Context()
     n_frames = n_points = 0
-    with atomic_path(Path(out)) as tmp:
-        writer = foxglove.open_mcap(tmp, context=ctx, allow_overwrite=True)
-        try:
-            scene = SceneChannels(ctx, off)
-            first = True
-            queue = iter(pubs)
-            nxt = next(queue, None)
-            for pts in frames:
-                t = frame_time(pts, info.gps_adjusted)
-                if first:  # the scene's fixtures, at its first message
-                    t_first = min(t, nxt[0]) if nxt is not None else t
-                    scene.track(t_first, poses[:, 1:4] if len(poses) else np.zeros((0, 3)))
-                    if has_truth:
-                        scene.stems(t_first, truth, sic=False)
-                    first = False
-                while nxt is not None and nxt[0] <= t:
-                    _log_publication(scene, run, nxt, truth, sic_final)
-                    nxt = next(queue, None)
-                if len(poses):
-                    scene.sensor(t, _pose_at(poses, t, info.gps_adjusted))
-                scene.cloud(t, pts, info.labelled)
-                n_frames += 1
-                n_points += len(pts)
-            while nxt is not None:
-                _log_publication(scene, run, nxt, truth, sic_final)
+    try:
+        with atomic_path(Path(out)) as tmp:
+            writer = foxglove.open_mcap(tmp, context=ctx, allow_overwrite=True)
+            try:
+                scene = SceneChannels(ctx, off)
+                first = True
+                queue = iter(pubs)
                 nxt = next(queue, None)
-        finally:
-            writer.close()
+                for pts in frames:
+                    t = frame_time(pts, info.gps_adjusted)
+                    if first:  # the scene's fixtures, at its first message
+                        t_first = min(t, nxt[0]) if nxt is not None else t
+                        scene.track(t_first,
+                                    poses[:, 1:4] if len(poses) else np.zeros((0, 3)))
+                        if has_truth:
+                            scene.stems(t_first, truth, sic=False)
+                        first = False
+                    while nxt is not None and nxt[0] <= t:
+                        _log_publication(scene, run, nxt, facts)
+                        nxt = next(queue, None)
+                    if len(poses):
+                        scene.sensor(t, _pose_at(poses, t, info.gps_adjusted))
+                    scene.cloud(t, pts, info.labelled)
+                    n_frames += 1
+                    n_points += len(pts)
+                while nxt is not None:
+                    _log_publication(scene, run, nxt, facts)
+                    nxt = next(queue, None)
+            finally:
+                writer.close()
+    finally:
+        frames.close()  # type: ignore[attr-defined]
     layout = Path(out).with_suffix(".layout.json")
     write_bytes_atomic(layout, layout_bytes())
     return McapResult(Path(out), layout, n_frames, n_points, len(pubs), info.labelled)
@@ -327,15 +343,18 @@ def frame_time(pts: NDArray[np.void], gps_adjusted: bool) -> int:
 
 def _pose_at(poses: NDArray[np.float64], t_unix: int, gps_adjusted: bool
              ) -> NDArray[np.float64]:
-    """The sampled sensor pose nearest ``t_unix`` (the poses' own time is the run's
-    simulation time; ``poses[:, 8]`` holds their Unix time where the clock is known)."""
+    """The first sampled sensor pose at or after ``t_unix`` (the last there is after it; the
+    poses' own time is the run's simulation time, ``poses[:, 8]`` their Unix time where the
+    clock is known)."""
     col = 8 if gps_adjusted and poses.shape[1] > 8 else 0
     i = int(np.clip(np.searchsorted(poses[:, col], t_unix), 0, len(poses) - 1))
     return poses[i, 1:8]
 
 
-def publications(run: RunDir) -> list[tuple[int, int, dict[str, Any]]]:
-    """(Unix ns, n, index row) of every valid publication with a timeline score."""
+def publications(run: RunDir, wall: bool = False) -> list[tuple[int, int, dict[str, Any]]]:
+    """(Unix ns, n, index row) of every valid publication with its timeline score, on the
+    capture's clock (``--speed`` stretches it as it stretches the frames' time stamps) or,
+    ``wall``, at the wall-clock time it arrived."""
     index = run / "sic" / "index.ndjson"
     if not index.exists():
         return []
@@ -344,7 +363,10 @@ def publications(run: RunDir) -> list[tuple[int, int, dict[str, Any]]]:
     man = read_json(run / RunDir.MANIFEST) if (run / RunDir.MANIFEST).exists() else {}
     start = _iso_ns(man.get("started"))
     clock = man.get("clock") or {}
-    unix0, speed = int(clock.get("unix_ns_at_sim_t0", 0)), float(clock.get("speed", 1.0))
+    try:
+        unix0, speed = int(clock.get("unix_ns_at_sim_t0", 0)), float(clock.get("speed", 1.0))
+    except (TypeError, ValueError) as err:
+        raise InputError(str(run / RunDir.MANIFEST), "clock", f"malformed ({err})") from err
     score = read_json(run / RunDir.SCORE) if (run / RunDir.SCORE).exists() else {}
     by_n = {int(r["n"]): r for r in score.get("timeline", []) if "n" in r}
     out = []
@@ -354,14 +376,13 @@ def publications(run: RunDir) -> list[tuple[int, int, dict[str, Any]]]:
         try:
             row = json.loads(line)
             n = int(row["n"])
+            if not row.get("valid"):
+                continue
+            t = row.get("unix_ns")
+            t = start + round(float(row.get("arrival_s", 0.0)) * 1e9) if t is None else int(t)
         except (ValueError, KeyError, TypeError) as err:
             raise InputError(str(index), f"line {i + 1}", f"not an index row ({err})") from err
-        if not row.get("valid"):
-            continue
-        t = row.get("unix_ns")
-        if t is None:
-            t = start + round(float(row.get("arrival_s", 0.0)) * 1e9)
-        if unix0 and speed != 1.0:  # the capture's clock runs at the run's --speed
+        if unix0 and speed != 1.0 and not wall:  # the capture's clock runs at --speed
             t = unix0 + round((int(t) - unix0) * speed)
         out.append((int(t), n, {**row, **by_n.get(n, {})}))
     out.sort(key=lambda e: e[0])
@@ -377,20 +398,32 @@ def _iso_ns(text: Any) -> int:
         return 0
 
 
+def _columns(run: RunDir) -> int:
+    """A frame's columns (from ``metadata.json``; 1024 where it cannot say)."""
+    from protocols.ouster import MetadataError, SensorMetadata
+
+    try:
+        return SensorMetadata.loads((run / RunDir.METADATA).read_text(encoding="utf-8")).columns
+    except (OSError, MetadataError):
+        return 1024
+
+
 def _log_publication(scene: SceneChannels, run: RunDir, pub: tuple[int, int, dict[str, Any]],
-                     truth: list[dict[str, Any]], sic_final: list[dict[str, Any]]) -> None:
+                     facts: tuple[dict[str, Any], NDArray[np.float64]] | None) -> None:
     """A publication's stems and its score."""
     t, n, row = pub
-    scene.stems(t, publication_rows(run, n, row, scored=bool(truth)), sic=True)
+    scene.stems(t, publication_rows(run, n, row, facts), sic=True)
     scene.score(t, row)
 
 
-def publication_rows(run: RunDir, n: int, row: dict[str, Any], scored: bool = True
+def publication_rows(run: RunDir, n: int, row: dict[str, Any],
+                     facts: tuple[dict[str, Any], NDArray[np.float64]] | None = None
                      ) -> list[dict[str, Any]]:
     """Publication ``n``'s stems, each with its outcome as the run's scoring matches it
-    against the truth (``matched``, ``false_positive``; without a truth, all ``matched``)."""
+    against the truth (``facts``: the truth document and the track, read once by the
+    caller; None: no truth, all ``matched``)."""
     path = run / "sic" / str(row.get("file", f"{n:04d}.json"))
-    rows = _scored_rows(run, path) if scored else None
+    rows = _scored_rows(run, path, facts) if facts is not None else None
     return rows if rows is not None else [dict(r, outcome="matched") for r in _stem_rows(path)]
 
 
@@ -405,13 +438,14 @@ def _stem_rows(path: Path) -> list[dict[str, Any]]:
              "dbh_m": obs.dbh[j], "height_m": obs.h[j]} for j in range(len(obs.ids))]
 
 
-def _scored_rows(run: RunDir, path: Path) -> list[dict[str, Any]] | None:
+def _scored_rows(run: RunDir, path: Path, facts: tuple[dict[str, Any], NDArray[np.float64]]
+                 ) -> list[dict[str, Any]] | None:
     """A publication's stems with ``matched``/``false_positive`` as the run's scoring
     matches them (its configuration from ``score.json``)."""
     from tcf_hil.results.export import publication_outcomes
 
     try:
-        return publication_outcomes(run.path, path)
+        return publication_outcomes(run.path, path, facts[0], facts[1])
     except InputError:
         return None
 
@@ -442,11 +476,14 @@ class _TrackPoses:
 class LiveView:
     """A run in Foxglove while it runs: a WebSocket server (Foxglove's protocol, foxglove-sdk)
     on ``host:port`` (0: a free port; :attr:`port` says which) carrying the scene's channels
-    (see the module). Fed by the run's live figures (:meth:`watch`, a few times a second): it
-    follows the run directory as the run writes it (the last whole frame of ``lidar.pcap``
-    with its labels, the SIC's publications) and takes the track and the truth from the
-    run's world; each new publication is matched against the truth for its colours. A view
-    never stops a run: its errors are counted (:attr:`errors`), not raised."""
+    (see the module). :meth:`watch` hands it the run's live figures; a thread of its own,
+    twice a second, follows the run directory as the run writes it (the last whole frame of
+    ``lidar.pcap`` with its labels, the SIC's publications), takes the track and the truth
+    from the run's world, and matches each new publication against the truth for its
+    colours and its score. A view never stops a run: its errors are counted
+    (:attr:`errors`, the first in :attr:`first_error`), not raised."""
+
+    PERIOD_S = 0.5
 
     def __init__(self, port: int = 8765, host: str = "127.0.0.1") -> None:
         import foxglove
@@ -457,26 +494,45 @@ class LiveView:
         self.port: int = self.server.port
         self.scene: SceneChannels | None = None
         self.errors = 0
+        self.first_error = ""
         self.frames = 0
+        self._fig: Any = None
         self._last_frame_id: int | None = None
         self._last_pub: int | None = None
         self._size = -1
         self._static_at = 0.0
+        self._end = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="foxglove view", daemon=True)
+        self._thread.start()
 
     def watch(self, fig: Any) -> None:
-        """Take the run's :class:`~tcf_hil.run.LiveFigures` (with ``world`` and
-        ``run_dir``): publish what is new since the last call."""
+        """Take the run's :class:`~tcf_hil.run.LiveFigures` (with ``world`` and ``run_dir``);
+        the view's thread publishes what is new."""
+        self._fig = fig
+
+    def _run(self) -> None:
+        while not self._end.wait(self.PERIOD_S):
+            self.update()
+
+    def update(self) -> None:
+        """Publish what is new since the last update (the view's thread calls it)."""
+        fig = self._fig
+        if fig is None:
+            return
         try:
             if self.scene is None:
                 if getattr(fig, "world", None) is None or getattr(fig, "run_dir", None) is None:
                     return
                 self._bind(fig.world, Path(fig.run_dir))
+                if self.scene is None:
+                    return
             self._frame()
             self._publication(fig)
             if time.monotonic() - self._static_at > 2.0:  # (no latching: a client that
                 self._static()                            # joins later gets them too)
-        except Exception:  # a view never stops a run
+        except Exception as err:  # a view never stops a run
             self.errors += 1
+            self.first_error = self.first_error or f"{type(err).__name__}: {err}"
 
     def _bind(self, world: Any, run: Path) -> None:
         from protocols.ouster import SensorMetadata
@@ -558,13 +614,14 @@ class LiveView:
         path = self.run / "sic" / f"{int(pub):04d}.json"
         from tcf_hil.results.export import live_outcomes
 
-        self.truth_rows, sic = live_outcomes(self.gt, path, self.track_xy)
+        self.truth_rows, sic, score = live_outcomes(self.gt, path, self.track_xy)
         now = time.time_ns()
         self.scene.stems(now, self.truth_rows, sic=False)
         self.scene.stems(now, sic, sic=True)
-        self.scene.score(now, {"n": pub, "objects": len(sic), "wc_all": fig.wc_all,
-                               "f1_all": fig.f1_all})
+        self.scene.score(now, {"n": pub, "objects": len(sic), **score})
 
     def close(self) -> None:
+        self._end.set()
+        self._thread.join(10.0)
         with contextlib.suppress(Exception):
             self.server.stop()

@@ -7,7 +7,7 @@ buf``); the MCAP container as rosbag2's ``mcap`` storage plugin lays it out (pro
 ``ros2``, each schema the type's ``ros2msg`` definition, CDR messages, each channel's
 ``offered_qos_profiles``) is written with the ``mcap`` library, since ouster-sdk pins a
 ``rosbags`` (0.9.23) that writes only SQLite bags; ``metadata.yaml`` as rosbag2 writes it
-(version 8).
+(version 5, as ROS 2 Humble writes it).
 
 Topics, as ouster-ros names them under its default namespace ``ouster`` (its
 ``record.launch.xml`` records ``/ouster/imu_packets``, ``/ouster/lidar_packets`` and
@@ -17,8 +17,8 @@ Topics, as ouster-ros names them under its default namespace ``ouster`` (its
     ``lidar.pcap`` byte for byte, at its capture time
 ``/ouster/metadata``  ``std_msgs/msg/String``: the run's ``metadata.json``
 ``/ouster/points``  ``sensor_msgs/msg/PointCloud2`` in frame ``world`` (less the
-    kilometre offset the bag's ``custom_data`` names): x, y, z, intensity (float32), ring
-    (uint16), component (uint8), stem_id (uint32)
+    kilometre offset the MCAP file's ``tcf_hil`` metadata record names): x, y, z,
+    intensity (float32), ring (uint16), component (uint8), stem_id (uint32)
 ``/tf``  ``tf2_msgs/msg/TFMessage``: ``world`` -> ``os_sensor`` at each frame
 ``/harvester/pose``  ``geometry_msgs/msg/PoseStamped``: the machine's pose as its CANopen
     node sent it (``can.log``), in ``world``
@@ -60,8 +60,9 @@ BAG_TOPICS: dict[str, str] = {
 
 
 def _qos(transient_local: bool = False) -> str:
-    """rosbag2's ``offered_qos_profiles`` (Humble's YAML): reliable, keep last; the
-    metadata ``transient_local`` as ouster-ros latches it."""
+    """rosbag2's ``offered_qos_profiles`` (Humble's YAML, as ``ros2 bag record`` writes a
+    publisher's: history unknown, reliable, volatile); the metadata ``transient_local``,
+    as ouster-ros latches it."""
     inf = "{sec: 2147483647, nsec: 4294967295}"
     return (f"- history: 3\n  depth: 0\n  reliability: 1\n  durability: "
             f"{1 if transient_local else 2}\n  deadline: {inf}\n  lifespan: {inf}\n"
@@ -93,6 +94,7 @@ def write_bag(run_dir: str | Path, out: str | Path, *, every: int = 1,
     if dest.exists():
         raise InputError(str(dest), "", "exists: a bag is written into a new folder")
     store = typestore()
+    truth, pubs = _stems(run)  # (read before the cloud opens its files)
     info, frames = run_cloud(run.path, every=every, progress=progress)
     off = np.round(info.first_position / 1000.0) * 1000.0
     off[2] = 0.0
@@ -112,7 +114,10 @@ def write_bag(run_dir: str | Path, out: str | Path, *, every: int = 1,
                 sid = w.register_schema(typ, "ros2msg", text.encode())
                 chan[topic] = w.register_channel(topic, "cdr", sid, {
                     "offered_qos_profiles": _qos(topic == "/ouster/metadata")})
-            for t, topic, msg in _messages(run, store, info, frames, off):
+            w.add_metadata("tcf_hil", {"world_offset_m": " ".join(f"{v:.3f}" for v in off),
+                                       "world_frame": "world: world coordinates less "
+                                                      "world_offset_m"})
+            for t, topic, msg in _messages(run, store, info, frames, off, truth, pubs):
                 if topic == "/ouster/points":
                     n_frames += 1
                 data = bytes(store.serialize_cdr(msg, BAG_TOPICS[topic]))
@@ -122,62 +127,77 @@ def write_bag(run_dir: str | Path, out: str | Path, *, every: int = 1,
                 span[0] = t if span[0] is None else min(span[0], t)
                 span[1] = t if span[1] is None else max(span[1], t)
             w.finish()
-        _write_metadata(tmp, dest.name, store, counts, span, off)
+        _write_metadata(tmp, dest.name, counts, span)
         tmp.rename(dest)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        frames.close()  # type: ignore[attr-defined]
     packets = counts["/ouster/lidar_packets"] + counts["/ouster/imu_packets"]
     return BagResult(dest, sum(counts.values()), packets, n_frames)
 
 
-def _write_metadata(folder: Path, name: str, store: Any, counts: dict[str, int],
-                    span: list[Any], off: NDArray[np.float64]) -> None:
-    """``metadata.yaml`` as rosbag2 writes it (bag format version 8), in YAML's JSON subset."""
+def _write_metadata(folder: Path, name: str, counts: dict[str, int], span: list[Any]) -> None:
+    """``metadata.yaml`` as rosbag2 writes it, in YAML's JSON subset: bag format version 5,
+    what ROS 2 Humble's rosbag2 (0.15) writes (a newer version's fields, custom_data,
+    ros_distro, type hashes, may keep a bag from playing on Humble; Iron and Jazzy read
+    older versions)."""
     start, end = (span[0] or 0), (span[1] or 0)
     n = sum(counts.values())
     doc = {"rosbag2_bagfile_information": {
-        "version": 8, "storage_identifier": "mcap",
+        "version": 5, "storage_identifier": "mcap",
         "relative_file_paths": [f"{name}_0.mcap"],
         "duration": {"nanoseconds": end - start},
         "starting_time": {"nanoseconds_since_epoch": start}, "message_count": n,
         "topics_with_message_count": [
             {"topic_metadata": {"name": topic, "type": typ, "serialization_format": "cdr",
-                                "offered_qos_profiles": _qos(topic == "/ouster/metadata"),
-                                "type_description_hash": store.hash_rihs01(typ)},
+                                "offered_qos_profiles": _qos(topic == "/ouster/metadata")},
              "message_count": counts[topic]} for topic, typ in BAG_TOPICS.items()],
         "compression_format": "", "compression_mode": "",
         "files": [{"path": f"{name}_0.mcap", "starting_time": {
             "nanoseconds_since_epoch": start}, "duration": {"nanoseconds": end - start},
-            "message_count": n}],
-        "custom_data": {"tcf_hil.world_offset_m": " ".join(f"{v:.3f}" for v in off)},
-        "ros_distro": "humble"}}
+            "message_count": n}]}}
     (folder / "metadata.yaml").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
 
 
+def _stems(run: RunDir) -> tuple[list[dict[str, Any]], list[tuple[int, int, list[Any]]]]:
+    """The truth's stems with their final outcomes, and each publication's (wall time, n,
+    rows with outcomes), the truth and the track read once (none without a truth)."""
+    from tcf_hil.results.export import run_truth, stem_outcomes, track_xy
+    from tcf_hil.results.foxglove import publication_rows, publications
+
+    if not ((run / RunDir.GROUND_TRUTH).exists() or (run / RunDir.INVENTORY).exists()):
+        return [], []
+    gt_doc, _path = run_truth(run.path)
+    track = track_xy(run.path)
+    truth, _sic = stem_outcomes(run.path, gt_doc, track)
+    pubs = [(t, n, publication_rows(run, n, row, (gt_doc, track)))
+            for t, n, row in publications(run, wall=True)]
+    return truth, pubs
+
+
 def _messages(run: RunDir, store: Any, info: Any, frames: Iterator[Any],
-              off: NDArray[np.float64]) -> Iterator[tuple[int, str, Any]]:
-    """(time ns, topic, message) of the whole bag in time order."""
-    wall = _wall_clock(run)
-    streams = [_packets(run, store, info.meta, wall), _clouds(run, store, info, frames, off),
-               _poses(run, store, off), _can_frames(run, store)]
+              off: NDArray[np.float64], truth: list[dict[str, Any]],
+              pubs: list[tuple[int, int, list[Any]]]) -> Iterator[tuple[int, str, Any]]:
+    """(time ns, topic, message) of the whole bag in time order, on the wall clock of the
+    run (the run manifest's clock; ``--speed`` stretches the capture's time stamps)."""
+    wall, from_unix = _wall_clock(run)
+    streams = [_packets(run, store, info.meta, wall),
+               _clouds(run, store, info, frames, off, from_unix),
+               _poses(run, store, off), _can_frames(run, store),
+               ((t, "/stems/sic", _markers(store, t, rows, off, "sic")) for t, _n, rows in pubs)]
     merged = heapq.merge(*streams, key=lambda e: e[0])
     first = next(merged, None)
     if first is None:
         return
     t0 = first[0]
-    types = store.types
     text = (run / RunDir.METADATA).read_text(encoding="utf-8")
-    yield t0, "/ouster/metadata", types["std_msgs/msg/String"](data=text)
-    from tcf_hil.results.export import stem_outcomes
-
-    has_truth = (run / RunDir.GROUND_TRUTH).exists() or (run / RunDir.INVENTORY).exists()
-    if has_truth:
-        truth, _sic = stem_outcomes(run.path)
+    yield t0, "/ouster/metadata", store.types["std_msgs/msg/String"](data=text)
+    if truth:
         yield t0, "/stems/truth", _markers(store, t0, truth, off, "truth")
     yield first
-    pubs = _publications(run, store, off) if has_truth else iter(())
-    yield from heapq.merge(merged, pubs, key=lambda e: e[0])
+    yield from merged
 
 
 def _stamp(store: Any, t_ns: int) -> Any:
@@ -189,17 +209,20 @@ def _header(store: Any, t_ns: int, frame: str) -> Any:
     return store.types["std_msgs/msg/Header"](stamp=_stamp(store, t_ns), frame_id=frame)
 
 
-def _wall_clock(run: RunDir) -> Callable[[int], int]:
-    """The capture's time (the run's simulation clock) -> Unix ns, as the run's manifest ties
-    them (``--speed`` stretches it); a capture without a manifest keeps its own times."""
+def _wall_clock(run: RunDir) -> tuple[Callable[[int], int], Callable[[int], int]]:
+    """The capture's time (the run's simulation clock) -> wall-clock Unix ns, as the run's
+    manifest ties them (``--speed`` stretches it), and the exports' Unix time of a frame
+    (Unix time at t0 plus simulation time: GPS time's) -> the same wall clock; a capture
+    without a manifest keeps its own times."""
     man = read_json(run / RunDir.MANIFEST) if (run / RunDir.MANIFEST).exists() else {}
     clock = man.get("clock") or {}
     try:
         t0, unix0 = int(clock["sim_t0_ns"]), int(clock["unix_ns_at_sim_t0"])
         speed = float(clock.get("speed", 1.0)) or 1.0
     except (KeyError, TypeError, ValueError):
-        return lambda t: t
-    return lambda t: unix0 + round((t - t0) / speed)
+        return (lambda t: t), (lambda t: t)
+    return (lambda t: unix0 + round((t - t0) / speed),
+            lambda t: unix0 + round((t - unix0) / speed))
 
 
 def _packets(run: RunDir, store: Any, meta: Any, wall: Callable[[int], int]
@@ -223,7 +246,8 @@ def _packets(run: RunDir, store: Any, meta: Any, wall: Callable[[int], int]
 
 
 def _clouds(run: RunDir, store: Any, info: Any, frames: Iterator[Any],
-            off: NDArray[np.float64]) -> Iterator[tuple[int, str, Any]]:
+            off: NDArray[np.float64], wall: Callable[[int], int]
+            ) -> Iterator[tuple[int, str, Any]]:
     from tcf_hil.results.export import sensor_poses
     from tcf_hil.results.foxglove import frame_time
 
@@ -238,7 +262,8 @@ def _clouds(run: RunDir, store: Any, info: Any, frames: Iterator[Any],
                     count=1) for n in layout.names or () if not n.startswith("_")]
     poses = sensor_poses(run.path, step=max(1, info.meta.columns // 4))
     for pts in frames:
-        ts = frame_time(pts, info.gps_adjusted)
+        t_unix = frame_time(pts, info.gps_adjusted)
+        ts = wall(t_unix)
         arr = np.zeros(len(pts), layout)
         for i, k in enumerate("xyz"):
             arr[k] = pts[k] - off[i]
@@ -251,7 +276,7 @@ def _clouds(run: RunDir, store: Any, info: Any, frames: Iterator[Any],
             data=np.frombuffer(arr.tobytes(), np.uint8), is_dense=True)
         if len(poses):
             col = 8 if info.gps_adjusted else 0
-            i = int(np.clip(np.searchsorted(poses[:, col], ts), 0, len(poses) - 1))
+            i = int(np.clip(np.searchsorted(poses[:, col], t_unix), 0, len(poses) - 1))
             yield ts, "/tf", _tf(store, ts, poses[i, 1:8], off)
         yield ts, "/ouster/points", cloud
 
@@ -373,10 +398,3 @@ def _markers(store: Any, t_ns: int, rows: list[dict[str, Any]], off: NDArray[np.
     return store.types["visualization_msgs/msg/MarkerArray"](markers=out)
 
 
-def _publications(run: RunDir, store: Any, off: NDArray[np.float64]
-                  ) -> Iterator[tuple[int, str, Any]]:
-    from tcf_hil.results.foxglove import publication_rows, publications
-
-    for t_ns, n, row in publications(run):
-        rows = publication_rows(run, n, row)
-        yield t_ns, "/stems/sic", _markers(store, t_ns, rows, off, "sic")

@@ -121,7 +121,8 @@ class ReplayTraffic:
             return meta, None
         self._copy(out)  # metadata.json as recorded: it describes lidar.pcap
         path = out / "metadata.json"
-        if meta != rec.meta:  # the recorded ports are taken: the SIC gets the ones used now
+        if meta != SensorMetadata.loads(rec.meta_text):  # the recorded ports are taken, or
+            # the document named no destination or ports: the SIC gets the ones used now
             path = out / "replay_metadata.json"
             write_bytes_atomic(path, meta.dumps().encode())
         self.meta_served = meta

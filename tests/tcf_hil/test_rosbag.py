@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader, Writer
 
 from protocols.ouster import IMU_PACKET_BYTES, SensorMetadata
@@ -67,7 +68,9 @@ def test_the_bag_holds_the_packets_byte_for_byte(run_dir: Path, bag: Path) -> No
         clouds = [store.deserialize_cdr(raw, c.msgtype) for c, _t, raw in r.messages(
             connections=[c for c in r.connections if c.topic == "/ouster/points"])]
         tfs = [c.msgcount for c in r.connections if c.topic == "/tf"]
-        times = [t for _c, t, _raw in r.messages()]
+    with open(next(bag.glob("*.mcap")), "rb") as f:  # as written, not sorted by a reader
+        times = [m.log_time for _s, _c, m in make_reader(f).iter_messages(
+            log_time_order=False)]
     assert got == _pcap_datagrams(run_dir)  # every lidar and IMU packet, in capture order
     assert text == [(run_dir / "metadata.json").read_text()]
     assert len(clouds) == 4 == tfs[0]
@@ -81,6 +84,30 @@ def test_the_bag_holds_the_packets_byte_for_byte(run_dir: Path, bag: Path) -> No
     topics = {t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"]
               for t in doc["rosbag2_bagfile_information"]["topics_with_message_count"]}
     assert "durability: 1" in topics["/ouster/metadata"]  # latched, as ouster-ros has it
+
+
+def test_one_clock_for_every_topic_at_any_speed(run_dir: Path, tmp_path: Path) -> None:
+    """A run at --speed 2: the capture's time stamps run twice as fast as the wall clock
+    the CAN log and the publications keep; in the bag every topic is on the wall clock, so a
+    frame's cloud comes with its last packets, not at twice their distance from the start."""
+    run = tmp_path / "run"
+    run.mkdir()
+    for f in run_dir.iterdir():
+        (run / f.name).symlink_to(f)
+    first = int((run_dir / "sensor_poses.csv").read_text().splitlines()[1].split(",")[0])
+    unix0 = 1_767_225_600 * 10**9
+    (run / "manifest.json").write_text(json.dumps(
+        {"clock": {"sim_t0_ns": first, "unix_ns_at_sim_t0": unix0, "speed": 2.0}}))
+    out = tmp_path / "bag2"
+    assert main(["export", str(run), "--out", str(out)]) == 0
+    with Reader(out) as r:
+        lidar = [t for c, t, _raw in r.messages() if c.topic == "/ouster/lidar_packets"]
+        clouds = [t for c, t, _raw in r.messages() if c.topic == "/ouster/points"]
+    packets_per_frame = len(lidar) // 4
+    for k, t in enumerate(clouds):  # a frame's cloud: at its last packet's time (wall)
+        last = lidar[(k + 1) * packets_per_frame - 1]
+        assert abs(t - last) < 2_000_000, (k, t - last)
+    assert lidar[0] >= unix0 - 10**9 and lidar[-1] - lidar[0] < 0.3e9  # 4 frames at 2x
 
 
 def test_a_bag_replays_byte_for_byte(run_dir: Path, bag: Path) -> None:
