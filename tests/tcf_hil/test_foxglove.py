@@ -177,11 +177,16 @@ def test_a_directory_that_is_not_a_run_is_one_line(tmp_path: Path,
     assert not (tmp_path / "x.mcap").exists()
 
 
+@pytest.mark.slow  # the second lane (.ci/run): a live run with the reference SIC, ~30 s
 def test_a_live_run_serves_foxglove_clients(tmp_path: Path) -> None:
-    """``tcf-hil run --foxglove 0``: a WebSocket client speaking Foxglove's protocol
-    (``foxglove.websocket.v1``) sees the channels advertised, subscribes and gets the
-    cloud, the sensor's transform and the truth while the run streams."""
+    """``tcf-hil run --foxglove 0``: a WebSocket client speaking Foxglove's protocol sees the
+    channels advertised, subscribes and gets the cloud, the sensor's transform, the truth, the
+    SIC's stems and its score while the run streams (stderr a pipe: no terminal line, the
+    view all the same)."""
+    from websockets.exceptions import ConnectionClosed
     from websockets.sync.client import connect
+
+    WANT = ("/lidar/points", "/tf", "/stems/truth", "/stems/sic", "/score")
 
     env = dict(os.environ, COLUMNS="200", PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
@@ -201,17 +206,20 @@ def test_a_live_run_serves_foxglove_clients(tmp_path: Path) -> None:
             port = int(m.group(1)) if m else None
         assert port is not None, "the run did not say where Foxglove connects"
         got: dict[str, int] = {}
-        with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"],
-                     open_timeout=10) as ws:
+        # (foxglove-sdk 0.30 speaks the protocol as foxglove.sdk.v1; earlier servers as
+        # foxglove.websocket.v1: the same messages)
+        with connect(f"ws://127.0.0.1:{port}", open_timeout=10,
+                     subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"]) as ws:  # type: ignore[list-item]
             channels: dict[int, str] = {}
             subscribed = False
             end = time.monotonic() + 90
-            while time.monotonic() < end and not {"/lidar/points", "/tf",
-                                                   "/stems/truth"} <= set(got):
+            while time.monotonic() < end and not set(WANT) <= set(got):
                 try:
                     msg = ws.recv(timeout=2)
                 except TimeoutError:
                     continue
+                except ConnectionClosed:  # the run ended
+                    break
                 if isinstance(msg, str):
                     doc = json.loads(msg)
                     if doc.get("op") == "advertise":
@@ -224,8 +232,9 @@ def test_a_live_run_serves_foxglove_clients(tmp_path: Path) -> None:
                     sub, = struct.unpack_from("<I", msg, 1)
                     topic = channels.get(sub, "?")
                     got[topic] = max(got.get(topic, 0), len(msg) - 13)
-        assert {"/lidar/points", "/tf", "/stems/truth"} <= set(got), got
+        assert set(WANT) <= set(got), got
         assert got["/lidar/points"] > 10_000  # a frame's points, not an empty cloud
+        assert got["/stems/truth"] > 1_000  # forest-ii's 24 stems as cylinders
     finally:
         proc.terminate()
         proc.wait(60)
