@@ -362,11 +362,6 @@ def publications(run: RunDir, wall: bool = False) -> list[tuple[int, int, dict[s
 
     man = read_json(run / RunDir.MANIFEST) if (run / RunDir.MANIFEST).exists() else {}
     start = _iso_ns(man.get("started"))
-    clock = man.get("clock") or {}
-    try:
-        unix0, speed = int(clock.get("unix_ns_at_sim_t0", 0)), float(clock.get("speed", 1.0))
-    except (TypeError, ValueError) as err:
-        raise InputError(str(run / RunDir.MANIFEST), "clock", f"malformed ({err})") from err
     score = read_json(run / RunDir.SCORE) if (run / RunDir.SCORE).exists() else {}
     by_n = {int(r["n"]): r for r in score.get("timeline", []) if "n" in r}
     out = []
@@ -382,11 +377,32 @@ def publications(run: RunDir, wall: bool = False) -> list[tuple[int, int, dict[s
             t = start + round(float(row.get("arrival_s", 0.0)) * 1e9) if t is None else int(t)
         except (ValueError, KeyError, TypeError) as err:
             raise InputError(str(index), f"line {i + 1}", f"not an index row ({err})") from err
-        if unix0 and speed != 1.0 and not wall:  # the capture's clock runs at --speed
-            t = unix0 + round((int(t) - unix0) * speed)
-        out.append((int(t), n, {**row, **by_n.get(n, {})}))
+        out.append((_on_capture_clock(int(t), man, wall), n, {**row, **by_n.get(n, {})}))
     out.sort(key=lambda e: e[0])
     return out
+
+
+def _on_capture_clock(t: int, man: dict[str, Any], wall: bool) -> int:
+    """A publication's wall-clock arrival on the time line of the run's frames: the capture's
+    Unix time (Unix time at t0 plus simulation time, as the exports give a frame's), or with
+    ``wall`` the wall clock of the recorded run; a replay's publications arrive on its own
+    wall clock, mapped back through where its first event went out (``replay_clock``)."""
+    clock = man.get("clock") or {}
+    try:
+        t0, unix0 = int(clock.get("sim_t0_ns", 0)), int(clock.get("unix_ns_at_sim_t0", 0))
+        speed = float(clock.get("speed", 1.0)) or 1.0
+        rc = man.get("replay_clock")
+        if rc:  # the replay's wall clock -> the recording's time -> the capture's Unix time
+            rec = int(rc["recording_ns"]) + round((t - int(rc["unix_ns"])) *
+                                                  float(rc.get("speed", 1.0)))
+            sim_unix = unix0 + (rec - t0)
+        elif speed != 1.0:  # the capture's clock runs at the run's --speed
+            sim_unix = unix0 + round((t - unix0) * speed)
+        else:
+            return t
+    except (KeyError, TypeError, ValueError):
+        return t
+    return unix0 + round((sim_unix - unix0) / speed) if wall else sim_unix
 
 
 def _iso_ns(text: Any) -> int:

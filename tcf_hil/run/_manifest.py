@@ -85,6 +85,9 @@ class Manifest:
     lidar: dict[str, Any] | None = None  # what the live sensor sent
     can: dict[str, Any] | None = None  # the live harvester node's figures
     replay_sent: dict[str, int] | None = None  # what a replay sent
+    # a replay: the recording's time of its first event and the wall time it went out at,
+    # and the replay's speed (the SIC's publications are on the wall clock)
+    replay_clock: dict[str, Any] | None = None
     publications: dict[str, int] | None = None
 
     def to_dict(self) -> dict[str, Any]:

@@ -252,4 +252,9 @@ class ReplayTraffic:
 
     def close(self, manifest: Manifest) -> None:
         self.release_bus()
-        manifest.replay_sent = {k: v for k, v in self.sent.items() if k != "at_ns"}
+        sent = self.sent
+        manifest.replay_sent = {k: sent[k] for k in ("udp", "lidar", "can", "refused")
+                                if k in sent}
+        if "first_ns" in sent:
+            manifest.replay_clock = {"recording_ns": sent["first_ns"],
+                                     "unix_ns": sent["first_unix_ns"], "speed": self.speed}

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import socket
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -50,6 +51,8 @@ def replay(run_dir: Path, *, speed: float = 1.0, loop: bool = False,
                 break
             pacer.wait(t)
             sent["at_ns"] = t
+            if n == 0:  # where the recording's time line meets the wall clock
+                sent["first_ns"], sent["first_unix_ns"] = t, time.time_ns()
             if kind == "udp":
                 port, payload = item
                 try:

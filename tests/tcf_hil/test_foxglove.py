@@ -238,3 +238,33 @@ def test_a_live_run_serves_foxglove_clients(tmp_path: Path) -> None:
     finally:
         proc.terminate()
         proc.wait(60)
+
+
+@pytest.mark.parametrize(("clock", "replay", "want_capture", "want_wall"), [
+    # a live run at --speed 1: the capture's clock is the wall clock
+    ({"sim_t0_ns": 60 * 10**9, "unix_ns_at_sim_t0": 10**18, "speed": 1.0}, None,
+     10**18 + 5 * 10**9, 10**18 + 5 * 10**9),
+    # at --speed 2 the capture's time runs twice as fast as the wall clock
+    ({"sim_t0_ns": 60 * 10**9, "unix_ns_at_sim_t0": 10**18, "speed": 2.0}, None,
+     10**18 + 10 * 10**9, 10**18 + 5 * 10**9),
+    # a replay (at 0.5) of a run at speed 1, its first event (recording time 61 s) sent at
+    # 2 * 10**18: a publication 5 s later is 2.5 s into the recording, at 63.5 s
+    ({"sim_t0_ns": 60 * 10**9, "unix_ns_at_sim_t0": 10**18, "speed": 1.0},
+     {"recording_ns": 61 * 10**9, "unix_ns": 2 * 10**18, "speed": 0.5},
+     10**18 + 3_500_000_000, 10**18 + 3_500_000_000),
+])
+def test_publications_land_on_the_frames_clock(tmp_path: Path, clock: dict,
+                                               replay: dict | None, want_capture: int,
+                                               want_wall: int) -> None:
+    from tcf_hil.recording.rundir import RunDir
+    from tcf_hil.results.foxglove import publications
+
+    (tmp_path / "sic").mkdir()
+    arrived = (replay["unix_ns"] if replay else 10**18) + 5 * 10**9
+    (tmp_path / "sic" / "index.ndjson").write_text(json.dumps(
+        {"n": 1, "file": "0001.json", "valid": True, "arrival_s": 5.0, "unix_ns": arrived})
+        + "\n")
+    man = {"clock": clock, **({"replay_clock": replay} if replay else {})}
+    (tmp_path / "manifest.json").write_text(json.dumps(man))
+    assert publications(RunDir(tmp_path))[0][0] == want_capture
+    assert publications(RunDir(tmp_path), wall=True)[0][0] == want_wall

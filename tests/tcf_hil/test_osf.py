@@ -64,7 +64,7 @@ def test_an_osf_replays_as_the_runs_own_packets(run_dir: Path, osf_file: Path) -
 def test_a_file_that_is_not_osf_is_one_line(tmp_path: Path) -> None:
     bad = tmp_path / "x.osf"
     bad.write_bytes(b"not an osf file" * 10)
-    with pytest.raises(InputError, match="x.osf") as err:
+    with pytest.raises(InputError, match=r"x\.osf") as err:
         Recording.load(bad)
     assert "\n" not in str(err.value)
 

@@ -201,7 +201,7 @@ def test_a_recording_whose_metadata_names_no_destination_replays(tmp_path: Path,
 
 
 def test_metadata_that_names_no_ports_and_fits_no_packet_is_one_line(tmp_path: Path) -> None:
-    pcap, m, _sent = make_recording(tmp_path, "LEGACY")
+    pcap, _m, _sent = make_recording(tmp_path, "LEGACY")
     doc = o.os0_64_metadata("512x10", "RNG19_RFL8_SIG16_NIR16").to_json()  # another profile
     del doc["config_params"]["udp_port_lidar"]
     (tmp_path / "drive.json").write_text(json.dumps(doc))
