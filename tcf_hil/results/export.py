@@ -711,7 +711,7 @@ def sensor_poses(run: Path, step: int = 256) -> NDArray[np.float64]:
     path = run / "sensor_poses.csv"
     if not path.exists():
         return np.zeros((0, 9))
-    rows = []
+    rows: list[list[float]] = []
     last: bytes = b""
     with open(path, "rb") as fh:  # (a line at a time: a long run's file is gigabytes)
         fh.readline()

@@ -12,6 +12,8 @@ channels' metadata names, ``offset_m``, so that float32 points keep millimetres)
 ``/tf``                ``foxglove.FrameTransforms``: ``world`` -> ``os_sensor`` (the
                        sensor's pose at the frame's time: a finished run's at its last
                        return, from a pose sampled four times a frame; live, at its middle)
+                       and ``world`` -> ``harvester`` (the machine's pose: a finished run's
+                       as its CANopen node sent it, ``can.log``; live, from the track)
 ``/sensor/pose``       ``foxglove.PoseInFrame``: the same pose, for the Plot panel
 ``/track``             ``foxglove.SceneUpdate``: the sensor's track as a line
 ``/stems/truth``       ``foxglove.SceneUpdate``: the ground-truth stems as cylinders (DBH
@@ -31,10 +33,11 @@ the 3D panel following ``os_sensor`` with the cloud in its own colours (colour m
 from __future__ import annotations
 
 import contextlib
+import heapq
 import math
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,10 +50,12 @@ from tcf_hil.errors import InputError
 from tcf_hil.recording.rundir import RunDir
 
 __all__ = ["COMPONENT_COLOURS", "SCORE_SCHEMA", "TOPICS", "LiveView", "SceneChannels",
-           "frame_time", "layout_bytes", "publication_rows", "publications", "write_mcap"]
+           "frame_time", "harvester_poses", "layout_bytes", "publication_rows", "publications",
+           "write_mcap"]
 
 WORLD = "world"
 SENSOR = "os_sensor"  # ouster-ros's name for the sensor frame
+HARVESTER = "harvester"  # the machine's base point (its CANopen pose)
 
 TOPICS: dict[str, str] = {
     "/lidar/points": "foxglove.PointCloud", "/tf": "foxglove.FrameTransforms",
@@ -76,6 +81,10 @@ SCORE_SCHEMA: dict[str, Any] = {
 _POINT = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<u2"),
                    ("ring", "u1"), ("component", "u1"), ("stem_id", "<u4"), ("red", "u1"),
                    ("green", "u1"), ("blue", "u1"), ("alpha", "u1")])
+#: name -> (dtype, byte offset) of each of a point's fields
+_POINT_FIELDS: dict[str, tuple[np.dtype[Any], int]] = {
+    n: (_POINT.fields[n][0], int(_POINT.fields[n][1]))  # type: ignore[index]
+    for n in _POINT.names or ()}
 _LUT = np.zeros((256, 3), np.uint8)
 for _code, _rgb in COMPONENT_COLOURS.items():
     _LUT[_code] = _rgb
@@ -145,9 +154,8 @@ class SceneChannels:
                  "u2": PackedElementFieldNumericType.Uint16,
                  "u1": PackedElementFieldNumericType.Uint8,
                  "u4": PackedElementFieldNumericType.Uint32}
-        fields = [PackedElementField(name=n, offset=_POINT.fields[n][1],
-                                     type=types[_POINT.fields[n][0].str[1:]])
-                  for n in _POINT.names or ()]
+        fields = [PackedElementField(name=n, offset=off, type=types[dt.str[1:]])
+                  for n, (dt, off) in _POINT_FIELDS.items()]
         self.points.log(PointCloud(timestamp=_stamp(t_ns), frame_id=WORLD,
                                    point_stride=_POINT.itemsize, fields=fields,
                                    data=out.tobytes()), log_time=int(t_ns))
@@ -173,6 +181,18 @@ class SceneChannels:
         self.pose.log(PoseInFrame(timestamp=stamp, frame_id=WORLD, pose=Pose(
             position=Vector3(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))),
             log_time=int(t_ns))
+
+    def harvester(self, t_ns: int, xyz: NDArray[np.float64], q: NDArray[np.float64]) -> None:
+        """The machine's pose (its base point, world coordinates; ``q`` w, x, y, z) as the
+        transform ``world`` -> ``harvester``."""
+        from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Vector3
+
+        x, y, z = (float(v) for v in np.asarray(xyz) - self.offset)
+        self.tf.log(FrameTransforms(transforms=[FrameTransform(
+            timestamp=_stamp(t_ns), parent_frame_id=WORLD, child_frame_id=HARVESTER,
+            translation=Vector3(x=x, y=y, z=z),
+            rotation=Quaternion(w=float(q[0]), x=float(q[1]), y=float(q[2]),
+                                z=float(q[3])))]), log_time=int(t_ns))
 
     def track(self, t_ns: int, xyz: NDArray[np.float64]) -> None:
         """The sensor's track (n, 3), as one line a little above the sensor's path."""
@@ -287,6 +307,7 @@ def write_mcap(run_dir: str | Path, out: str | Path, *, every: int = 1,
         truth, _sic = stem_outcomes(run.path, gt_doc, track)
         facts = (gt_doc, track)
     pubs = publications(run)
+    man = read_json(run / RunDir.MANIFEST) if (run / RunDir.MANIFEST).exists() else {}
     poses = sensor_poses(run.path, step=max(1, _columns(run) // 4))
     info, frames = run_cloud(run.path, every=every, progress=progress)  # (opens files: last)
     off = np.round(info.first_position / 1000.0) * 1000.0
@@ -298,29 +319,33 @@ def write_mcap(run_dir: str | Path, out: str | Path, *, every: int = 1,
             writer = foxglove.open_mcap(tmp, context=ctx, allow_overwrite=True)
             try:
                 scene = SceneChannels(ctx, off)
+                # the publications and the machine's poses, in time order, between the frames
+                events = heapq.merge(((t, 0, (n, row)) for t, n, row in pubs),
+                                     ((t, 1, (xyz, q)) for t, xyz, q in
+                                      _on_capture(harvester_poses(run), man)),
+                                     key=lambda e: (e[0], e[1]))
+                ev = next(events, None)
                 first = True
-                queue = iter(pubs)
-                nxt = next(queue, None)
                 for pts in frames:
                     t = frame_time(pts, info.gps_adjusted)
                     if first:  # the scene's fixtures, at its first message
-                        t_first = min(t, nxt[0]) if nxt is not None else t
+                        t_first = min(t, ev[0]) if ev is not None else t
                         scene.track(t_first,
                                     poses[:, 1:4] if len(poses) else np.zeros((0, 3)))
                         if has_truth:
                             scene.stems(t_first, truth, sic=False)
                         first = False
-                    while nxt is not None and nxt[0] <= t:
-                        _log_publication(scene, run, nxt, facts)
-                        nxt = next(queue, None)
+                    while ev is not None and ev[0] <= t:
+                        _log_event(scene, run, ev, facts)
+                        ev = next(events, None)
                     if len(poses):
                         scene.sensor(t, _pose_at(poses, t, info.gps_adjusted))
                     scene.cloud(t, pts, info.labelled)
                     n_frames += 1
                     n_points += len(pts)
-                while nxt is not None:
-                    _log_publication(scene, run, nxt, facts)
-                    nxt = next(queue, None)
+                while ev is not None:
+                    _log_event(scene, run, ev, facts)
+                    ev = next(events, None)
             finally:
                 writer.close()
     finally:
@@ -382,6 +407,13 @@ def publications(run: RunDir, wall: bool = False) -> list[tuple[int, int, dict[s
     return out
 
 
+def _on_capture(poses: Iterator[tuple[int, Any, Any]], man: dict[str, Any]
+                ) -> Iterator[tuple[int, Any, Any]]:
+    """The machine's poses (on the wall clock, as the CAN log keeps them) on the capture's."""
+    for t, xyz, q in poses:
+        yield _on_capture_clock(t, man, False), xyz, q
+
+
 def _on_capture_clock(t: int, man: dict[str, Any], wall: bool) -> int:
     """A publication's wall-clock arrival on the time line of the run's frames: the capture's
     Unix time (Unix time at t0 plus simulation time, as the exports give a frame's), or with
@@ -414,6 +446,38 @@ def _iso_ns(text: Any) -> int:
         return 0
 
 
+def harvester_poses(run: RunDir) -> Iterator[tuple[int, NDArray[np.float64],
+                                                   NDArray[np.float64]]]:
+    """(wall-clock Unix ns, base point (3,) in world coordinates, quaternion w, x, y, z) of
+    every pose the machine's node sent (``can.log``, its TPDOs decoded by the pose profile,
+    relative to the datum the manifest names; the compass heading turned to REP-103's yaw:
+    x east, counter-clockwise). None without a CAN log or a node in the manifest."""
+    import can
+
+    from protocols.harvester import PoseAssembler
+    from tcf_hil._rotations import quaternions, rotation_ypr
+
+    path = run / "can.log"
+    man = read_json(run / RunDir.MANIFEST) if (run / RunDir.MANIFEST).exists() else {}
+    node = man.get("can_node") or {}
+    if not path.exists() or "node_id" not in node:
+        return
+    datum = np.asarray(node.get("datum_mm", [0, 0, 0]), np.float64) / 1000.0
+    asm = PoseAssembler(int(node["node_id"]))
+    with can.LogReader(str(path)) as reader:
+        for m in reader:
+            if m.is_error_frame:
+                continue
+            pose = asm.feed(m.arbitration_id, bytes(m.data))
+            if pose is None:
+                continue
+            rot = rotation_ypr(np.array([math.radians(90.0 - pose.heading_deg)]),
+                               np.array([math.radians(pose.pitch_deg)]),
+                               np.array([math.radians(pose.roll_deg)]))
+            yield (round(m.timestamp * 1e9),
+                   np.array([pose.x_m, pose.y_m, pose.z_m]) + datum, quaternions(rot)[0])
+
+
 def _columns(run: RunDir) -> int:
     """A frame's columns (from ``metadata.json``; 1024 where it cannot say)."""
     from protocols.ouster import MetadataError, SensorMetadata
@@ -424,10 +488,14 @@ def _columns(run: RunDir) -> int:
         return 1024
 
 
-def _log_publication(scene: SceneChannels, run: RunDir, pub: tuple[int, int, dict[str, Any]],
-                     facts: tuple[dict[str, Any], NDArray[np.float64]] | None) -> None:
-    """A publication's stems and its score."""
-    t, n, row = pub
+def _log_event(scene: SceneChannels, run: RunDir, ev: tuple[int, int, Any],
+               facts: tuple[dict[str, Any], NDArray[np.float64]] | None) -> None:
+    """A publication's stems and its score (kind 0), or the machine's pose (kind 1)."""
+    t, kind, what = ev
+    if kind == 1:
+        scene.harvester(t, *what)
+        return
+    n, row = what
     scene.stems(t, publication_rows(run, n, row, facts), sic=True)
     scene.score(t, row)
 
@@ -484,6 +552,14 @@ class _TrackPoses:
         t = np.clip(np.asarray(ts, np.int64), self.track.t0_ns, self.track.end_ns)
         pos, rot = self.track.sensor_pose(t)
         return np.hstack([pos + self.origin, quaternions(rot)])
+
+    def machine(self, t_ns: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The machine's base point (world) and its rotation (w, x, y, z) at ``t_ns``."""
+        from tcf_hil._rotations import quaternions
+
+        t = np.clip(np.array([t_ns], np.int64), self.track.t0_ns, self.track.end_ns)
+        st = self.track.vehicle_state(t)
+        return st.position[0] + self.origin, quaternions(st.rotation)[0]
 
     def skip_to(self, _t: int) -> None:
         pass
@@ -618,6 +694,8 @@ class LiveView:
         now = time.time_ns()
         t_mid = int(np.median(pts["gps_time"]) * 1e9)  # simulation ns (no clock given)
         self.scene.sensor(now, self.poses.at(np.array([t_mid]))[0])
+        xyz, q = self.poses.machine(t_mid)
+        self.scene.harvester(now, xyz, q)
         self.scene.cloud(now, pts, labelled=rec_known)
         self.frames += 1
 

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import heapq
 import json
-import math
 import shutil
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -102,7 +101,7 @@ def write_bag(run_dir: str | Path, out: str | Path, *, every: int = 1,
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     counts = {t: 0 for t in BAG_TOPICS}
-    span = [None, None]
+    span: list[int | None] = [None, None]
     n_frames = 0
     try:
         with open(tmp / f"{dest.name}_0.mcap", "wb") as fh:
@@ -257,8 +256,8 @@ def _clouds(run: RunDir, store: Any, info: Any, frames: Iterator[Any],
                        ("ring", "<u2"), ("component", "u1"), ("_pad", "u1"),
                        ("stem_id", "<u4")])
     kinds = {"<f4": 7, "<u2": 4, "u1": 2, "<u4": 6}  # sensor_msgs/PointField's datatypes
-    fields = [field(name=n, offset=layout.fields[n][1], datatype=kinds[layout.fields[n][0].str
-                                                                      .replace("|", "")],
+    spec: Any = layout.fields or {}
+    fields = [field(name=n, offset=spec[n][1], datatype=kinds[spec[n][0].str.replace("|", "")],
                     count=1) for n in layout.names or () if not n.startswith("_")]
     poses = sensor_poses(run.path, step=max(1, info.meta.columns // 4))
     for pts in frames:
@@ -295,45 +294,17 @@ def _tf(store: Any, t_ns: int, pose: NDArray[np.float64], off: NDArray[np.float6
 
 def _poses(run: RunDir, store: Any, off: NDArray[np.float64]
            ) -> Iterator[tuple[int, str, Any]]:
-    """The machine's pose from its node's TPDOs in ``can.log`` (relative to the datum the
-    manifest names), on the capture's clock."""
-    import can
+    """The machine's pose as its node sent it (``can.log``), on the wall clock."""
+    from tcf_hil.results.foxglove import harvester_poses
 
-    from protocols.harvester import PoseAssembler
-
-    path = run / "can.log"
-    man = read_json(run / RunDir.MANIFEST) if (run / RunDir.MANIFEST).exists() else {}
-    node = man.get("can_node") or {}
-    if not path.exists() or "node_id" not in node:
-        return
-    datum = np.asarray(node.get("datum_mm", [0, 0, 0]), np.float64) / 1000.0
-    asm = PoseAssembler(int(node["node_id"]))
     t = store.types
-    with can.LogReader(str(path)) as reader:
-        for m in reader:
-            if m.is_error_frame:
-                continue
-            pose = asm.feed(m.arbitration_id, bytes(m.data))
-            if pose is None:
-                continue
-            ts = round(m.timestamp * 1e9)
-            yaw = math.radians(90.0 - pose.heading_deg)  # compass to REP-103 (x east, ccw)
-            q = _quat(yaw, math.radians(pose.pitch_deg), math.radians(pose.roll_deg))
-            x, y, z = np.array([pose.x_m, pose.y_m, pose.z_m]) + datum - off
-            yield ts, "/harvester/pose", t["geometry_msgs/msg/PoseStamped"](
-                header=_header(store, ts, "world"), pose=t["geometry_msgs/msg/Pose"](
-                    position=t["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=float(z)),
-                    orientation=t["geometry_msgs/msg/Quaternion"](
-                        w=q[0], x=q[1], y=q[2], z=q[3])))
-
-
-def _quat(yaw: float, pitch: float, roll: float) -> tuple[float, float, float, float]:
-    """(w, x, y, z) of R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
+    for ts, xyz, q in harvester_poses(run):
+        x, y, z = (float(v) for v in xyz - off)
+        yield ts, "/harvester/pose", t["geometry_msgs/msg/PoseStamped"](
+            header=_header(store, ts, "world"), pose=t["geometry_msgs/msg/Pose"](
+                position=t["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+                orientation=t["geometry_msgs/msg/Quaternion"](
+                    w=float(q[0]), x=float(q[1]), y=float(q[2]), z=float(q[3]))))
 
 
 def _can_frames(run: RunDir, store: Any) -> Iterator[tuple[int, str, Any]]:
@@ -349,7 +320,8 @@ def _can_frames(run: RunDir, store: Any) -> Iterator[tuple[int, str, Any]]:
             data = np.zeros(8, np.uint8)
             data[:len(m.data)] = np.frombuffer(bytes(m.data)[:8], np.uint8)
             yield ts, "/can/frames", frame(
-                header=_header(store, ts, m.channel or "can0"), id=int(m.arbitration_id),
+                header=_header(store, ts, str(m.channel) if m.channel else "can0"),
+                id=int(m.arbitration_id),
                 is_rtr=bool(m.is_remote_frame), is_extended=bool(m.is_extended_id),
                 is_error=bool(m.is_error_frame), dlc=int(m.dlc), data=data)
 

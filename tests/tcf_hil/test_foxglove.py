@@ -268,3 +268,29 @@ def test_publications_land_on_the_frames_clock(tmp_path: Path, clock: dict,
     (tmp_path / "manifest.json").write_text(json.dumps(man))
     assert publications(RunDir(tmp_path))[0][0] == want_capture
     assert publications(RunDir(tmp_path), wall=True)[0][0] == want_wall
+
+
+def test_the_machines_pose_comes_from_its_can_log(tmp_path: Path) -> None:
+    """/tf's world -> harvester (and the bag's /harvester/pose) is the pose the node sent:
+    its TPDOs in can.log, decoded, less nothing but the datum; compass heading to yaw."""
+    from protocols.harvester import Pose, encode_pose
+    from tcf_hil.recording.rundir import RunDir
+    from tcf_hil.results.foxglove import harvester_poses
+
+    datum_mm = [512_345_000, 6_912_345_000, 120_000]
+    lines = []
+    for k in range(5):
+        p = Pose(x_m=1.0 + k, y_m=2.0, z_m=0.5, heading_deg=0.0, pitch_deg=0.0,
+                 roll_deg=0.0, speed_m_s=1.0, time_us=k * 100_000)
+        for cob, data in encode_pose(p, 10):
+            lines.append(f"({1_700_000_000 + k * 0.1:.6f}) vcan0 {cob:03X}#{data.hex().upper()}")
+    (tmp_path / "can.log").write_text("\n".join(lines) + "\n")
+    (tmp_path / "manifest.json").write_text(json.dumps(
+        {"can_node": {"node_id": 10, "datum_mm": datum_mm}}))
+    got = list(harvester_poses(RunDir(tmp_path)))
+    assert len(got) == 5
+    t, xyz, q = got[2]
+    assert t == pytest.approx(1_700_000_000.2e9, abs=2e3)
+    assert xyz == pytest.approx([512_345 + 3.0, 6_912_345 + 2.0, 120.5], abs=1e-3)
+    # heading 0 (north, +y) is yaw 90 degrees: a quarter turn about z
+    assert q == pytest.approx([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)], abs=1e-6)
