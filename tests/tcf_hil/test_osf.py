@@ -7,6 +7,8 @@ announces itself over mDNS (multicast), so it runs in a network namespace of the
 
 from __future__ import annotations
 
+import itertools
+import json
 import os
 import shutil
 import subprocess
@@ -113,3 +115,52 @@ def test_ouster_clis_sensor_replay_of_our_osf_sends_the_runs_packets(
     assert got, r.stderr[-2000:]
     assert set(got) <= set(want)  # what ouster-sdk sends from our file is the run's packets
     assert len(got) >= len(want) // 2
+
+
+_SDK_SIC = textwrap.dedent('''
+    import json, os, signal, sys
+    import numpy as np
+    from ouster.sdk import sensor
+    src = sensor.SensorFrameSetSource(os.environ["TCF_SENSOR_HOST"], timeout=20)
+    ids, whole = [], 0
+    for frames in src:
+        f = frames[0]
+        if f is None:
+            continue
+        ids.append(int(f.frame_id))
+        whole += bool(np.all(f.status & 1)) and int(np.count_nonzero(f.field("RANGE"))) > 500
+        if len(ids) >= int(sys.argv[2]):
+            break
+    src.close()
+    with open(sys.argv[1], "w") as fh:
+        json.dump({"frame_ids": ids, "whole": whole}, fh)
+    print(json.dumps({"objects": []}), flush=True)
+    signal.pause()
+''')
+
+
+@pytest.mark.slow  # the second lane (.ci/run): a run that replays an OSF to an SDK client
+def test_an_sdk_client_gets_the_frames_our_osf_replay_sends(tmp_path: Path) -> None:
+    """``tcf-hil run --replay FILE.osf``: a program that opens the sensor as ouster-sdk does
+    (``SensorFrameSetSource(TCF_SENSOR_HOST)``) gets the OSF's frames, whole, in order."""
+    from tcf_hil.devices.endpoints import claim_sensor_host
+
+    with claim_sensor_host() as host:
+        if host.http_port != 80:
+            pytest.skip(host.note or "port 80 cannot be bound here")
+    run = tmp_path / "src"
+    record_pcap(load_scenario("forest-ii"), run, mode="512x10", max_frames=12)
+    osf = tmp_path / "drive.osf"
+    assert main(["export", str(run), "--out", str(osf)]) == 0
+    sic = tmp_path / "sdk_sic.py"
+    sic.write_text(_SDK_SIC)
+    report = tmp_path / "report.json"
+    p = subprocess.run([sys.executable, "-m", "tcf_hil.cli", "run", "--replay", str(osf),
+                        "--grace", "2", "--sic", f"{{python}} {sic} {report} 8", "--out",
+                        str(tmp_path / "out")], capture_output=True, text=True, timeout=300,
+                       env=dict(os.environ, COLUMNS="200"))
+    assert report.exists(), p.stderr[-3000:]
+    got = json.loads(report.read_text())
+    assert got["whole"] >= 7 and len(got["frame_ids"]) == 8, got  # (the first may be cut)
+    ids = got["frame_ids"]
+    assert all((b - a) % 65536 == 1 for a, b in itertools.pairwise(ids)), ids
