@@ -142,12 +142,17 @@ class Recording:
             meta_path = meta or find_metadata(path)
             rec = cls(*_read_meta(meta_path), path, can_log)
             rec.can_clock = (0, -round(can_offset_s * 1e9), 1.0)
-        if rec.can_log is not None:
-            _check_can_log(rec.can_log)
-        if not rec.meta.udp_port_lidar or not rec.meta.udp_port_imu:
-            rec._guess_ports()
-        rec._scan(progress)
+        rec._check(progress)
         return rec
+
+    def _check(self, progress: Callable[[int, int], None] | None) -> None:
+        """The CAN log readable, the ports known (found in the capture where the metadata
+        names none), every packet checked in one pass."""
+        if self.can_log is not None:
+            _check_can_log(self.can_log)
+        if not self.meta.udp_port_lidar or not self.meta.udp_port_imu:
+            self._guess_ports()
+        self._scan(progress)
 
     @classmethod
     def _written_out(cls, path: Path, meta: Path | None, can_log: Path | None,
@@ -164,11 +169,7 @@ class Recording:
                 (pcap, own_meta), own_can = osf_to_recording(path, work), None
             rec = cls(*_read_meta(meta or own_meta), pcap, can_log or own_can)
             rec.can_clock = (0, -round(can_offset_s * 1e9), 1.0)
-            if rec.can_log is not None:
-                _check_can_log(rec.can_log)
-            if not rec.meta.udp_port_lidar or not rec.meta.udp_port_imu:
-                rec._guess_ports()
-            rec._scan(progress)
+            rec._check(progress)
         except InputError as err:
             if err.path.startswith(str(work)):
                 raise InputError(str(path), err.field, f"{err.problem} (in its packets "
