@@ -5,7 +5,9 @@ with one line naming the missing file."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
+from tcf_hil._io import read_json
 from tcf_hil.errors import InputError
 
 __all__ = ["RunDir"]
@@ -30,6 +32,12 @@ class RunDir:
 
     def __truediv__(self, name: str) -> Path:
         return self.path / name
+
+    def manifest(self) -> dict[str, Any]:
+        """``manifest.json`` as a document (empty where the directory has none: a field
+        recording, an offline capture)."""
+        path = self.path / self.MANIFEST
+        return read_json(path) if path.exists() else {}
 
     def require(self, *names: str, missing: str = "not a tcf-hil run directory") -> RunDir:
         """Self, where the directory exists and holds every one of ``names``; else an

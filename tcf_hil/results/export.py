@@ -587,9 +587,15 @@ PCD_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
 
 def _offset(info: CloudInfo) -> NDArray[np.float64]:
     """The kilometre near the first sensor position (z: 0): LAS's offset, PCD's origin."""
-    off = np.round(info.first_position / 1000.0) * 1000.0
+    return kilometre_offset(info.first_position)
+
+
+def kilometre_offset(position: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The kilometre near ``position`` (z: 0): what the exports subtract so that float32 and
+    int32 coordinates keep their millimetres at UTM-sized origins."""
+    off = np.round(np.asarray(position, np.float64)[:3] / 1000.0) * 1000.0
     off[2] = 0.0
-    return np.asarray(off, np.float64)
+    return off
 
 
 def _local32(pts: NDArray[np.void], off: NDArray[np.float64]) -> NDArray[np.void]:

@@ -98,12 +98,24 @@ def layout_bytes() -> bytes:
     return (resources.files("tcf_hil") / "report_assets" / "foxglove-layout.json").read_bytes()
 
 
+def outcome_rgba(outcome: Any, alpha: float) -> tuple[float, float, float, float]:
+    """The report's colour of a stem's outcome (grey where it has none), 0-1 each."""
+    from tcf_hil.results.report import OUTCOMES
+
+    c = OUTCOMES.get(str(outcome), ("", "#8C8C8C"))[1]
+    return _rgba(c, alpha)
+
+
+def _rgba(colour: str, alpha: float) -> tuple[float, float, float, float]:
+    c = colour.lstrip("#")
+    return int(c[0:2], 16) / 255, int(c[2:4], 16) / 255, int(c[4:6], 16) / 255, alpha
+
+
 def _hex(colour: str, alpha: float = 1.0) -> Any:
     from foxglove.messages import Color
 
-    c = colour.lstrip("#")
-    return Color(r=int(c[0:2], 16) / 255, g=int(c[2:4], 16) / 255, b=int(c[4:6], 16) / 255,
-                 a=alpha)
+    r, g, b, a = _rgba(colour, alpha)
+    return Color(r=r, g=g, b=b, a=a)
 
 
 def _stamp(t_ns: int) -> Any:
@@ -217,6 +229,7 @@ class SceneChannels:
         them: ``x``, ``y``, ``z``, ``dbh_m``, ``height_m``, ``outcome``, ``id``), coloured by
         outcome; the whole set replaces the channel's previous one."""
         from foxglove.messages import (
+            Color,
             CylinderPrimitive,
             Pose,
             Quaternion,
@@ -227,21 +240,16 @@ class SceneChannels:
             Vector3,
         )
 
-        from tcf_hil.results.report import OUTCOMES
-
         cyl = []
         for r in rows:
-            d = _finite(r.get("dbh_m"), 0.2)
-            h = _finite(r.get("height_m"), 2.0 if sic else 10.0)
-            x, y, z = (float(r[k]) - self.offset[i] for i, k in enumerate("xyz"))
-            if not all(math.isfinite(v) for v in (x, y, z)):
+            c = stem_cylinder(r, self.offset, sic)
+            if c is None:
                 continue
-            colour = OUTCOMES.get(str(r.get("outcome")), ("", "#8C8C8C"))[1]
+            (x, y, z), (d, h), (cr, cg, cb, ca) = c
             cyl.append(CylinderPrimitive(
-                pose=Pose(position=Vector3(x=x, y=y, z=z + h / 2),
-                          orientation=Quaternion(w=1.0)),
+                pose=Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(w=1.0)),
                 size=Vector3(x=d, y=d, z=h), bottom_scale=1.0, top_scale=1.0,
-                color=_hex(colour, 0.9 if sic else 0.6)))
+                color=Color(r=cr, g=cg, b=cb, a=ca)))
         name = "sic" if sic else "truth"
         stamp = _stamp(t_ns)
         ch = self.sic_ch if sic else self.truth_ch
@@ -258,6 +266,23 @@ class SceneChannels:
             v = row.get(k)
             out[k] = float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
         self.score_ch.log(out, log_time=int(t_ns))
+
+
+def stem_cylinder(r: dict[str, Any], offset: NDArray[np.float64], sic: bool
+                  ) -> tuple[tuple[float, float, float], tuple[float, float],
+                             tuple[float, float, float, float]] | None:
+    """A stem row's cylinder: its centre (world less ``offset``), diameter and height (the
+    DBH and the tree's height; 0.2 m and 2 m (a SIC's stem) or 10 m (a tree) where a row
+    has none) and its outcome's colour; None for a row without a finite position."""
+    try:
+        x, y, z = (float(r[k]) - offset[i] for i, k in enumerate("xyz"))
+    except (KeyError, TypeError, ValueError):
+        return None
+    if not all(math.isfinite(v) for v in (x, y, z)):
+        return None
+    d = _finite(r.get("dbh_m"), 0.2)
+    h = _finite(r.get("height_m"), 2.0 if sic else 10.0)
+    return (x, y, z + h / 2), (d, h), outcome_rgba(r.get("outcome"), 0.9 if sic else 0.6)
 
 
 def _finite(v: Any, default: float) -> float:
@@ -294,7 +319,14 @@ def write_mcap(run_dir: str | Path, out: str | Path, *, every: int = 1,
     package's Foxglove layout beside it (``<name>.layout.json``)."""
     import foxglove
 
-    from tcf_hil.results.export import run_cloud, run_truth, sensor_poses, stem_outcomes, track_xy
+    from tcf_hil.results.export import (
+        kilometre_offset,
+        run_cloud,
+        run_truth,
+        sensor_poses,
+        stem_outcomes,
+        track_xy,
+    )
 
     run = RunDir(run_dir).require(RunDir.LIDAR, RunDir.METADATA, RunDir.POSES,
                                   missing="not a run directory with its lidar recorded")
@@ -307,11 +339,10 @@ def write_mcap(run_dir: str | Path, out: str | Path, *, every: int = 1,
         truth, _sic = stem_outcomes(run.path, gt_doc, track)
         facts = (gt_doc, track)
     pubs = publications(run)
-    man = read_json(run / RunDir.MANIFEST) if (run / RunDir.MANIFEST).exists() else {}
+    man = run.manifest()
     poses = sensor_poses(run.path, step=max(1, _columns(run) // 4))
     info, frames = run_cloud(run.path, every=every, progress=progress)  # (opens files: last)
-    off = np.round(info.first_position / 1000.0) * 1000.0
-    off[2] = 0.0
+    off = kilometre_offset(info.first_position)
     ctx = foxglove.Context()
     n_frames = n_points = 0
     try:
@@ -339,7 +370,7 @@ def write_mcap(run_dir: str | Path, out: str | Path, *, every: int = 1,
                         _log_event(scene, run, ev, facts)
                         ev = next(events, None)
                     if len(poses):
-                        scene.sensor(t, _pose_at(poses, t, info.gps_adjusted))
+                        scene.sensor(t, pose_at(poses, t, info.gps_adjusted))
                     scene.cloud(t, pts, info.labelled)
                     n_frames += 1
                     n_points += len(pts)
@@ -366,7 +397,7 @@ def frame_time(pts: NDArray[np.void], gps_adjusted: bool) -> int:
     return round(g * 1e6) * 1000
 
 
-def _pose_at(poses: NDArray[np.float64], t_unix: int, gps_adjusted: bool
+def pose_at(poses: NDArray[np.float64], t_unix: int, gps_adjusted: bool
              ) -> NDArray[np.float64]:
     """The first sampled sensor pose at or after ``t_unix`` (the last there is after it; the
     poses' own time is the run's simulation time, ``poses[:, 8]`` their Unix time where the
@@ -385,7 +416,7 @@ def publications(run: RunDir, wall: bool = False) -> list[tuple[int, int, dict[s
         return []
     import json
 
-    man = read_json(run / RunDir.MANIFEST) if (run / RunDir.MANIFEST).exists() else {}
+    man = run.manifest()
     start = _iso_ns(man.get("started"))
     score = read_json(run / RunDir.SCORE) if (run / RunDir.SCORE).exists() else {}
     by_n = {int(r["n"]): r for r in score.get("timeline", []) if "n" in r}
@@ -458,7 +489,7 @@ def harvester_poses(run: RunDir) -> Iterator[tuple[int, NDArray[np.float64],
     from tcf_hil._rotations import quaternions, rotation_ypr
 
     path = run / "can.log"
-    man = read_json(run / RunDir.MANIFEST) if (run / RunDir.MANIFEST).exists() else {}
+    man = run.manifest()
     node = man.get("can_node") or {}
     if not path.exists() or "node_id" not in node:
         return
@@ -628,6 +659,7 @@ class LiveView:
 
     def _bind(self, world: Any, run: Path) -> None:
         from protocols.ouster import SensorMetadata
+        from tcf_hil.results.export import FrameDecoder, kilometre_offset
         from tcf_hil.world.forest import ground_truth
 
         meta_path = run / RunDir.METADATA
@@ -641,9 +673,7 @@ class LiveView:
         t = np.linspace(tr.t0_ns, tr.end_ns, 400).astype(np.int64)
         track = self.poses.at(t)[:, :3]
         self.track_xy = track[:, :2].copy()
-        off = np.round(track[0] / 1000.0) * 1000.0
-        off[2] = 0.0
-        from tcf_hil.results.export import FrameDecoder
+        off = kilometre_offset(track[0])
 
         self.decoder = FrameDecoder(self.meta)
         self.gt = ground_truth(world.forest)

@@ -41,7 +41,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from tcf_hil._io import read_json
 from tcf_hil.errors import InputError
 from tcf_hil.recording.rosbag import CAN_FRAME_MSG, PACKET_MSG, typestore
 from tcf_hil.recording.rundir import RunDir
@@ -85,7 +84,7 @@ def write_bag(run_dir: str | Path, out: str | Path, *, every: int = 1,
     and renamed; ``out`` must not exist."""
     from mcap.writer import Writer
 
-    from tcf_hil.results.export import run_cloud
+    from tcf_hil.results.export import kilometre_offset, run_cloud
 
     run = RunDir(run_dir).require(RunDir.LIDAR, RunDir.METADATA, RunDir.POSES,
                                   missing="not a run directory with its lidar recorded")
@@ -95,8 +94,7 @@ def write_bag(run_dir: str | Path, out: str | Path, *, every: int = 1,
     store = typestore()
     truth, pubs = _stems(run)  # (read before the cloud opens its files)
     info, frames = run_cloud(run.path, every=every, progress=progress)
-    off = np.round(info.first_position / 1000.0) * 1000.0
-    off[2] = 0.0
+    off = kilometre_offset(info.first_position)
     tmp = dest.with_name(f".{dest.name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -213,7 +211,7 @@ def _wall_clock(run: RunDir) -> tuple[Callable[[int], int], Callable[[int], int]
     manifest ties them (``--speed`` stretches it), and the exports' Unix time of a frame
     (Unix time at t0 plus simulation time: GPS time's) -> the same wall clock; a capture
     without a manifest keeps its own times."""
-    man = read_json(run / RunDir.MANIFEST) if (run / RunDir.MANIFEST).exists() else {}
+    man = run.manifest()
     clock = man.get("clock") or {}
     try:
         t0, unix0 = int(clock["sim_t0_ns"]), int(clock["unix_ns_at_sim_t0"])
@@ -248,7 +246,7 @@ def _clouds(run: RunDir, store: Any, info: Any, frames: Iterator[Any],
             off: NDArray[np.float64], wall: Callable[[int], int]
             ) -> Iterator[tuple[int, str, Any]]:
     from tcf_hil.results.export import sensor_poses
-    from tcf_hil.results.foxglove import frame_time
+    from tcf_hil.results.foxglove import frame_time, pose_at
 
     t = store.types
     field = t["sensor_msgs/msg/PointField"]
@@ -274,9 +272,7 @@ def _clouds(run: RunDir, store: Any, info: Any, frames: Iterator[Any],
             is_bigendian=False, point_step=layout.itemsize, row_step=layout.itemsize * len(arr),
             data=np.frombuffer(arr.tobytes(), np.uint8), is_dense=True)
         if len(poses):
-            col = 8 if info.gps_adjusted else 0
-            i = int(np.clip(np.searchsorted(poses[:, col], t_unix), 0, len(poses) - 1))
-            yield ts, "/tf", _tf(store, ts, poses[i, 1:8], off)
+            yield ts, "/tf", _tf(store, ts, pose_at(poses, t_unix, info.gps_adjusted), off)
         yield ts, "/ouster/points", cloud
 
 
@@ -354,19 +350,14 @@ def _markers(store: Any, t_ns: int, rows: list[dict[str, Any]], off: NDArray[np.
              ns: str) -> Any:
     """Stems as cylinders coloured by outcome (the report's colours), after a DELETEALL: a
     publication replaces the last."""
-    from tcf_hil.results.report import OUTCOMES
+    from tcf_hil.results.foxglove import stem_cylinder
 
     out = [_marker(store, t_ns, ns, 0, 3)]
     for k, r in enumerate(rows, 1):
-        try:
-            x, y, z = (float(r[c]) - off[i] for i, c in enumerate("xyz"))
-        except (TypeError, ValueError):
-            continue
-        d = float(r.get("dbh_m") or 0.2)
-        h = float(r.get("height_m") or 2.0)
-        c = OUTCOMES.get(str(r.get("outcome")), ("", "#8C8C8C"))[1].lstrip("#")
-        rgba = (int(c[0:2], 16) / 255, int(c[2:4], 16) / 255, int(c[4:6], 16) / 255, 0.8)
-        out.append(_marker(store, t_ns, ns, k, 0, (x, y, z + h / 2), (d, d, h), rgba))
+        c = stem_cylinder(r, off, ns == "sic")
+        if c is not None:
+            centre, (d, h), rgba = c
+            out.append(_marker(store, t_ns, ns, k, 0, centre, (d, d, h), rgba))
     return store.types["visualization_msgs/msg/MarkerArray"](markers=out)
 
 

@@ -20,6 +20,7 @@ import time
 import tracemalloc
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -131,28 +132,38 @@ def _receive(socks: list[socket.socket], got: list[tuple[int, bytes]], stop: thr
             got.append((s.getsockname()[1], s.recv(65536)))
 
 
-@pytest.mark.parametrize("layout", [(p, "") for p in o.PROFILES]
-                         + [("RNG19_RFL8_SIG16_NIR16_DUAL", "FUSA")])
-def test_every_profile_replays_byte_for_byte(tmp_path: Path, layout: tuple[str, str]) -> None:
-    profile, header = layout
-    pcap, m, sent = make_recording(tmp_path, profile, header)
+def _replay_to_sockets(recording: Path, expect: int, **kw: Any
+                       ) -> tuple[Any, list[tuple[int, bytes]], tuple[int, int]]:
+    """Replay ``recording`` (no SIC) to a lidar and an IMU socket of the test's own; the
+    run, the (port, payload) received (waiting for ``expect`` of them, 5 s at most) and
+    the two ports."""
     lidar, imu = _udp_socket(), _udp_socket()
-    ports = {m.udp_port_lidar: lidar.getsockname()[1], m.udp_port_imu: imu.getsockname()[1]}
+    ports = (lidar.getsockname()[1], imu.getsockname()[1])
     got: list[tuple[int, bytes]] = []
     stop = threading.Event()
     rx = threading.Thread(target=_receive, args=([lidar, imu], got, stop))
     rx.start()
     try:
-        r = replay_run(pcap, None, None, lead_s=0.0, sensor_ip="127.0.0.1", http_port=0,
-                       ports=(ports[m.udp_port_lidar], ports[m.udp_port_imu]))
+        r = replay_run(recording, None, None, lead_s=0.0, sensor_ip="127.0.0.1", http_port=0,
+                       ports=ports, **kw)
         deadline = time.monotonic() + 5
-        while len(got) < len(sent) and time.monotonic() < deadline:
+        while len(got) < expect and time.monotonic() < deadline:
             time.sleep(0.05)
     finally:
         stop.set()
         rx.join()
         lidar.close()
         imu.close()
+    return r, got, ports
+
+
+@pytest.mark.parametrize("layout", [(p, "") for p in o.PROFILES]
+                         + [("RNG19_RFL8_SIG16_NIR16_DUAL", "FUSA")])
+def test_every_profile_replays_byte_for_byte(tmp_path: Path, layout: tuple[str, str]) -> None:
+    profile, header = layout
+    pcap, m, sent = make_recording(tmp_path, profile, header)
+    r, got, (lp, ip) = _replay_to_sockets(pcap, len(sent))
+    ports = {m.udp_port_lidar: lp, m.udp_port_imu: ip}
     want = [(ports[p], b) for p, b in sent]
     assert [b for p, b in got if p == ports[m.udp_port_lidar]] == \
         [b for p, b in want if p == ports[m.udp_port_lidar]]  # every lidar byte, in order
@@ -179,23 +190,7 @@ def test_a_recording_whose_metadata_names_no_destination_replays(tmp_path: Path,
     rec = Recording.load(pcap)
     assert (rec.meta.udp_dest, rec.guessed_ports) == ("", (7602, 7603))
     assert rec.counts["lidar"] == sum(p == 7602 for p, _b in sent)
-    lidar, imu = _udp_socket(), _udp_socket()
-    port = lidar.getsockname()[1]
-    got: list[tuple[int, bytes]] = []
-    stop = threading.Event()
-    rx = threading.Thread(target=_receive, args=([lidar, imu], got, stop))
-    rx.start()
-    try:
-        r = replay_run(pcap, None, None, lead_s=0.0, sensor_ip="127.0.0.1", http_port=0,
-                       ports=(port, imu.getsockname()[1]))
-        deadline = time.monotonic() + 5
-        while len(got) < len(sent) and time.monotonic() < deadline:
-            time.sleep(0.05)
-    finally:
-        stop.set()
-        rx.join()
-        lidar.close()
-        imu.close()
+    r, got, (port, _imu) = _replay_to_sockets(pcap, len(sent))
     assert [b for p, b in got if p == port] == [b for p, b in sent if p == 7602]
     assert r.manifest.replay_sent["lidar"] == sum(p == 7602 for p, _b in sent)
 
