@@ -7,7 +7,7 @@ Run: ``python benchmarks/bench_pcap.py [--scene forest-x] [--mode 2048x10]
 Per sensor, ``--repeat`` times in alternation (side by side, so the machine's other load
 falls on both alike):
 
-- **pcap**: :func:`tcf_hil.devices.lidar.record_pcap`, the function ``tcf-hil lidar pcap``
+- **pcap**: :func:`tcf_hil.devices.offline.record_pcap`, the function ``tcf-hil lidar pcap``
   calls, for ``--frames`` frames into a temporary directory, rendered by one process per
   CPU (its default: blocks of 10 frames each; ``--workers 1``: one process, its ray
   threads over the CPUs); the time a frame from the progress callback (ray cast, the
@@ -37,7 +37,8 @@ from typing import Any
 import numpy as np
 
 from tcf_hil.cli._shared import scenario_with_faults
-from tcf_hil.devices.lidar import LidarRun, record_pcap
+from tcf_hil.devices.lidar import LidarRun
+from tcf_hil.devices.offline import record_pcap
 from tcf_hil.scenario import scenario_from_dict, scenario_to_dict
 from tcf_hil.world.scene.embree import EmbreeCaster
 

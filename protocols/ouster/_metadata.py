@@ -191,6 +191,135 @@ def default_lidar_origin_to_beam_origin_mm(prod_line: str) -> float:
     return 12.163  # the first generation's
 
 
+_LDF = "lidar_data_format"
+
+
+class _Sections:
+    """A nested metadata document's sections (each a dict, {} where the document's is not
+    one), read with ouster-sdk's defaults; every error names the field."""
+
+    def __init__(self, sec: dict[str, dict[str, Any]]) -> None:
+        self.sec = sec
+
+    def get(self, section: str, key: str, kind: type | tuple[type, ...], default: Any = None
+            ) -> Any:
+        """``section.key`` of type ``kind``; ``default`` where it is missing (None: it is
+        required)."""
+        if key not in self.sec[section]:
+            if default is not None:
+                return default
+            raise MetadataError(f"{section}.{key} is missing")
+        v = self.sec[section][key]
+        if not isinstance(v, kind) or (isinstance(v, bool) and kind is not bool):
+            raise MetadataError(f"{section}.{key} = {_short(v)}; expected {kind}")
+        return v
+
+    def integer(self, section: str, key: str, default: int = 0, text_ok: bool = False
+                ) -> int:
+        """``section.key`` as an integer (``text_ok``: a decimal string too)."""
+        v = self.sec[section].get(key, default)
+        if text_ok and isinstance(v, str) and v.isascii() and v.isdecimal() and len(v) < 40:
+            return int(v)
+        if not _is_int(v):
+            raise MetadataError(f"{section}.{key} = {_short(v)}; expected an integer"
+                                + (" or a decimal string" if text_ok else ""))
+        return int(v)
+
+
+def _frame_shape(r: _Sections) -> tuple[int, str]:
+    """The columns per frame and the lidar mode (the mode that has those columns where the
+    document's does not)."""
+    mode = r.sec["config_params"].get("lidar_mode")
+    mode_w = parse_mode(mode)[0] if isinstance(mode, str) and mode in MODES else None
+    if "columns_per_frame" not in r.sec[_LDF] and mode_w is None:
+        raise MetadataError(f"{_LDF}.columns_per_frame is missing, and "
+                            f"config_params.lidar_mode {_short(mode)} gives none")
+    w = r.get(_LDF, "columns_per_frame", int, mode_w)
+    if w not in {parse_mode(m)[0] for m in MODES}:
+        raise MetadataError(f"{_LDF}.columns_per_frame = {_short(w)}; expected the "
+                            f"columns of a lidar_mode ({', '.join(MODES)})")
+    if not isinstance(mode, str) or mode not in MODES or parse_mode(mode)[0] != w:
+        mode = f"{w}x10" if f"{w}x10" in MODES else f"{w}x5"
+    return w, mode
+
+
+@dataclass(frozen=True)
+class _Beams:
+    """The beams as a document gives them (:func:`_beams`)."""
+
+    prod_line: str
+    alt: list[Any]
+    az: list[Any]
+    shift: list[Any]
+    origin: Any
+
+
+def _beams(r: _Sections, w: int) -> _Beams:
+    """The beams' angles (as many as the pixels per column: those the product line names,
+    else 64), the pixel shifts (resized to the beams, as ouster-sdk does) and the beam
+    origin's offset."""
+    alt = r.get("beam_intrinsics", "beam_altitude_angles", list)
+    az = r.get("beam_intrinsics", "beam_azimuth_angles", list)
+    prod_line = str(r.sec["sensor_info"].get("prod_line", ""))
+    # as ouster-sdk: the beams the product line names, else 64
+    h = r.get(_LDF, "pixels_per_column", int, beams_of_prod_line(prod_line) or 64)
+    for name, arr in (("beam_altitude_angles", alt), ("beam_azimuth_angles", az)):
+        if len(arr) != h:
+            raise MetadataError(f"beam_intrinsics.{name} has {len(arr)} angles; expected "
+                                f"{h} (pixels_per_column)")
+    shift = r.get(_LDF, "pixel_shift_by_row", list, default_pixel_shifts(w, h))
+    for name, arr in (("beam_altitude_angles", alt), ("beam_azimuth_angles", az),
+                      ("pixel_shift_by_row", shift)):
+        for i, v in enumerate(arr):
+            if not _is_number(v):
+                raise MetadataError(f"{name}[{i}] = {_short(v)}; expected a finite number")
+    shift = (list(shift) + [0] * h)[:h]  # as ouster-sdk resizes it to the beams
+    origin = r.sec["beam_intrinsics"].get("lidar_origin_to_beam_origin_mm",
+                                          default_lidar_origin_to_beam_origin_mm(prod_line))
+    if not _is_number(origin):
+        raise MetadataError(f"beam_intrinsics.lidar_origin_to_beam_origin_mm = "
+                            f"{_short(origin)}; expected a finite number")
+    return _Beams(prod_line, alt, az, shift, origin)
+
+
+def _lidar_format(r: _Sections, w: int) -> tuple[str, str, list[Any]]:
+    """The lidar profile, the header type and the column window."""
+    profile = r.get(_LDF, "udp_profile_lidar", str, "LEGACY")
+    header_type = r.sec[_LDF].get("header_type", "")
+    if not isinstance(header_type, str):
+        raise MetadataError(f"{_LDF}.header_type = {_short(header_type)}; expected "
+                            "STANDARD or FUSA")
+    window = r.get(_LDF, "column_window", list, [0, w - 1])
+    if len(window) != 2 or not all(_is_int(c) and 0 <= c < w for c in window):
+        raise MetadataError(f"{_LDF}.column_window = {_short(window)}; expected two "
+                            f"columns in 0 .. {w - 1}")
+    return profile, header_type, window
+
+
+def _destination(r: _Sections) -> tuple[str, int, int]:
+    """Where the sensor sent its data, as ouster-sdk reads it: "" and 0 where the document
+    names none (a sensor saved before a destination was set, the legacy flat format, whose
+    files leave the configuration out); firmware 1.12/1.13 called it udp_ip. Who sends or
+    replays chooses then (a replay sends to 127.0.0.1 and finds the ports in the capture).
+    Only a lidar profile that is OFF means no lidar data."""
+    cp = r.sec["config_params"]
+    udp_dest = cp.get("udp_dest", cp.get("udp_ip", ""))
+    if not isinstance(udp_dest, str):
+        raise MetadataError(f"config_params.udp_dest = {_short(udp_dest)}; expected an "
+                            "address (a string)")
+    port = r.integer("config_params", "udp_port_lidar", 0)
+    imu_port = r.integer("config_params", "udp_port_imu", 0)
+    for name, v in (("udp_port_lidar", port), ("udp_port_imu", imu_port)):
+        if not 0 <= v <= 0xFFFF:
+            raise MetadataError(f"config_params.{name} = {v}; expected 0 .. 65535 (0: "
+                                "not set)")
+    for section in ("config_params", _LDF):
+        if r.sec[section].get("udp_profile_lidar") == "OFF":
+            raise MetadataError(f"{section}.udp_profile_lidar is OFF: the sensor sends no "
+                                "lidar data")
+    return udp_dest, port, imu_port
+
+
 @dataclass(frozen=True)
 class SensorMetadata:
     """What tcf-hil needs of a sensor's metadata (all angles in degrees, lengths in mm)."""
@@ -426,118 +555,38 @@ class SensorMetadata:
         """Read sensor metadata as ouster-sdk 1.0.1 reads it: the nested format (firmware
         2.0 on: seven sections) or the legacy flat one (firmware 1.12 to 2.x, and what
         ouster-sdk wrote beside recordings), with ouster-sdk's defaults where a key is
-        missing (:func:`nested_metadata`); MetadataError names the field."""
+        missing (:func:`nested_metadata`); MetadataError names the field. Read in the
+        document's order: the frame's shape, the beams, the lidar data format, where the
+        data went, the transforms."""
         doc = nested_metadata(doc)
-        sec = {name: (doc[name] if isinstance(doc[name], dict) else {}) for name in SECTIONS}
-        si, cp, ldf, bi = (sec["sensor_info"], sec["config_params"], sec["lidar_data_format"],
-                           sec["beam_intrinsics"])
-
-        def get(section: str, key: str, kind: type | tuple[type, ...], default: Any = None
-                ) -> Any:
-            if key not in sec[section]:
-                if default is not None:
-                    return default
-                raise MetadataError(f"{section}.{key} is missing")
-            v = sec[section][key]
-            if not isinstance(v, kind) or (isinstance(v, bool) and kind is not bool):
-                raise MetadataError(f"{section}.{key} = {_short(v)}; expected {kind}")
-            return v
-
-        ldf_name = "lidar_data_format"
-        mode = cp.get("lidar_mode")
-        mode_w = parse_mode(mode)[0] if isinstance(mode, str) and mode in MODES else None
-        if "columns_per_frame" not in ldf and mode_w is None:
-            raise MetadataError(f"{ldf_name}.columns_per_frame is missing, and "
-                                f"config_params.lidar_mode {_short(mode)} gives none")
-        w = get(ldf_name, "columns_per_frame", int, mode_w)
-        if w not in {parse_mode(m)[0] for m in MODES}:
-            raise MetadataError(f"{ldf_name}.columns_per_frame = {_short(w)}; expected the "
-                                f"columns of a lidar_mode ({', '.join(MODES)})")
-        if not isinstance(mode, str) or mode not in MODES or parse_mode(mode)[0] != w:
-            mode = f"{w}x10" if f"{w}x10" in MODES else f"{w}x5"
-        alt = get("beam_intrinsics", "beam_altitude_angles", list)
-        az = get("beam_intrinsics", "beam_azimuth_angles", list)
-        prod_line = str(si.get("prod_line", ""))
-        # as ouster-sdk: the beams the product line names, else 64
-        h = get(ldf_name, "pixels_per_column", int, beams_of_prod_line(prod_line) or 64)
-        for name, arr in (("beam_altitude_angles", alt), ("beam_azimuth_angles", az)):
-            if len(arr) != h:
-                raise MetadataError(f"beam_intrinsics.{name} has {len(arr)} angles; expected "
-                                    f"{h} (pixels_per_column)")
-        shift = get(ldf_name, "pixel_shift_by_row", list, default_pixel_shifts(w, h))
-        for name, arr in (("beam_altitude_angles", alt), ("beam_azimuth_angles", az),
-                          ("pixel_shift_by_row", shift)):
-            for i, v in enumerate(arr):
-                if not _is_number(v):
-                    raise MetadataError(f"{name}[{i}] = {_short(v)}; expected a finite number")
-        shift = (list(shift) + [0] * h)[:h]  # as ouster-sdk resizes it to the beams
-
-        def integer(section: str, key: str, default: int = 0, text_ok: bool = False) -> int:
-            v = sec[section].get(key, default)
-            if text_ok and isinstance(v, str) and v.isascii() and v.isdecimal() and \
-                    len(v) < 40:
-                return int(v)
-            if not _is_int(v):
-                raise MetadataError(f"{section}.{key} = {_short(v)}; expected an integer"
-                                    + (" or a decimal string" if text_ok else ""))
-            return int(v)
-
-        origin = bi.get("lidar_origin_to_beam_origin_mm",
-                        default_lidar_origin_to_beam_origin_mm(prod_line))
-        if not _is_number(origin):
-            raise MetadataError(f"beam_intrinsics.lidar_origin_to_beam_origin_mm = "
-                                f"{_short(origin)}; expected a finite number")
-        profile = get(ldf_name, "udp_profile_lidar", str, "LEGACY")
-        header_type = ldf.get("header_type", "")
-        if not isinstance(header_type, str):
-            raise MetadataError(f"{ldf_name}.header_type = {_short(header_type)}; expected "
-                                "STANDARD or FUSA")
-        window = get(ldf_name, "column_window", list, [0, w - 1])
-        if len(window) != 2 or not all(_is_int(c) and 0 <= c < w for c in window):
-            raise MetadataError(f"{ldf_name}.column_window = {_short(window)}; expected two "
-                                f"columns in 0 .. {w - 1}")
-        # Where the sensor sent its data, as ouster-sdk reads it: "" and 0 where the document
-        # names none (a sensor saved before a destination was set, the legacy flat format,
-        # whose files leave the configuration out); firmware 1.12/1.13 called it udp_ip. Who
-        # sends or replays chooses then (a replay sends to 127.0.0.1 and finds the ports in
-        # the capture). Only a lidar profile that is OFF means no lidar data.
-        udp_dest = cp.get("udp_dest", cp.get("udp_ip", ""))
-        if not isinstance(udp_dest, str):
-            raise MetadataError(f"config_params.udp_dest = {_short(udp_dest)}; expected an "
-                                "address (a string)")
-        port = integer("config_params", "udp_port_lidar", 0)
-        imu_port = integer("config_params", "udp_port_imu", 0)
-        for name, v in (("udp_port_lidar", port), ("udp_port_imu", imu_port)):
-            if not 0 <= v <= 0xFFFF:
-                raise MetadataError(f"config_params.{name} = {v}; expected 0 .. 65535 (0: "
-                                    "not set)")
-        for where in (cp, ldf):
-            if where.get("udp_profile_lidar") == "OFF":
-                section = "config_params" if where is cp else ldf_name
-                raise MetadataError(f"{section}.udp_profile_lidar is OFF: the sensor sends no "
-                                    "lidar data")
-        transforms = []
-        for section, key, default in (("lidar_intrinsics", "lidar_to_sensor_transform",
-                                       DEFAULT_LIDAR_TO_SENSOR),
-                                      ("imu_intrinsics", "imu_to_sensor_transform",
-                                       DEFAULT_IMU_TO_SENSOR)):
-            v = get(section, key, list, list(default))
-            transforms.append(tuple(_mat(v, key).ravel()))
+        r = _Sections({name: (doc[name] if isinstance(doc[name], dict) else {})
+                       for name in SECTIONS})
+        w, mode = _frame_shape(r)
+        beams = _beams(r, w)
+        profile, header_type, window = _lidar_format(r, w)
+        udp_dest, port, imu_port = _destination(r)
+        transforms = [tuple(_mat(r.get(section, key, list, list(default)), key).ravel())
+                      for section, key, default in (
+                          ("lidar_intrinsics", "lidar_to_sensor_transform",
+                           DEFAULT_LIDAR_TO_SENSOR),
+                          ("imu_intrinsics", "imu_to_sensor_transform",
+                           DEFAULT_IMU_TO_SENSOR))]
+        si = r.sec["sensor_info"]
         return cls(
             mode=mode, profile=profile,
-            columns_per_packet=get(ldf_name, "columns_per_packet", int,
-                                   DEFAULT_COLUMNS_PER_PACKET),
-            prod_line=prod_line,
-            prod_sn=integer("sensor_info", "prod_sn", text_ok=True),
-            init_id=integer("sensor_info", "initialization_id"),
+            columns_per_packet=r.get(_LDF, "columns_per_packet", int,
+                                     DEFAULT_COLUMNS_PER_PACKET),
+            prod_line=beams.prod_line,
+            prod_sn=r.integer("sensor_info", "prod_sn", text_ok=True),
+            init_id=r.integer("sensor_info", "initialization_id"),
             prod_pn=str(si.get("prod_pn", "")), build_rev=str(si.get("build_rev", "")),
             image_rev=str(si.get("image_rev", "")), udp_dest=udp_dest,
             udp_port_lidar=port,
             udp_port_imu=imu_port,
-            beam_altitude_deg=tuple(float(v) for v in alt),
-            beam_azimuth_deg=tuple(float(v) for v in az),
-            pixel_shift_by_row=tuple(int(v) for v in shift),
-            lidar_origin_to_beam_origin_mm=float(origin),
+            beam_altitude_deg=tuple(float(v) for v in beams.alt),
+            beam_azimuth_deg=tuple(float(v) for v in beams.az),
+            pixel_shift_by_row=tuple(int(v) for v in beams.shift),
+            lidar_origin_to_beam_origin_mm=float(beams.origin),
             lidar_to_sensor=transforms[0], imu_to_sensor=transforms[1],
             header_type=header_type,
             column_window=None if tuple(window) == (0, w - 1) else (int(window[0]),

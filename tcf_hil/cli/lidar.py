@@ -72,7 +72,7 @@ def lidar_pcap(scenario_name: str, mode: str, profile: str, seed: int | None, ba
     (--fault, or the scenario's [faults]) go into the capture, logged in faults.jsonl.
     """
     from emulators.lidar import ReturnModel
-    from tcf_hil.devices.lidar import record_pcap
+    from tcf_hil.devices.offline import record_pcap
 
     scn = scenario_with_faults(scenario_name, faults, sensor=sensor)
     announce_backend(backend)
@@ -171,7 +171,8 @@ def _stream(scn: Any, stop: Any, sensor_address: str, http_port: int | None,
             http_address: str | None, linger: bool, summary: Any, *, mode: str, profile: str,
             seed: int | None, dest: str, lidar_port: int, imu_port: int, speed: float,
             frames: int | None, record: Path | None) -> None:
-    from tcf_hil.devices.lidar import serve_sensor, stream_lidar
+    from tcf_hil.devices.lidar import stream_lidar
+    from tcf_hil.devices.sensor_service import serve_sensor
 
     if http_port is not None:
         host_ip = http_address or sensor_address

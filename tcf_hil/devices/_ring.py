@@ -79,6 +79,66 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
     ``stop``, answers ("final", bookkeeping) as of exactly those frames (it runs a few frames
     ahead), and with ``rec`` the pcap holds exactly those frames too."""
     parent = os.getppid()  # a producer whose sender was killed must not live on
+    _become_producer(run, parent_end)
+    sink = _PcapSink(rec, sent) if rec is not None else None  # closed in the finally below
+    # bookkeeping after each produced frame, back as far as the sender can be behind
+    marks: collections.deque[tuple[int, tuple[np.ndarray, int, int]]] = collections.deque(
+        [(0, run.mark())], maxlen=SLOTS + 2)
+    flush = sink.flush if sink is not None else (lambda: None)
+    slot = produced = 0
+    try:
+        if sink is not None:
+            sink.start(run.labels_header())
+        run.halt = stop  # a frame the render ahead has not made is not waited for then
+        frames = run.on_air(*air) if air is not None else (
+            ("track", rf) for rf in run.rendered())
+        for phase, rf in frames:
+            dgs = rf.datagrams
+            while not free.acquire(timeout=0.2):
+                flush()
+                if stop.is_set() or os.getppid() != parent:
+                    stop.set()
+                    break
+            flush()
+            if stop.is_set():
+                break
+            pos = slot * slot_bytes
+            for d in dgs:
+                n = len(d.payload)
+                shm.buf[pos:pos + n] = d.payload
+                pos += n
+            meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs],
+                            dtype=np.int64).reshape(-1, 3)
+            conn.send(("frame", (slot, meta, run.last_events if phase == "track" else [],
+                                 phase)))
+            if sink is not None:  # exactly what goes out, at its simulation time; the
+                # rest is sent, not kept (standing before the clock stepped onto the track's
+                # time line, and after the track)
+                sink.keep(dgs, rf.labels, phase in ("before", "track"))
+            produced += 1
+            marks.append((produced, run.mark()))
+            slot = (slot + 1) % SLOTS
+        else:
+            conn.send(("done", None))
+        while not stop.wait(0.05):  # the last frames are still going out
+            flush()
+            if os.getppid() != parent:
+                break
+        flush()
+        n_sent = int(sent.value)
+        counts, length, packets = next((m for n, m in marks if n == n_sent), marks[-1][1])
+        conn.send(("final", (counts, run.poses_csv(length), packets)))
+    except BaseException as err:  # reported by the sending side
+        with contextlib.suppress(Exception):
+            conn.send(("error", f"{type(err).__name__}: {err}"))
+    finally:
+        if sink is not None:
+            sink.close()
+
+
+def _become_producer(run: Any, parent_end: Any) -> None:
+    """The forked producer's process set up: its name, its signals, its priority and its
+    threads."""
     name_process("tcf-lidar-frames")
     # a terminal's Ctrl-C reaches the whole process group: the sender decides when to stop
     # (and the sender's own handlers, inherited through the fork, are not this process's)
@@ -105,82 +165,52 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
         if caster.threads is not None:  # the same for a ray caster that splits casts itself
             caster.threads = max(1, caster.threads - 1)
         run.emu.threads = max(1, run.emu.threads - 1)  # and for the emulator's column chunks
-    fh = open(rec.path, "wb") if rec is not None else None  # closed in the finally below
-    lh = open(rec.labels, "wb") if rec is not None else None
-    writer = PcapWriter()
-    pending: collections.deque[tuple[bytes, bytes]] = collections.deque()
-    written = 0
-    # bookkeeping after each produced frame, back as far as the sender can be behind
-    marks: collections.deque[tuple[int, tuple[np.ndarray, int, int]]] = collections.deque(
-        [(0, run.mark())], maxlen=SLOTS + 2)
 
-    def flush() -> None:
-        nonlocal written
-        if fh is None or lh is None:
-            return
-        n = written
-        while written < sent.value and pending:
-            records, labels = pending.popleft()
-            fh.write(records)
-            lh.write(labels)
-            written += 1
-        if written != n:
-            fh.flush()  # whole frames reach the file: a crash leaves a readable capture
-            lh.flush()
 
-    slot = produced = 0
-    try:
-        if fh is not None and lh is not None:
-            fh.write(writer.header())
-            lh.write(run.labels_header())
-        run.halt = stop  # a frame the render ahead has not made is not waited for then
-        frames = run.on_air(*air) if air is not None else (
-            ("track", rf) for rf in run.rendered())
-        for phase, rf in frames:
-            dgs = rf.datagrams
-            while not free.acquire(timeout=0.2):
-                flush()
-                if stop.is_set() or os.getppid() != parent:
-                    stop.set()
-                    break
-            flush()
-            if stop.is_set():
-                break
-            pos = slot * slot_bytes
-            for d in dgs:
-                n = len(d.payload)
-                shm.buf[pos:pos + n] = d.payload
-                pos += n
-            meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs],
-                            dtype=np.int64).reshape(-1, 3)
-            conn.send(("frame", (slot, meta, run.last_events if phase == "track" else [],
-                                 phase)))
-            if rec is not None:  # exactly what goes out, at its simulation time (the
-                pending.append((pcap_records(writer, dgs, rec.sensor_ip, rec.dest), rf.labels)
-                               if phase in ("before", "track") else (b"", b""))  # the rest:
-                # sent, not kept (standing before the clock stepped onto the track's time
-                # line, and after the track)
-            produced += 1
-            marks.append((produced, run.mark()))
-            slot = (slot + 1) % SLOTS
-        else:
-            conn.send(("done", None))
-        while not stop.wait(0.05):  # the last frames are still going out
-            flush()
-            if os.getppid() != parent:
-                break
-        flush()
-        n_sent = int(sent.value)
-        counts, length, packets = next((m for n, m in marks if n == n_sent), marks[-1][1])
-        conn.send(("final", (counts, run.poses_csv(length), packets)))
-    except BaseException as err:  # reported by the sending side
-        with contextlib.suppress(Exception):
-            conn.send(("error", f"{type(err).__name__}: {err}"))
-    finally:
-        if fh is not None:
-            fh.close()
-        if lh is not None:
-            lh.close()
+class _PcapSink:
+    """The pcap and labels of a live stream as the producer writes them: each frame's
+    records kept until the sender has counted it sent (``sent``, shared), then written
+    whole and flushed (a crash leaves a readable capture)."""
+
+    def __init__(self, rec: PcapTarget, sent: Any) -> None:
+        self.rec, self.sent = rec, sent
+        self.writer = PcapWriter()
+        self.fh = open(rec.path, "wb")
+        try:
+            self.lh = open(rec.labels, "wb")
+        except BaseException:
+            self.fh.close()
+            raise
+        self.pending: collections.deque[tuple[bytes, bytes]] = collections.deque()
+        self.written = 0
+
+    def start(self, labels_header: bytes) -> None:
+        """The files' headers."""
+        self.fh.write(self.writer.header())
+        self.lh.write(labels_header)
+
+    def keep(self, dgs: list[Datagram], labels: bytes, recorded: bool) -> None:
+        """A frame handed to the sender: its records and labels (``recorded``; else an empty
+        place, for a frame that is sent and not kept)."""
+        self.pending.append((pcap_records(self.writer, dgs, self.rec.sensor_ip,
+                                          self.rec.dest), labels) if recorded
+                            else (b"", b""))
+
+    def flush(self) -> None:
+        """The frames the sender has finished since the last flush, written."""
+        n = self.written
+        while self.written < self.sent.value and self.pending:
+            records, labels = self.pending.popleft()
+            self.fh.write(records)
+            self.lh.write(labels)
+            self.written += 1
+        if self.written != n:
+            self.fh.flush()  # whole frames reach the file: a crash leaves a readable capture
+            self.lh.flush()
+
+    def close(self) -> None:
+        self.fh.close()
+        self.lh.close()
 
 
 def release(dgs: list[Datagram]) -> None:

@@ -1,7 +1,7 @@
 """A track rendered into the render store by a Dask cluster's workers (``tcf-hil render
 --executor dask://HOST:PORT``): for a scene too large for this machine's cores.
 
-The frames are cut into blocks of :data:`~tcf_hil.devices.lidar.RENDER_BLOCK`, one task
+The frames are cut into blocks of :data:`~tcf_hil.devices._renderers.RENDER_BLOCK`, one task
 each. A worker builds the run from the render's recipe (the scenario as a document, the
 seed, mode, profile, backend: what :meth:`~tcf_hil.devices.lidar.LidarRun.render_doc`
 holds) once, keeps it for the next blocks of the same render, checks that it makes the
@@ -19,7 +19,8 @@ from collections.abc import Generator, Iterator
 from typing import Any
 
 from emulators.lidar import ReturnModel
-from tcf_hil.devices.lidar import RENDER_BLOCK, LidarRun
+from tcf_hil.devices._renderers import RENDER_BLOCK
+from tcf_hil.devices.lidar import LidarRun
 from tcf_hil.errors import EndpointError
 from tcf_hil.scenario import scenario_from_dict
 

@@ -1,14 +1,15 @@
-"""Lidar runs: scenario -> forest -> scene -> OS0-64 frames -> packets, then either a pcap
-file (offline, as fast as the machine allows) or UDP on the wire (live, paced in real time).
-Both paths produce the same packet bytes, with the metadata, ground truth, per-stem
-visibility and the sensor poses beside them."""
+"""The lidar run: scenario -> forest -> scene -> OS0-64 frames -> packets (:class:`LidarRun`:
+rendered live, read from the render store or rendered into it), and the live stream
+(:func:`stream_lidar`: UDP on the wire, paced in real time, always on where the run asks).
+The offline path (:mod:`tcf_hil.devices.offline`) writes the same packet bytes to a pcap
+file; both keep the metadata, ground truth, per-stem visibility and the sensor poses
+beside them."""
 
 from __future__ import annotations
 
 import contextlib
 import csv
 import dataclasses
-import fcntl
 import functools
 import io
 import json
@@ -16,7 +17,6 @@ import math
 import multiprocessing as mp
 import os
 import signal
-import struct
 import threading
 import time
 import zipfile
@@ -37,7 +37,6 @@ from emulators.lidar import (
     ReturnModel,
     Route,
     SendStats,
-    SensorApi,
     carried_range_m,
 )
 from emulators.lidar import warm_up as warm_up_kernels
@@ -50,21 +49,27 @@ from protocols.ouster import (
     os0_64_metadata,
     shift_lidar_packet,
 )
-from protocols.pcap import PcapWriter
 from tcf_hil._crc import fast_crc_rows
 from tcf_hil._io import (
     atomic_path,
     ensure_dir,
     name_process,
-    read_exact,
     write_bytes_atomic,
-    write_gathered,
     write_json_atomic,
 )
 from tcf_hil._rotations import quaternions
-from tcf_hil.devices._ring import SLOTS, FrameRing, PcapTarget, pcap_parts
+from tcf_hil.devices._renderers import (
+    RENDER_AHEAD_BLOCKS,
+    RENDER_BLOCK,
+    RENDER_SILENT_S,
+    RenderAhead,
+    recv_frame,
+    render_part,
+    widen_pipe,
+)
+from tcf_hil.devices._ring import SLOTS, FrameRing, PcapTarget
 from tcf_hil.devices._sender import SenderProcess
-from tcf_hil.devices.faults import FaultLog
+from tcf_hil.devices._standing import OnAir, StandingEmulator, StandingPose
 from tcf_hil.errors import ConfigError
 from tcf_hil.recording.poses_csv import pose_rows
 from tcf_hil.recording.store import (
@@ -89,125 +94,6 @@ RING_SLOTS = SLOTS  # frames made ahead of the sender in a live stream (its fram
 STANDING_CYCLE = 10
 
 
-@dataclass
-class OnAir:
-    """An always-on sensor's plan, shared with the frame producer (a forked process): the
-    sensor powers on at simulation time ``power_on_ns`` (whole frames before the track's
-    start) and sends the machine standing at the track's start; once the run decides,
-    from its frame ``step_at.value`` since power-on the clock has stepped onto the track's
-    time line (the frames from there are recorded) and from frame ``track_at.value`` the
-    track goes out (both -1 until decided; the track at the latest when the simulation
-    reaches its start), then the machine stands where the track left it until the stream
-    is stopped. Shared integers: ``multiprocessing.RawValue("q")`` made before the fork;
-    ``step_at`` is set before ``track_at``."""
-
-    power_on_ns: int
-    track_at: Any
-    step_at: Any
-    # frames of the machine standing after the track at the most (-1: until stopped): a
-    # run's sensor falls silent once the run could be over, so that a bench left hanging
-    # does not go on sending to the ports the next run on the machine takes
-    after_frames: int = -1
-    # the track is over already (a sensor re-initialised after it): the machine stands
-    # where the track left it from the first frame (frame_id from 0)
-    track_over: bool = False
-
-
-@dataclass
-class RenderAhead:
-    """A render into the store going on in a process of its own (forked: it shares the
-    built scene; ``nice`` 10, below the program under test): ``done`` (shared) counts the
-    frames stored, ``state`` is 0 while rendering, 1 done, 2 failed."""
-
-    process: Any
-    done: Any
-    state: Any
-    upto: int
-
-    def running(self) -> bool:
-        """Whether the renderer still runs (asked from any process of the run)."""
-        if self.state.value != 0:
-            return False
-        try:
-            os.kill(self.process.pid, 0)
-        except OSError:
-            return False
-        return True
-
-    def stop(self) -> None:
-        """The renderer stopped (what it stored stays: a later render resumes it)."""
-        if self.process.pid is not None and self.running():
-            self.process.terminate()
-        self.process.join(timeout=10.0)
-
-
-RENDER_BLOCK = 10  # frames a render worker renders in a row (a second at 10 Hz)
-RENDER_AHEAD_BLOCKS = 8  # blocks kept waiting for their turn, at the most (at 2048x10, ~30 MB)
-RENDER_SILENT_S = 300.0  # a render worker that makes no frame this long has failed
-_FRAME_HEAD = struct.Struct("<qQ")  # before each packed frame a worker sends: its number
-# (-1 the worker's end, -2 it failed: the reason follows) and the bytes that follow
-
-
-def _send_frame(fd: int, k: int, parts: list[Any]) -> None:
-    """A message of :meth:`LidarRun._render_parallel`'s pipes: frame ``k`` and its bytes,
-    written from its pieces as they are (a frame's few megabytes are not joined first)."""
-    write_gathered(fd, [_FRAME_HEAD.pack(k, sum(memoryview(p).nbytes for p in parts)),
-                        *parts])
-
-
-_FRAME_MAX = 1 << 31  # bytes: a message claiming more is no frame (a worker cut off mid-way)
-
-
-def _recv_frame(fd: int) -> tuple[int, bytearray]:
-    """The next :func:`_send_frame` message on ``fd``, read straight into one buffer."""
-    k, n = _FRAME_HEAD.unpack(read_exact(fd, _FRAME_HEAD.size))
-    if n > _FRAME_MAX or k < -2:
-        raise EOFError(f"not a frame message (frame {k}, {n} bytes)")
-    return k, read_exact(fd, n)
-
-
-def _widen_pipe(fd: int) -> None:
-    """A frame's records (a few MB) through a pipe of 1 MiB where the system allows it, not
-    Linux's default 64 KiB: fewer reads and wake-ups in the parent for each frame."""
-    with contextlib.suppress(OSError, AttributeError, ValueError):
-        cap = int(Path("/proc/sys/fs/pipe-max-size").read_text())
-        fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, min(cap, 1 << 20))
-
-
-def _render_part(run: LidarRun, start: int, i: int, workers: int, fd: int,
-                 readers: list[int], end: int, compress: bool = True) -> None:
-    """Renderer ``i`` of ``workers`` of :meth:`LidarRun._render_parallel`: blocks ``i``,
-    ``i + workers``, ... of :data:`RENDER_BLOCK` frames from ``start`` to ``end``, each frame
-    packed (``compress``; else its record as is) and sent, then its end mark. No fault plan
-    runs here (a frame's bytes follow from its index); the ray threads are shared out among
-    the workers."""
-    name_process(f"tcf-render-{i}")
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when it stops
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    for r in readers:  # the parent's read ends (forked here): with them closed, a parent
-        os.close(r)  # that is gone breaks this worker's pipe instead of blocking it for ever
-    parent = os.getppid()
-    try:
-        caster = run.scene.caster
-        if caster.threads is not None:
-            caster.threads = max(1, caster.threads // workers)
-        run.emu.threads = max(1, run.emu.threads // workers)
-        a = start + i * RENDER_BLOCK
-        while a < end:
-            for rf in run.compact_frames(a, min(a + RENDER_BLOCK, end)):
-                if os.getppid() != parent:
-                    return
-                _send_frame(fd, rf.k, [pack_frame(rf, run.ports)] if compress
-                            else rf.encode_parts(run.ports))
-            a += workers * RENDER_BLOCK
-        _send_frame(fd, -1, [])
-    except BaseException as err:
-        with contextlib.suppress(Exception):
-            _send_frame(fd, -2, [f"{type(err).__name__}: {err}".encode()])
-    finally:
-        os.close(fd)
-
-
 def _render_ahead(run: LidarRun, writer: RenderWriter, upto: int, done: Any,
                   state: Any) -> None:
     """The renderer process of :meth:`LidarRun.render_ahead`."""
@@ -230,44 +116,6 @@ def _render_ahead(run: LidarRun, writer: RenderWriter, upto: int, done: Any,
         raise
     finally:
         writer.close()
-
-
-class _StandingPose:
-    """The track's sensor pose and IMU frozen at ``t_ns`` (a machine standing there)."""
-
-    def __init__(self, track: Any, t_ns: int) -> None:
-        self.track, self.t_ns = track, t_ns
-
-    def sensor_pose(self, t_ns: Any) -> tuple[Any, Any]:
-        return self.track.sensor_pose(np.full(len(np.atleast_1d(t_ns)), self.t_ns, np.int64))
-
-    def imu(self, t_ns: Any) -> tuple[Any, Any]:
-        n = len(np.atleast_1d(t_ns))
-        acc, _ = self.track.imu(np.full(max(n, 1), self.t_ns, np.int64))
-        return acc[:n], np.zeros((n, 3))  # standing: no rotation
-
-
-class _StandingEmulator:
-    """Frames of a standing machine for any frame k of the simulation time line (``start_ns
-    + k period``): one of a cycle of frames rendered once, its column times moved to frame
-    k's (the packet headers and CRCs are the sensor's to finish, as the emulator's)."""
-
-    def __init__(self, cycle: list[FrameResult], cycle_start_ns: int, start_ns: int,
-                 period_ns: int, fmt: Any) -> None:
-        self.cycle, self.cycle_start_ns = cycle, cycle_start_ns
-        self.start_ns, self.period_ns, self.fmt = start_ns, period_ns, fmt
-        self.from_store = False  # the cycle was read from the render store, not rendered
-
-    def frame(self, k: int) -> FrameResult:
-        t = self.start_ns + k * self.period_ns
-        i = ((t - self.cycle_start_ns) // self.period_ns) % len(self.cycle)
-        fr = self.cycle[i]
-        # (added modulo 2^64: a move back in time wraps to the right, non-negative times)
-        delta = np.uint64((t - (self.cycle_start_ns + i * self.period_ns)) % (1 << 64))
-        arr = fr.packets.copy()
-        self.fmt.column_timestamps(arr)[...] += delta
-        return dataclasses.replace(fr, frame_index=k, timestamps_ns=fr.timestamps_ns + delta,
-                                   packets=arr)
 
 
 @dataclass(frozen=True)
@@ -557,7 +405,7 @@ class LidarRun:
         """Frames ``start`` .. ``end`` (default: the track's last) of the track, packed
         (:func:`pack_frame`; without ``compress``, their records as
         :meth:`RenderedFrame.encode` makes them), in order, from
-        ``workers`` forked renderer processes (:func:`_render_part`: worker ``i`` renders
+        ``workers`` forked renderer processes (:func:`render_part`: worker ``i`` renders
         blocks ``i``, ``i + workers``, ...). Frames that come ahead of their turn wait here,
         at most :data:`RENDER_AHEAD_BLOCKS` blocks of them; then only the worker whose turn
         it is is read (the others wait on their pipes). A worker that dies or falls silent
@@ -572,8 +420,8 @@ class LidarRun:
                 r, w = os.pipe()
                 try:
                     conns.append(r)
-                    _widen_pipe(w)
-                    proc = ctx.Process(target=_render_part, name=f"lidar-render-{i}",
+                    widen_pipe(w)
+                    proc = ctx.Process(target=render_part, name=f"lidar-render-{i}",
                                        daemon=True,
                                        args=(self, start, i, workers, w, conns, end, compress))
                     proc.start()
@@ -603,7 +451,7 @@ class LidarRun:
                     assert isinstance(c, int)
                     i = conns.index(c)
                     try:
-                        k, msg = _recv_frame(c)
+                        k, msg = recv_frame(c)
                     except (EOFError, OSError):  # gone without its end mark: killed, crashed
                         procs[i].join(1.0)
                         raise RuntimeError(f"render worker {i} died (exit code "
@@ -837,7 +685,7 @@ class LidarRun:
         if self.keep_poses:
             self._poses.write(self._poses_csv_rows(rf.poses))
 
-    def standing(self, at_ns: int) -> _StandingEmulator:
+    def standing(self, at_ns: int) -> StandingEmulator:
         """The machine standing at the track's pose at ``at_ns``: a cycle of
         :data:`STANDING_CYCLE` frames rendered now, sent again with the times of any
         frame."""
@@ -846,12 +694,12 @@ class LidarRun:
         cycle = self._stored_cycle(at_ns)
         kept = cycle is not None
         if cycle is None:
-            emu = Os0Emulator(self.meta, self.scene, _StandingPose(self.track, at_ns),
+            emu = Os0Emulator(self.meta, self.scene, StandingPose(self.track, at_ns),
                               self.model, seed=self.forest.seed, start_ns=start,
                               threads=self.scene.caster.threads, sensor=self.sensor)
             cycle = [emu.frame(i) for i in range(STANDING_CYCLE)]
             self._store_cycle(at_ns, cycle)
-        standing = _StandingEmulator(cycle, start, self.track.t0_ns, period,
+        standing = StandingEmulator(cycle, start, self.track.t0_ns, period,
                                      self.meta.packet_format)
         standing.from_store = kept
         return standing
@@ -898,7 +746,7 @@ class LidarRun:
                 open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
 
-    def on_air(self, air: OnAir, before: _StandingEmulator, after: _StandingEmulator
+    def on_air(self, air: OnAir, before: StandingEmulator, after: StandingEmulator
                ) -> Iterator[tuple[str, RenderedFrame]]:
         """An always-on sensor's frames from power-on (:class:`OnAir`), each with its phase:
         standing at the track's start (:meth:`standing`) ``unheard`` (before the run's
@@ -913,19 +761,19 @@ class LidarRun:
         if not air.track_over:
             last = yield from self._to_track_end(air, before, crc)
         end = t0 + self.frames * period
-        sensor = Os0Sensor(after, self.meta, _StandingPose(self.track, end), crc_rows=crc,
+        sensor = Os0Sensor(after, self.meta, StandingPose(self.track, end), crc_rows=crc,
                            first_frame_id=last + 1 - self.frames, first_imu_ns=end)
         k = self.frames
         while air.after_frames < 0 or k < self.frames + air.after_frames:
             yield "after", self._standing_frame(sensor.frame(k))
             k += 1
 
-    def _to_track_end(self, air: OnAir, before: _StandingEmulator, crc: Any
+    def _to_track_end(self, air: OnAir, before: StandingEmulator, crc: Any
                       ) -> Generator[tuple[str, RenderedFrame], None, int]:
         """:meth:`on_air`'s frames until the track's end; the track's last frame_id."""
         period, t0 = self.period_ns, self.track.t0_ns
         most = (t0 - air.power_on_ns) // period  # standing frames before, at the most
-        pose = _StandingPose(self.track, t0 - period)
+        pose = StandingPose(self.track, t0 - period)
         # frame_id counts the frames since power-on (0 first), on across the clock's step
         sensor = Os0Sensor(before, self.meta, pose, crc_rows=crc, first_frame_id=most,
                            first_imu_ns=air.power_on_ns)
@@ -1108,46 +956,6 @@ class LidarRun:
                             self.stems_seen(), self.backend, **kw)
 
 
-def record_pcap(scn: Scenario, out_dir: str | Path, *, mtu: int = 1500,
-                sensor_ip: str = "127.0.0.1",
-                progress: Callable[[int, int], None] | None = None,
-                workers: int | None = None, **run_kw: Any) -> RecordResult:
-    """Drive the sensor along the scenario's track and write ``out_dir``: ``lidar.pcap``
-    (lidar to 7502, LEGACY IMU at 100 Hz to 7503, fragmented at ``mtu``), ``metadata.json``,
-    ``ground_truth.json`` (with ``returns`` per stem), ``visibility.json`` and
-    ``sensor_poses.csv`` (time_ns, x, y, z, qw, qx, qy, qz: the sensor frame in the world at
-    every column time stamp). ``workers``: renderer processes (default: one per CPU this
-    process may use; :meth:`LidarRun.rendered`). Keyword arguments go to
-    :class:`LidarRun`."""
-    out = Path(out_dir)
-    ensure_dir(out)
-    run = LidarRun(scn, **run_kw)
-    writer = PcapWriter(mtu=mtu)
-    dest = run.meta.udp_dest
-    flog = FaultLog(out / "faults.jsonl", run.track.t0_ns) \
-        if run.udp_faults or run.lidar_faults else None
-    try:
-        # unbuffered: a frame's records (a few MB) go from their pieces to the file at once
-        with atomic_path(out / "lidar.pcap") as tmp, open(tmp, "wb", buffering=0) as fh, \
-                atomic_path(out / LABELS) as ltmp, open(ltmp, "wb") as lh:
-            write_gathered(fh.fileno(), [writer.header()])
-            lh.write(run.labels_header())
-            cpus = len(os.sched_getaffinity(0)) if workers is None else workers
-            for k, rf in enumerate(run.rendered(cpus)):
-                write_gathered(fh.fileno(), pcap_parts(writer, rf.datagrams, sensor_ip, dest))
-                lh.write(rf.labels)
-                if flog is not None:
-                    for ev in run.last_events:
-                        flog.log(ev, "lidar")
-                if progress:
-                    progress(k + 1, run.frames)
-    finally:
-        if flog is not None:
-            flog.close()
-    run.write_sidecars(out)
-    return run.result(out)
-
-
 LABELS = "lidar_labels.bin"  # what each return hit (protocols.labels), beside lidar.pcap
 
 
@@ -1260,7 +1068,7 @@ def _pcap_target(out: Path | None, pcap: bool, in_place: bool, outputs: contextl
     return PcapTarget(str(path), sensor_ip, dest, str(lpath))
 
 
-def _standing_after(run: LidarRun, track_over: bool = False) -> tuple[OnAir, Any, Any]:
+def standing_after(run: LidarRun, track_over: bool = False) -> tuple[OnAir, Any, Any]:
     """An always-on plan for a sensor that streams its track at once and then stands where
     the track left it, sending, until stopped (as a real sensor on a parked machine);
     ``track_over``: the stands only (re-initialised after its track)."""
@@ -1271,91 +1079,3 @@ def _standing_after(run: LidarRun, track_over: bool = False) -> tuple[OnAir, Any
     after = run.standing(t0 + run.frames * period)
     return air, after, after  # (the track starts at once: nothing stands before it)
 
-
-def serve_sensor(scn: Scenario, *, http_host: str = "127.0.0.1", http_port: int = 80,
-                 sensor_ip: str = "127.0.0.1", speed: float = 1.0,
-                 stop: threading.Event | None = None, ready: threading.Event | None = None,
-                 on_result: Callable[[RecordResult], None] | None = None,
-                 record: str | Path | None = None, linger: bool = True,
-                 on_api: Callable[[SensorApi], None] | None = None,
-                 **run_kw: Any) -> SensorApi:
-    """The emulated sensor as a client meets a real one: the HTTP API on ``http_host``
-    (port 80 for ouster-sdk and ouster-cli) and the UDP stream to the configured
-    ``udp_dest``. A configuration change with ``reinit`` restarts the stream with the new
-    metadata (new init_id, frame_id from 0), as the real sensor does. Runs until the track
-    ends and ``stop`` is set; returns the (closed) API object for inspection. ``record``:
-    what was sent goes there (:func:`stream_lidar`); after the n-th re-initialisation, into
-    its ``reinit-n`` folder (the metadata changed). ``linger`` False: return when the track
-    ends instead of answering HTTP until ``stop``. ``on_api`` gets the API once it listens
-    (its ``address`` is where: port 0 was a free port)."""
-    stop = stop or threading.Event()
-    meta_kw = {k: run_kw[k] for k in ("mode", "profile", "seed", "udp_dest", "udp_port_lidar",
-                                      "udp_port_imu") if k in run_kw}
-    first = sensor_metadata(scn, **meta_kw)  # the stream itself builds the scene
-    reinit = threading.Event()
-    current = [first]
-    inner = [threading.Event()]
-
-    def on_reinit(meta: SensorMetadata) -> None:
-        current[0] = meta
-        api.status = "INITIALIZING"  # (as a real sensor until the new stream is out)
-        reinit.set()
-        inner[0].set()
-
-    # compiled before the API answers: a client that connects at once gets packets at once
-    warm_up_kernels(first, run_kw.get("model"), scn.sensor)
-    warm_up_poses()
-    api = SensorApi(first, http_host, http_port, on_reinit=on_reinit)
-    # INITIALIZING until the first frame goes out (a scene to build, a render to read or
-    # make): ouster-sdk's client polls sensor_info once a second until it says RUNNING,
-    # as it does at a real sensor's power-on, instead of giving up after 1 s without data
-    api.status = "INITIALIZING"
-    api.start()
-    if on_api is not None:
-        on_api(api)
-    done = threading.Event()
-
-    def relay() -> None:
-        while not stop.wait(0.2):
-            if done.is_set():
-                return
-        inner[0].set()
-
-    threading.Thread(target=relay, name="sensor-stop", daemon=True).start()
-    if ready is not None:
-        ready.set()
-    kw = {k: v for k, v in run_kw.items()
-          if k not in ("mode", "profile", "udp_dest", "udp_port_lidar", "udp_port_imu")}
-    segment = 0
-    track_over = threading.Event()  # a re-initialisation after it does not drive it again
-
-    def running() -> None:
-        api.status = "RUNNING"
-
-    def driven(done: int, total: int) -> None:  # (a stream stopped early has not driven it)
-        if done >= total:
-            track_over.set()
-    try:
-        while not stop.is_set():
-            reinit.clear()
-            inner[0] = threading.Event()
-            if stop.is_set():
-                break
-            out = None if record is None else (
-                Path(record) if segment == 0 else Path(record) / f"reinit-{segment}")
-            segment += 1
-            run = LidarRun(scn, meta=current[0], **kw)
-            # lingering, the recording is written in place as frames go out (the stream
-            # ends only when stopped: a crash meanwhile leaves a readable capture)
-            r = stream_lidar(scn, sensor_ip=sensor_ip, speed=speed, stop=inner[0],
-                             record=out, run=run, pcap_in_place=linger,
-                             air=_standing_after(run, track_over.is_set()) if linger
-                             else None, progress=driven, on_air=running)
-            if on_result is not None:
-                on_result(r)
-            if not reinit.is_set():
-                break  # linger: the sensor stood after the track until told to stop
-    finally:
-        done.set()
-        api.close()
-    return api

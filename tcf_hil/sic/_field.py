@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import threading
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -655,16 +656,67 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
                up_tree: Any, outside: float | None = None) -> dict[str, Any] | None:
     """Fit a stem to the band points ``idx`` around a candidate ``centre``: the
     axis from slice circles (each centred within 10 cm of the candidate), the DBH from the
-    breast-height window brought onto the axis, then the stem followed up."""
+    breast-height window brought onto the axis, then the stem followed up, its height from
+    the column above its top and its form from the curve."""
     rz = rel[idx]
-    step = prm.curve_step_m
+    band = _band_slices(p, width, rz, idx, prm, centre, outside)
+    if band is None:
+        return None
+    axis = _slice_axis(band, prm)
+    if axis is None:
+        return None
+    zs_a, cs_a, rs_a, line = axis
+    bh = _breast_height(p, width, rel, rz, idx, prm, line, zs_a, rs_a)
+    if bh is None:
+        return None
+    cx, cy, dbh, dbh_path = bh
+    top_z = float(rz.max())
+    curve = [(float(z), float(c[0]), float(c[1]), 2.0 * float(r))
+             for z, c, r in zip(zs_a, cs_a, rs_a, strict=True)]
+    _follow_up(p, width, rel, prm, line, top_z, dbh / 2.0, above, up_tree, curve)
+    h = _stem_height(rel, above, up_tree, curve, top_z)
+    if h < prm.band_m[1] + 0.25:
+        # nothing above the band over it: a tree of stem size has its stem and crown
+        # there (and a sensor 2 m up sees it); this is a shrub, a sapling or a stump
+        return None
+    cz = np.array([c[0] for c in curve])
+    cxy = np.array([[c[1], c[2]] for c in curve])
+    mc, crook = stem_form(cz, cxy, h, prm)
+    cls = ("X" if crook >= prm.crook_m or mc >= prm.other_threshold_m else
+           "C" if mc >= prm.curve_threshold_m else "S")
+    ground = float(np.median(p[idx, 2] - rz))
+    return {"x": cx, "y": cy, "ground": ground, "h": h, "dbh": dbh, "maxcurve": mc,
+            "class": cls, "crook": crook,
+            "fit": {"dbh_from": ("returns without a mixed footprint", "edge returns",
+                                 "slices")[dbh_path], "slices": len(band.zs),
+                    "tried": band.tried, "arc_deg": float(np.median(band.arcs))},
+            "curve": [(round(z_ + ground, 3), round(x_, 4), round(y_, 4), round(d_, 4))
+                      for z_, x_, y_, d_ in curve]}
+
+
+_Axis = tuple[FloatArray, FloatArray]  # a stem's axis: its centre at z = 0 and lean (x, y)
+
+
+@dataclass
+class _Band:
+    """The slice circles of a candidate's band (:func:`_band_slices`): each slice's height,
+    centre, radius, arc (degrees) and whether its bark stood clear of needles, and how many
+    slices were tried."""
+
+    zs: list[float] = field(default_factory=list)
+    cs: list[tuple[float, float]] = field(default_factory=list)
+    rs: list[float] = field(default_factory=list)
+    arcs: list[float] = field(default_factory=list)
+    clean: list[bool] = field(default_factory=list)
+    tried: int = 0
+
+
+def _band_slices(p: FloatArray, width: FloatArray, rz: FloatArray, idx: NDArray[np.int64],
+                 prm: StemParams, centre: FloatArray, outside: float | None) -> _Band | None:
+    """The band's slices, each fitted with a circle centred within 10 cm of ``centre``;
+    None where too few fit for a stem."""
     half = prm.slice_thickness_m / 2.0
-    zs: list[float] = []
-    cs: list[tuple[float, float]] = []
-    rs: list[float] = []
-    arcs: list[float] = []
-    clean: list[bool] = []
-    tried = 0
+    band = _Band()
     # the band's slices one against the next: every return in one (slices a curve step
     # apart, as above the band, left half the band's returns out; on the natural stands'
     # dumped maps, contiguous slices found 3-8 points more of the stems within 15 m)
@@ -678,28 +730,36 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
     for zc, a, b in zip(levels, lo_i, hi_i, strict=True):
         if b - a < prm.min_slice_points:
             continue
-        if usable - tried + len(zs) < prm.min_band_slices:
+        if usable - band.tried + len(band.zs) < prm.min_band_slices:
             return None  # too few slices left to make a stem
-        tried += 1
+        band.tried += 1
         s = idx[order[a:b]]
         f = _fit_window(p[s, :2], width[s], prm, centre, outside=outside)
         if f is None or math.hypot(f[0] - centre[0], f[1] - centre[1]) > 0.1:
             continue
-        arcs.append(f[3])
-        zs.append(zc)
-        cs.append((f[0], f[1]))
-        rs.append(f[2])
-        clean.append(f[6])
+        band.arcs.append(f[3])
+        band.zs.append(zc)
+        band.cs.append((f[0], f[1]))
+        band.rs.append(f[2])
+        band.clean.append(f[6])
+    zs = band.zs
     if len(zs) < 2 or zs[-1] - zs[0] < prm.min_stem_extent_m - prm.slice_thickness_m:
         return None
-    zs_a, cs_a, rs_a = np.array(zs), np.array(cs), np.array(rs)
+    return band
+
+
+def _slice_axis(band: _Band, prm: StemParams
+                ) -> tuple[FloatArray, FloatArray, FloatArray, _Axis] | None:
+    """The slices that agree on one stem (heights, centres, radii) and the axis through their
+    centres; None where too few agree or the stem is crowded by needles."""
+    zs_a, cs_a, rs_a = np.array(band.zs), np.array(band.cs), np.array(band.rs)
     # the slices' radii agree on one stem: drop those far off their median
     rmed = float(np.median(rs_a))
     ok = np.abs(rs_a - rmed) <= max(0.3 * rmed, 0.02)
     # a stem whose bark stands clear of needles in min_band_slices slices; one crowded by
     # them (a weaker shell: a gap in a crown or a sapling's crown pass it too) in one more
     if ok.sum() < prm.min_band_slices or (
-            int(np.asarray(clean)[ok].sum()) < prm.min_band_slices
+            int(np.asarray(band.clean)[ok].sum()) < prm.min_band_slices
             and ok.sum() < prm.min_band_slices + 1):
         return None
     zs_a, cs_a, rs_a = zs_a[ok], cs_a[ok], rs_a[ok]
@@ -707,6 +767,16 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
     axis = _line(zs_a, cs_a)
     if axis is None:
         return None
+    return zs_a, cs_a, rs_a, axis
+
+
+def _breast_height(p: FloatArray, width: FloatArray, rel: FloatArray, rz: FloatArray,
+                   idx: NDArray[np.int64], prm: StemParams,
+                   axis: _Axis, zs_a: FloatArray, rs_a: FloatArray
+                   ) -> tuple[float, float, float, int] | None:
+    """The stem at breast height: centre, DBH and how it was found (0, 1: the window's
+    circle, by :func:`stem_circle`'s path; 2: the slices nearest breast height); None where
+    the DBH is out of range."""
     c13 = axis[0] + axis[1] * BREAST_HEIGHT_M
     # breast height: the window's points brought onto the axis, one circle
     lo, hi = prm.dbh_window_m
@@ -731,22 +801,26 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
         dbh = 2.0 * r_near
     if not (prm.min_dbh_m <= dbh <= prm.max_dbh_m):
         return None
+    return cx, cy, dbh, dbh_path
+
+
+def _follow_up(p: FloatArray, width: FloatArray, rel: FloatArray, prm: StemParams,
+               axis: _Axis, top_z: float, r_last: float,
+               above: NDArray[np.int64], up_tree: Any,
+               curve: list[tuple[float, float, float, float]]) -> None:
+    """Follow the stem up from the band's top ``top_z``: slices every curve step above it,
+    each searched near the centre the curve so far predicts; each slice found is appended
+    to ``curve`` (height, centre, diameter)."""
+    step = prm.curve_step_m
+    half = prm.slice_thickness_m / 2.0
     lean = axis[1]
-    # follow the stem up: slices every ``step`` above the band, each searched near the
-    # centre the curve so far predicts
-    ground = float(np.median(p[idx, 2] - rz))
-    curve = [(float(z), float(c[0]), float(c[1]), 2.0 * float(r))
-             for z, c, r in zip(zs_a, cs_a, rs_a, strict=True)]
-    top_z = float(rz.max())
     z = top_z + step
     last = np.array([*(axis[0] + axis[1] * top_z)])
-    r_last = dbh / 2.0
     misses = 0
-    relall = rel
     up = (above[np.asarray(up_tree.query_ball_point(last, r_last + prm.follow_radius_m + 1.0),
                            np.int64)] if up_tree is not None else np.zeros(0, np.int64))
-    up = up[relall[up] > top_z]
-    rel_up = relall[up]  # (gathered once: the loop below takes a slice of them a step)
+    up = up[rel[up] > top_z]
+    rel_up = rel[up]  # (gathered once: the loop below takes a slice of them a step)
     while misses < prm.follow_misses and len(up):
         pred = last + lean * step * (misses + 1)
         s = up[(np.abs(rel_up - z) <= half)]
@@ -770,32 +844,20 @@ def _stem_from(p: FloatArray, width: FloatArray, rel: FloatArray, idx: NDArray[n
         else:
             misses += 1
         z += step
-    # height: the highest point above the followed stem, in the column around its top
+
+
+def _stem_height(rel: FloatArray, above: NDArray[np.int64], up_tree: Any,
+                 curve: list[tuple[float, float, float, float]], top_z: float) -> float:
+    """The height: the highest point above the followed stem, in the column around its top,
+    walking up while the column has no vertical gap larger than 1.5 m."""
     top_xy = np.array(curve[-1][1:3])
     col = (above[np.asarray(up_tree.query_ball_point(top_xy, 0.5), np.int64)]
            if up_tree is not None else np.zeros(0, np.int64))
-    zc = np.sort(relall[col]) if len(col) else np.array([top_z])
-    # walk up while the column has no vertical gap larger than 1.5 m
+    zc = np.sort(rel[col]) if len(col) else np.array([top_z])
     gaps = np.flatnonzero(np.diff(zc) > 1.5)
     gaps = gaps[zc[gaps] >= curve[-1][0]]  # gaps below the followed stem's top: occlusion
     zc_top = zc[gaps[0]] if len(gaps) else zc[-1]
-    h = max(float(zc_top), curve[-1][0])
-    if h < prm.band_m[1] + 0.25:
-        # nothing above the band over it: a tree of stem size has its stem and crown
-        # there (and a sensor 2 m up sees it); this is a shrub, a sapling or a stump
-        return None
-    cz = np.array([c[0] for c in curve])
-    cxy = np.array([[c[1], c[2]] for c in curve])
-    mc, crook = stem_form(cz, cxy, h, prm)
-    cls = ("X" if crook >= prm.crook_m or mc >= prm.other_threshold_m else
-           "C" if mc >= prm.curve_threshold_m else "S")
-    return {"x": cx, "y": cy, "ground": ground, "h": h, "dbh": dbh, "maxcurve": mc,
-            "class": cls, "crook": crook,
-            "fit": {"dbh_from": ("returns without a mixed footprint", "edge returns",
-                                 "slices")[dbh_path], "slices": len(zs), "tried": tried,
-                    "arc_deg": float(np.median(arcs))},
-            "curve": [(round(z_ + ground, 3), round(x_, 4), round(y_, 4), round(d_, 4))
-                      for z_, x_, y_, d_ in curve]}
+    return max(float(zc_top), curve[-1][0])
 
 
 def stem_form(z: FloatArray, c: FloatArray, h: float, prm: StemParams

@@ -503,6 +503,21 @@ class FrameCost:
                 "max_ms": round(float(a.max()), 3)}
 
 
+@dataclass
+class _Live:
+    """A listening SIC's parts (:meth:`OnboardSic._open`): the lidar receiver, the pose from
+    the bus and its track, the map and its stem worker (None: inline), the publisher and the
+    mounted beams (origins, directions)."""
+
+    rx: LidarReceiver
+    can: CanPose
+    track: PoseTrack
+    smap: StemMap
+    worker: Any
+    pub: Publisher
+    rays: tuple[FloatArray, FloatArray]
+
+
 class OnboardSic:
     """Wires receiver, pose, map and publisher together; :meth:`run` until the end."""
 
@@ -560,24 +575,48 @@ class OnboardSic:
         return out
 
     def run(self) -> dict[str, Any]:
+        """Listen, map and publish until the stream ends (or :attr:`stop`): the bus and the
+        lidar port opened (:meth:`_open`), the frames mapped as they come
+        (:meth:`_stream`), then every tile finished and the final forest published
+        (:meth:`_finish`); returns the run's summary."""
         cfg = self.cfg
         # the map's compiled voxel sets, before the port is bound: compiled on a first
         # frame (a second or two where numba's cache is cold), they would hold it up
         warm_voxel_sets()
         meta = self.meta = load_metadata(cfg)
-        port = cfg.lidar_port or meta.udp_port_lidar or 7502  # (the sensor's default port)
         track = PoseTrack()
         # on the bus first (imports, connection), then listen for lidar: a bench may start
         # the stream once the port is bound; the datum and mount come from the node by SDO
-        can: CanPose | None = CanPose(cfg, track)
-        assert can is not None
-        rx: LidarReceiver | None = None
-        worker: Any = None  # the stem algorithm's process (cfg.stem_worker)
-        pub = Publisher(cfg.publish)
-        t_start = self.t_start = time.monotonic()
+        can = CanPose(cfg, track)
+        live: _Live | None = None
+        self.t_start = time.monotonic()
         self.seen_ns = None
         try:
-            rx = LidarReceiver(meta, cfg.lidar_bind, port)
+            live = self._open(meta, can, track)
+            waiting = self._stream(live)
+            self._finish(live, waiting)
+        finally:
+            if live is not None:
+                if live.worker is not None:
+                    for e in live.worker.errors:
+                        _log(f"stem worker: {e}")
+                    live.worker.close()
+                live.rx.close()
+            can.close()
+        assert live is not None  # (an error above went on up)
+        summary = self._summary(live.rx.stats, track, live.smap, live.pub)
+        _log("done: " + json.dumps(summary))
+        return summary
+
+    def _open(self, meta: SensorMetadata, can: CanPose, track: PoseTrack) -> _Live:
+        """The lidar port bound and listening, the node's constants read, the map (and its
+        stem worker) made."""
+        cfg = self.cfg
+        port = cfg.lidar_port or meta.udp_port_lidar or 7502  # (the sensor's default port)
+        pub = Publisher(cfg.publish)
+        rx = LidarReceiver(meta, cfg.lidar_bind, port)
+        worker: Any = None  # the stem algorithm's process (cfg.stem_worker)
+        try:
             rx.start()
             can.read_constants()
             smap = StemMap(self.params, voxel_m=self.voxel_m, max_points=cfg.max_points,
@@ -590,99 +629,111 @@ class OnboardSic:
             _log(f"listening for {meta.mode} {meta.profile} on {cfg.lidar_bind}:{port}; "
                  f"pose from node {cfg.node_id} on {cfg.can_interface}:{cfg.can_channel}; "
                  f"preset {cfg.preset}; publishing to {cfg.publish}")
-            fmt = meta.packet_format
             rays = self.mounted_rays(meta, can.mount, can.mount_rot)
-            crc = fast_crc_rows()
-            frame_budget = 1.0 / meta.frequency_hz
-            next_pub = time.monotonic() + cfg.publish_s
-            seen_data = False
-            # decoded frames waiting for the poses of their columns (the pose of a frame's
-            # last column comes with the next SYNC; a late or silent bus holds them longer)
-            waiting: collections.deque[tuple[float, _Columns]] = collections.deque()
-            while not self.stop.is_set():
-                if cfg.max_seconds and time.monotonic() - t_start > cfg.max_seconds:
-                    break
-                try:
-                    item = rx.frames.get(timeout=0.002 if waiting else 0.1)
-                except queue.Empty:
-                    item = ...  # type: ignore[assignment]
-                now = time.monotonic()
-                if item is None:
-                    break
-                if cfg.nmt_start_after_s:
-                    can.start_if_waiting(cfg.nmt_start_after_s)
-                t0 = time.perf_counter()
-                if item is not ...:
-                    seen_data = True
-                    columns = self._decode(item, fmt, self.meta, crc, rx.stats)
-                    if columns is not None:
-                        waiting.append((now, columns))
-                mapped = False
-                while waiting:
-                    if self._map(waiting[0][1], track, rays, smap, rx.stats):
-                        waiting.popleft()
-                        mapped = True
-                    elif now - waiting[0][0] > cfg.pose_hold_s:
-                        waiting.popleft()
-                        rx.stats.frames_without_pose += 1
-                    else:
-                        break
-                if item is not ... or mapped:
-                    if worker is not None:
-                        # the stem worker's finished tiles in, the next out (the job's points
-                        # gathered here count as the frame's cost)
-                        worker.pump(smap)
-                    spent = time.perf_counter() - t0
-                    self.cost.ms.append(spent * 1000.0)
-                    # inline: the rest of this frame's time goes to the stem algorithm
-                    # (within 60 %)
-                    budget = 0.6 * frame_budget - spent
-                    if (worker is None and budget > 0.005 and rx.frames.empty()
-                            and not waiting):
-                        t1 = time.perf_counter()
-                        if smap.update(budget):
-                            self.stem_cost.ms.append((time.perf_counter() - t1) * 1000.0)
-                elif seen_data and now - rx.stats.last_packet > cfg.idle_s:
-                    _log(f"no lidar packet for {cfg.idle_s:g} s: end of stream")
-                    break
-                elif worker is not None:
-                    worker.pump(smap)
-                elif not seen_data:
-                    smap.update(0.05)
-                if now >= next_pub and seen_data:
-                    pub.publish(self._document(smap, rx.stats, track, final=False))
-                    next_pub = now + cfg.publish_s
-                if (seen_data and cfg.stand_s > 0 and self.seen_ns is not None
-                        and track.stood_still_s(self.seen_ns) >= cfg.stand_s):
-                    _log(f"the machine has stood still for {cfg.stand_s:g} s after driving: "
-                         "end of the drive")
-                    rx.close()  # what the standing sensor sends on is not the drive's: no
-                    break  # frame of it is counted lost while the last tiles are finished
-            for _t, columns in waiting:  # the stream ended: what the poses cover
-                if not self._map(columns, track, rays, smap, rx.stats):
-                    rx.stats.frames_without_pose += 1
-            # end: every dirty tile, publishing as it goes (a bench that cannot wait still
-            # gets the most complete forest), then the final forest
+        except BaseException:
             if worker is not None:
-                worker.drain(smap, progress=lambda: pub.publish(
-                    self._document(smap, rx.stats, track, final=False)), every_s=cfg.publish_s)
-            while smap.dirty_tiles() or smap.backlog:
-                smap.update(cfg.publish_s)
-                if smap.dirty_tiles():
-                    pub.publish(self._document(smap, rx.stats, track, final=False))
-            pub.publish(self._document(smap, rx.stats, track, final=True))
-        finally:
-            if worker is not None:
-                for e in worker.errors:
-                    _log(f"stem worker: {e}")
                 worker.close()
-            if rx is not None:
-                rx.close()
-            if can is not None:
-                can.close()
-        summary = self._summary(rx.stats if rx else LidarStats(), track, smap, pub)
-        _log("done: " + json.dumps(summary))
-        return summary
+            rx.close()
+            raise
+        return _Live(rx, can, track, smap, worker, pub, rays)
+
+    def _stream(self, live: _Live) -> collections.deque[tuple[float, _Columns]]:
+        """Frames decoded and mapped as they come (the stem algorithm inline in the rest of
+        each frame's time, or in its worker), the forest published every ``publish_s``,
+        until the stream ends, the machine has stood after driving or :attr:`stop`; returns
+        the decoded frames still waiting for their poses."""
+        cfg = self.cfg
+        rx, can, track, smap, worker, pub = (live.rx, live.can, live.track, live.smap,
+                                             live.worker, live.pub)
+        meta = self.meta
+        assert meta is not None  # (read in run())
+        fmt = meta.packet_format
+        crc = fast_crc_rows()
+        frame_budget = 1.0 / meta.frequency_hz
+        next_pub = time.monotonic() + cfg.publish_s
+        seen_data = False
+        # decoded frames waiting for the poses of their columns (the pose of a frame's
+        # last column comes with the next SYNC; a late or silent bus holds them longer)
+        waiting: collections.deque[tuple[float, _Columns]] = collections.deque()
+        while not self.stop.is_set():
+            if cfg.max_seconds and time.monotonic() - self.t_start > cfg.max_seconds:
+                break
+            try:
+                item = rx.frames.get(timeout=0.002 if waiting else 0.1)
+            except queue.Empty:
+                item = ...  # type: ignore[assignment]
+            now = time.monotonic()
+            if item is None:
+                break
+            if cfg.nmt_start_after_s:
+                can.start_if_waiting(cfg.nmt_start_after_s)
+            t0 = time.perf_counter()
+            if item is not ...:
+                seen_data = True
+                columns = self._decode(item, fmt, self.meta or meta, crc, rx.stats)
+                if columns is not None:
+                    waiting.append((now, columns))
+            mapped = False
+            while waiting:
+                if self._map(waiting[0][1], track, live.rays, smap, rx.stats):
+                    waiting.popleft()
+                    mapped = True
+                elif now - waiting[0][0] > cfg.pose_hold_s:
+                    waiting.popleft()
+                    rx.stats.frames_without_pose += 1
+                else:
+                    break
+            if item is not ... or mapped:
+                if worker is not None:
+                    # the stem worker's finished tiles in, the next out (the job's points
+                    # gathered here count as the frame's cost)
+                    worker.pump(smap)
+                spent = time.perf_counter() - t0
+                self.cost.ms.append(spent * 1000.0)
+                # inline: the rest of this frame's time goes to the stem algorithm
+                # (within 60 %)
+                budget = 0.6 * frame_budget - spent
+                if (worker is None and budget > 0.005 and rx.frames.empty()
+                        and not waiting):
+                    t1 = time.perf_counter()
+                    if smap.update(budget):
+                        self.stem_cost.ms.append((time.perf_counter() - t1) * 1000.0)
+            elif seen_data and now - rx.stats.last_packet > cfg.idle_s:
+                _log(f"no lidar packet for {cfg.idle_s:g} s: end of stream")
+                break
+            elif worker is not None:
+                worker.pump(smap)
+            elif not seen_data:
+                smap.update(0.05)
+            if now >= next_pub and seen_data:
+                pub.publish(self._document(smap, rx.stats, track, final=False))
+                next_pub = now + cfg.publish_s
+            if (seen_data and cfg.stand_s > 0 and self.seen_ns is not None
+                    and track.stood_still_s(self.seen_ns) >= cfg.stand_s):
+                _log(f"the machine has stood still for {cfg.stand_s:g} s after driving: "
+                     "end of the drive")
+                rx.close()  # what the standing sensor sends on is not the drive's: no
+                break  # frame of it is counted lost while the last tiles are finished
+        return waiting
+
+    def _finish(self, live: _Live, waiting: collections.deque[tuple[float, _Columns]]
+                ) -> None:
+        """The stream ended: what the poses cover of the frames still waiting mapped, every
+        dirty tile finished, publishing as it goes (a bench that cannot wait still gets the
+        most complete forest), then the final forest."""
+        rx, track, smap, pub = live.rx, live.track, live.smap, live.pub
+        for _t, columns in waiting:
+            if not self._map(columns, track, live.rays, smap, rx.stats):
+                rx.stats.frames_without_pose += 1
+        if live.worker is not None:
+            live.worker.drain(smap, progress=lambda: pub.publish(
+                self._document(smap, rx.stats, track, final=False)),
+                every_s=self.cfg.publish_s)
+        while smap.dirty_tiles() or smap.backlog:
+            smap.update(self.cfg.publish_s)
+            if smap.dirty_tiles():
+                pub.publish(self._document(smap, rx.stats, track, final=False))
+        pub.publish(self._document(smap, rx.stats, track, final=True))
 
     def _decode(self, item: tuple[int, NDArray[np.uint8]], fmt: Any, meta: SensorMetadata,
                 crc: Any, st: LidarStats) -> _Columns | None:

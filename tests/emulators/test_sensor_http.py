@@ -230,7 +230,7 @@ def test_a_reinit_during_a_recorded_stream_starts_a_new_recording(tmp_path: Path
 
     from ouster.sdk import pcap as opcap
 
-    from tcf_hil.devices.lidar import serve_sensor
+    from tcf_hil.devices.sensor_service import serve_sensor
     from tcf_hil.scenario import load_scenario
 
     port, udp = _served_endpoints()
@@ -279,7 +279,7 @@ def _parked_sensor() -> tuple[int, list[socket.socket], Any, list[Any], Any]:
     event, the list its results go to, and the thread."""
     import threading
 
-    from tcf_hil.devices.lidar import serve_sensor
+    from tcf_hil.devices.sensor_service import serve_sensor
     from tcf_hil.scenario import load_scenario
 
     port, udp = _served_endpoints()

@@ -29,7 +29,7 @@ from protocols.labels import (
     read_labels,
 )
 from tcf_hil.cli import main
-from tcf_hil.devices.lidar import record_pcap
+from tcf_hil.devices.offline import record_pcap
 from tcf_hil.results.export import (
     GPS_MINUS_UNIX_S,
     PCD_DTYPE,

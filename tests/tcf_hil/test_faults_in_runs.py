@@ -22,7 +22,7 @@ from protocols.harvester import Pose, encode_pose
 from protocols.ouster import SensorMetadata, decode_lidar_packet
 from protocols.pcap import read_udp
 from tcf_hil.devices.faults import apply_fault_options, read_fault_log
-from tcf_hil.devices.lidar import record_pcap
+from tcf_hil.devices.offline import record_pcap
 from tcf_hil.errors import ConfigError
 from tcf_hil.run._live import LOSSES
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_toml

@@ -20,7 +20,7 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from tcf_hil.cli import main
-from tcf_hil.devices.lidar import record_pcap
+from tcf_hil.devices.offline import record_pcap
 from tcf_hil.results.export import CLOUD_DTYPE, run_cloud
 from tcf_hil.results.foxglove import COMPONENT_COLOURS, TOPICS, layout_bytes
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict

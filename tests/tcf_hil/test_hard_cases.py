@@ -21,7 +21,8 @@ from emulators.jit import jit_enabled
 from protocols.harvester._codec import encode_pose
 from protocols.ouster import decode_lidar_packet
 from tcf_hil.devices.harvester import HarvesterModel
-from tcf_hil.devices.lidar import LidarRun, record_pcap, sensor_metadata
+from tcf_hil.devices.lidar import LidarRun, sensor_metadata
+from tcf_hil.devices.offline import record_pcap
 from tcf_hil.experiments.offline import OfflineSic, run_offline
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
 from tcf_hil.sic import identify_stems

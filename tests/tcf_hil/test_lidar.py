@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 
 from emulators.lidar import ReturnModel
 from tcf_hil.cli import main
-from tcf_hil.devices.lidar import record_pcap
+from tcf_hil.devices.offline import record_pcap
 from tcf_hil.scenario import Scenario, load_scenario, scenario_from_dict, with_sensor
 from tcf_hil.world.forest import Forest, generate_forest
 

@@ -484,7 +484,7 @@ def test_micro_relief_has_the_rms_height_asked_for() -> None:
 
 
 def test_returns_are_counted_by_component(tmp_path: Path) -> None:
-    from tcf_hil.devices.lidar import record_pcap
+    from tcf_hil.devices.offline import record_pcap
 
     scn = scenario_from_dict({**SCENERY, "track": {"start_m": [0.0, -14.0, 2.0],
                                                    "end_m": [0.0, 14.0, 2.0]}})

@@ -21,7 +21,7 @@ import pytest
 from protocols.ouster import SensorMetadata
 from protocols.pcap import UdpReader
 from tcf_hil.cli import main
-from tcf_hil.devices.lidar import record_pcap
+from tcf_hil.devices.offline import record_pcap
 from tcf_hil.errors import InputError
 from tcf_hil.recording.reader import Recording
 from tcf_hil.scenario import load_scenario

@@ -16,7 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from emulators.lidar import Datagram
-from tcf_hil.devices.lidar import LidarRun, record_pcap
+from tcf_hil.devices.lidar import LidarRun
+from tcf_hil.devices.offline import record_pcap
 from tcf_hil.errors import ConfigError
 from tcf_hil.recording.store import RenderedFrame, RenderStore, render_key
 from tcf_hil.scenario import load_scenario, scenario_from_dict, scenario_to_dict
@@ -571,26 +572,26 @@ def test_the_frame_pipe_carries_pieces_and_refuses_what_is_no_frame() -> None:
     frame, or an end mid-message, is the end of that renderer."""
     import threading
 
-    from tcf_hil.devices import lidar as lidar_mod
+    from tcf_hil.devices import _renderers as pipe
 
     rows = np.arange(3000 * 4, dtype=np.uint32).reshape(3000, 4)
     parts: list[object] = [b"head", bytearray(b"mid"), b"", *(memoryview(r) for r in rows)]
     want = b"head" + b"mid" + rows.tobytes()
     r, w = os.pipe()
     try:
-        t = threading.Thread(target=lidar_mod._send_frame, args=(w, 7, parts))
+        t = threading.Thread(target=pipe.send_frame, args=(w, 7, parts))
         t.start()
-        k, got = lidar_mod._recv_frame(r)
+        k, got = pipe.recv_frame(r)
         t.join()
         assert k == 7 and bytes(got) == want
-        os.write(w, lidar_mod._FRAME_HEAD.pack(8, 1 << 40))  # no frame is a terabyte
+        os.write(w, pipe.FRAME_HEAD.pack(8, 1 << 40))  # no frame is a terabyte
         with pytest.raises(EOFError, match="not a frame"):
-            lidar_mod._recv_frame(r)
-        os.write(w, lidar_mod._FRAME_HEAD.pack(9, 100) + bytes(10))
+            pipe.recv_frame(r)
+        os.write(w, pipe.FRAME_HEAD.pack(9, 100) + bytes(10))
         os.close(w)
         w = -1
         with pytest.raises(EOFError, match="10 of 100 bytes"):
-            lidar_mod._recv_frame(r)
+            pipe.recv_frame(r)
     finally:
         os.close(r)
         if w >= 0:

@@ -20,7 +20,7 @@ from rosbags.rosbag2 import Reader, Writer
 from protocols.ouster import IMU_PACKET_BYTES, SensorMetadata
 from protocols.pcap import UdpReader
 from tcf_hil.cli import main
-from tcf_hil.devices.lidar import record_pcap
+from tcf_hil.devices.offline import record_pcap
 from tcf_hil.errors import InputError
 from tcf_hil.recording.reader import Recording
 from tcf_hil.recording.rosbag import typestore
