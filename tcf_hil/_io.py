@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import os
 import tempfile
@@ -117,6 +118,15 @@ def name_process(name: str) -> None:
     with contextlib.suppress(OSError):
         with open("/proc/self/comm", "w") as fh:
             fh.write(name[:15])
+
+
+def settle_heap() -> None:
+    """In a forked worker: what it inherited (the built scene, the modules: at 2048x10 on
+    forest-x about 250,000 objects) moved out of the garbage collector's sight
+    (``gc.freeze``), so the collections its frames' allocations set off no longer walk
+    them all (about 3 ms of a 75 ms frame), and the inherited pages stay shared with the
+    parent instead of being written by the collector (Python's ``gc.freeze`` docs)."""
+    gc.freeze()
 
 
 _IOV_MAX = 1024  # Linux's UIO_MAXIOV: the most pieces one writev takes

@@ -17,6 +17,87 @@ import numpy as np
 from emulators.jit import compiled
 
 SQRT2 = math.sqrt(2.0)
+GOLDEN64 = np.uint64(0x9E3779B97F4A7C15)  # 2^64 / golden ratio: splitmix64's step
+
+
+def mix64(x: Any) -> Any:
+    """splitmix64's finaliser (Steele, Lea and Flood, "Fast splittable pseudorandom number
+    generators", OOPSLA 2014; the constants of Vigna's splitmix64.c): a uint64 (or uint64
+    array) to 64 well-mixed bits, wrapping as uint64 arithmetic does."""
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+# Acklam's rational approximation of the inverse normal CDF (P. J. Acklam, "An algorithm
+# for computing the inverse normal cumulative distribution function", 2003; relative error
+# under 1.15e-9 over (0, 1)): a standard normal from a uniform in a dozen multiply-adds,
+# with a logarithm and a square root only in the tails (p < 0.02425 or > 0.97575).
+_ACKLAM_A = (-3.969683028665376e+01, 2.209460984245205e+02, -2.759285104469687e+02,
+             1.383577518672690e+02, -3.066479806614716e+01, 2.506628277459239e+00)
+_ACKLAM_B = (-5.447609879822406e+01, 1.615858368580409e+02, -1.556989798598866e+02,
+             6.680131188771972e+01, -1.328068155288572e+01)
+_ACKLAM_C = (-7.784894002430293e-03, -3.223964580411365e-01, -2.400758277161838e+00,
+             -2.549732539343734e+00, 4.374664141464968e+00, 2.938163982698783e+00)
+_ACKLAM_D = (7.784695709041462e-03, 3.224671290700398e-01, 2.445134137142996e+00,
+             3.754408661907416e+00)
+_A1, _A2, _A3, _A4, _A5, _A6 = _ACKLAM_A
+_B1, _B2, _B3, _B4, _B5 = _ACKLAM_B
+_C1, _C2, _C3, _C4, _C5, _C6 = _ACKLAM_C
+_D1, _D2, _D3, _D4 = _ACKLAM_D
+P_LOW = 0.02425
+
+
+def ndtri(p: float) -> float:
+    """The standard normal quantile of ``p`` in (0, 1) (Acklam's approximation)."""
+    if p < P_LOW:
+        q = math.sqrt(-2.0 * math.log(p))
+        return (((((_C1 * q + _C2) * q + _C3) * q + _C4) * q + _C5) * q + _C6) / \
+            ((((_D1 * q + _D2) * q + _D3) * q + _D4) * q + 1.0)
+    if p > 1.0 - P_LOW:
+        q = math.sqrt(-2.0 * math.log(1.0 - p))
+        return -(((((_C1 * q + _C2) * q + _C3) * q + _C4) * q + _C5) * q + _C6) / \
+            ((((_D1 * q + _D2) * q + _D3) * q + _D4) * q + 1.0)
+    q = p - 0.5
+    r = q * q
+    return (((((_A1 * r + _A2) * r + _A3) * r + _A4) * r + _A5) * r + _A6) * q / \
+        (((((_B1 * r + _B2) * r + _B3) * r + _B4) * r + _B5) * r + 1.0)
+
+
+def ndtri_np(p: Any) -> Any:
+    """:func:`ndtri` of an array, the same operations in the same order."""
+    lo, hi = p < P_LOW, p > 1.0 - P_LOW
+    with np.errstate(divide="ignore", invalid="ignore"):
+        qt = np.sqrt(-2.0 * np.log(np.where(lo, p, np.where(hi, 1.0 - p, 0.5))))
+    tail = (((((_C1 * qt + _C2) * qt + _C3) * qt + _C4) * qt + _C5) * qt + _C6) / \
+        ((((_D1 * qt + _D2) * qt + _D3) * qt + _D4) * qt + 1.0)
+    q = p - 0.5
+    r = q * q
+    mid = (((((_A1 * r + _A2) * r + _A3) * r + _A4) * r + _A5) * r + _A6) * q / \
+        (((((_B1 * r + _B2) * r + _B3) * r + _B4) * r + _B5) * r + 1.0)
+    return np.where(lo, tail, np.where(hi, -tail, mid))
+
+
+def pixel_uniforms(key: Any, i: int) -> tuple[float, float]:
+    """Pixel ``i``'s two uniform draws in (0, 1) of a frame's return (``key``, uint64): a
+    counter-based generator (the pixel's own 64 bits ``mix64(key + (i + 1) * golden)``,
+    split in two), so a pixel draws only where it is asked, in any order and on any thread,
+    and always the same; :func:`ndtri` of each is a standard normal (a 32-bit uniform
+    reaches 6.2 standard deviations: beyond, a normal has a chance of 3e-10)."""
+    h = _mix64(key + np.uint64(i + 1) * GOLDEN64)
+    u1 = (np.float64(h >> np.uint64(32)) + 0.5) * (1.0 / 4294967296.0)
+    u2 = (np.float64(h & np.uint64(0xFFFFFFFF)) + 0.5) * (1.0 / 4294967296.0)
+    return u1, u2
+
+
+def pixel_normals_np(key: Any, n: int) -> tuple[Any, Any]:
+    """:func:`ndtri` of :func:`pixel_uniforms` of pixels 0 .. n - 1 at once (numpy)."""
+    i = np.arange(1, n + 1, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        h = mix64(np.uint64(key) + i * GOLDEN64)
+    u1 = ((h >> np.uint64(32)).astype(np.float64) + 0.5) * (1.0 / 4294967296.0)
+    u2 = ((h & np.uint64(0xFFFFFFFF)).astype(np.float64) + 0.5) * (1.0 / 4294967296.0)
+    return ndtri_np(u1), ndtri_np(u2)
 
 
 def surface(p: int, cn: float, dx: float, dy: float, dz: float, stem_of_prim: Any,
@@ -365,35 +446,36 @@ def footprint_echoes(idx: Any, fl: Any, j0: int, j1: int, grid: tuple[Any, ...],
 
 def detect(echo: tuple[Any, ...], i0: int, i1: int, model: tuple[Any, ...],
            words: tuple[Any, ...]) -> None:
-    """In groups: ``echo`` (``e, r, sid, v, z``: each pixel's echo and its two draws),
-    ``model`` (``scale, gain, sg, width, s_sure, sigma_min, sigma0, exponent, s_floor,
-    min_r, max_r, photons, r_near, q``: the return model's constants) and ``words``
-    (``w_range, w_signal, w_refl, sid_out``: written).
+    """In groups: ``echo`` (``e, r, sid, key``: each pixel's echo, and the return's key of
+    draws, :func:`pixel_uniforms`), ``model`` (``scale, gain, sg, width, s_sure, sigma_min,
+    sigma0, exponent, s_floor, min_r, max_r, photons, r_near, q``: the return model's
+    constants) and ``words`` (``w_range, w_signal, w_refl, sid_out``: written).
 
     One return for each of pixels i0 .. i1 (column-major) from its echo of energy ``e``
-    at range ``r``: detected where ``ln(s) / width`` of its signal ``s = e scale gain``
-    exceeds the pixel's standard normal draw ``v`` (so with probability
-    ``ndtr(ln(s) / width)``; above ``s_sure``, ``ln(s) / width`` > 9.5 and a draw under 9
-    is not compared), its range moved by ``z`` times ``max(sigma_min, sigma0
-    s^-exponent)`` (``sigma_min`` above ``s_floor``), kept within [min_r, max_r]; the
-    words RANGE (mm in quanta of ``q``), SIGNAL and REFLECTIVITY and the stem id (-1
-    none) into (N,) column-major arrays."""
-    e, r, sid, v, z = echo
+    at range ``r``, with the pixel's two standard normal draws ``v, z`` (:func:`ndtri`
+    of its uniforms): detected where
+    ``ln(s) / width`` of its signal ``s = e scale gain`` exceeds ``v`` (so with
+    probability ``ndtr(ln(s) / width)``; above ``s_sure``, where ``ln(s) / width`` > 9.5,
+    always: a draw of 9.5 or more has a chance of 1e-21), its range moved by ``z`` times
+    ``max(sigma_min, sigma0 s^-exponent)`` (``sigma_min`` above ``s_floor``), kept
+    within [min_r, max_r]; the words RANGE (mm in quanta of ``q``), SIGNAL and
+    REFLECTIVITY and the stem id (-1 none) into (N,) column-major arrays. Only a pixel
+    with an echo draws (most of a frame's do not: sky, or beyond the reach)."""
+    e, r, sid, key = echo
     (scale, gain, sg, width, s_sure, sigma_min, sigma0, exponent, s_floor, min_r, max_r,
      photons, r_near, q) = model
     w_range, w_signal, w_refl, sid_out = words
     for i in range(i0, i1):
         s = e[i] * scale * gain
         ok = False
-        if s > s_sure and v[i] < 9.0:
-            ok = True
-        elif s > 0:
-            ok = math.log(s) / width > v[i]
         rr = 0.0
-        if ok:
-            sigma = sigma_min if s > s_floor else max(sigma_min, sigma0 * s ** -exponent)
-            rr = r[i] + z[i] * sigma
-            ok = rr >= min_r and rr <= max_r
+        if s > 0:
+            u1, u2 = _pixel_uniforms(key, i)
+            ok = s > s_sure or math.log(s) / width > _ndtri(u1)
+            if ok:
+                sigma = sigma_min if s > s_floor else max(sigma_min, sigma0 * s ** -exponent)
+                rr = r[i] + _ndtri(u2) * sigma
+                ok = rr >= min_r and rr <= max_r
         if ok:
             w_range[i] = np.uint32(np.rint(rr * (1000.0 / q)) * q)
             w_signal[i] = np.uint32(min(s * photons, 65535.0))
@@ -413,5 +495,8 @@ def detect(echo: tuple[Any, ...], i0: int, i1: int, model: tuple[Any, ...],
 _surface = compiled(surface)
 if _surface is not None:
     surface = _surface
+_mix64 = compiled(mix64) or mix64
+_ndtri = compiled(ndtri) or ndtri
+_pixel_uniforms = compiled(pixel_uniforms) or pixel_uniforms
 _wrap = compiled(wrap) or wrap
 _beam_differs = compiled(beam_differs) or beam_differs

@@ -404,7 +404,6 @@ class Physics:
                 rng: np.random.Generator, dual: bool,
                 run: Callable[[Any, list[tuple[Any, ...]]], None] | None = None,
                 centre: tuple[Any, ...] | None = None,
-                submit: Callable[..., Any] | None = None,
                 cn: NDArray[np.float32] | None = None) -> dict[str, Any]:
         """The frame's returns from the centre cast: ``o`` (W, 3) each column's origin (every
         beam of a column starts there), ``d`` (N, 3) column-major ray directions,
@@ -415,9 +414,7 @@ class Physics:
         ``run(fn, calls)`` calls ``fn(*c)`` for each of ``calls``, spread over threads
         (here, by default); ``centre``: the centre rays' echoes where the cast made them
         already (``ss, r, e, nir``, as :func:`~emulators.lidar._footprint.centre_echoes`
-        writes them; ``t`` and ``prim`` are then not read); ``submit(fn, *args)``: runs
-        ``fn`` in the background (a thread pool's ``submit``), for work nothing waits on at
-        once.
+        writes them; ``t`` and ``prim`` are then not read).
         Returns the pixel words as (H, W) uint32 images ``RANGE`` (mm, 0 none), ``SIGNAL``,
         ``REFLECTIVITY``, ``NEAR_IR`` and, with ``dual``, ``RANGE2``, ``SIGNAL2``,
         ``REFLECTIVITY2``; and the stem ids (W, H) ``sid`` (-1 none) and ``sid2``."""
@@ -431,7 +428,8 @@ class Physics:
                          if surfaces is not None else _NO_SURFACES)
         f = _Frame(o, d, cast, n_m, run, _kernels() if self.jit else None,
                    surfaces is not None, sop, mop, nrm, _parts(N, H, 8))
-        draws = self._start_draws(N, rng, dual, submit)  # 0. before anything: the rng's order
+        keys = rng.bit_generator.random_raw(2)  # 0. before anything: the rng's order (the
+        # draws of detection and noise of each return, by pixel: pixel_uniforms)
         ss, r, e, nir = self._centre_echoes(f, t, prim, cn, centre)  # 1.
         e1, r1, s1 = e, r, ss  # the first return: the centre's, changed where sampled
         e2, r2, s2 = ((np.zeros(N), np.full(N, np.inf), np.full(N, -1, np.int32)) if dual
@@ -448,21 +446,9 @@ class Physics:
             if dual:
                 e2[idx], r2[idx], s2[idx] = echoes[3:]
         # 3. detection, noise, the words; then ambient false returns where none was detected
-        out, flat = self._detect_words(f, nir, ((e1, r1, s1), (e2, r2, s2)), draws, dual)
+        out, flat = self._detect_words(f, nir, ((e1, r1, s1), (e2, r2, s2)), keys, dual)
         self._false_returns(flat, rng)
         return out
-
-    def _start_draws(self, N: int, rng: np.random.Generator, dual: bool,
-                     submit: Callable[..., Any] | None) -> list[tuple[Any, ...]]:
-        """The draws of detection and noise, each return's in two halves by two threads at
-        once; with ``submit``, in the background while the footprint is worked out."""
-        draws = []
-        for _ in range(2 if dual else 1):
-            u, z = np.empty(N), np.empty(N)
-            jobs = [(g, u[a:b], z[a:b]) for g, (a, b) in
-                    zip(rng.spawn(2), ((0, N // 2), (N // 2, N)), strict=True)]
-            draws.append((u, z, jobs, [submit(_draw, *j) for j in jobs] if submit else []))
-        return draws
 
     def _centre_echoes(self, f: _Frame, t: FloatArray, prim: NDArray[np.int32],
                        cn: NDArray[np.float32] | None, centre: tuple[Any, ...] | None
@@ -592,7 +578,7 @@ class Physics:
         return echoes
 
     def _detect_words(self, f: _Frame, nir: NDArray[np.uint32],
-                      returns: tuple[tuple[Any, Any, Any], ...], draws: list[tuple[Any, ...]],
+                      returns: tuple[tuple[Any, Any, Any], ...], keys: NDArray[np.uint64],
                       dual: bool) -> tuple[dict[str, Any], dict[str, Any]]:
         """Detection, noise and the pixel words of each return: the (H, W) images (views of
         column-major (W, H) arrays, as the packets hold them) and the flat words."""
@@ -611,15 +597,9 @@ class Physics:
         for n_ret, (ee, rr, sd) in enumerate(returns):
             if n_ret == 1 and not dual:
                 break
-            u, z, jobs, pending = draws[n_ret]
-            if pending:
-                for fut in pending:
-                    fut.result()
-            else:
-                f.run(_draw, jobs)
             words = [np.empty(N, np.uint32) for _ in range(3)]
             sid_out = np.empty(N, np.int32)
-            echo = (ee, rr, sd, u, z)
+            echo = (ee, rr, sd, keys[n_ret])
             consts: tuple[Any, ...] = (
                 self.scale, self.gain, self.sg, m.detection_width, s_sure,
                 m.range_sigma_min_m, m.range_sigma_m, m.range_sigma_exponent, s_floor,
@@ -839,14 +819,17 @@ class Physics:
     def _detect_np(self, echo: tuple[Any, ...], model: tuple[Any, ...],
                    words: tuple[Any, ...]) -> None:
         """:func:`~emulators.lidar._footprint.detect` in numpy, the same groups."""
-        e, r, sid, u, z = echo
-        (scale, gain, sg, width, _s_sure, sigma_min, sigma0, exponent, _s_floor, min_r, max_r,
+        from emulators.lidar._footprint import pixel_normals_np  # (imports numba: not at once)
+
+        e, r, sid, key = echo
+        u, z = pixel_normals_np(key, len(e))
+        (scale, gain, sg, width, s_sure, sigma_min, sigma0, exponent, _s_floor, min_r, max_r,
          photons, r_near, q) = model
         w_range, w_signal, w_refl, sid_out = words
         s = e * scale * gain
         with np.errstate(divide="ignore"):
             ls = np.log(np.where(s > 0, s, 1.0))
-        ok = (s > 0) & (ls / width > u)
+        ok = (s > 0) & ((s > s_sure) | (ls / width > u))
         sigma = np.maximum(sigma_min, sigma0 * np.where(ok, s, 1.0) ** -exponent)
         rr = np.where(ok, r + z * sigma, 0.0)
         ok &= (rr >= min_r) & (rr <= max_r)
@@ -885,14 +868,6 @@ def _row_turn(d: NDArray[np.float32], W: int, H: int, step: NDArray[np.int64]) -
 
 
 PART_MIN = 4096  # items: fewer go in one part (handing a part to a thread costs ~40 us)
-
-
-def _draw(g: np.random.Generator, v: FloatArray, z: FloatArray) -> None:
-    """A pixel block's standard normal draws of detection (detected where ln(signal) /
-    width exceeds it: the log-normal threshold, with no normal CDF to compute) and range
-    noise, without the GIL."""
-    g.standard_normal(out=v)
-    g.standard_normal(out=z)
 
 
 def _parts(n: int, align: int, k: int, size: int = 1) -> list[tuple[int, int]]:

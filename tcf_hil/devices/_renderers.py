@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from tcf_hil._io import name_process, read_exact, write_gathered
+from tcf_hil._io import name_process, read_exact, settle_heap, write_gathered
 from tcf_hil.recording.store import pack_frame
 
 if TYPE_CHECKING:
@@ -90,6 +90,7 @@ def render_part(run: LidarRun, start: int, i: int, workers: int, fd: int,
     runs here (a frame's bytes follow from its index); the ray threads are shared out among
     the workers."""
     name_process(f"tcf-render-{i}")
+    settle_heap()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when it stops
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     for r in readers:  # the parent's read ends (forked here): with them closed, a parent

@@ -22,7 +22,7 @@ import numpy as np
 from emulators.lidar import IMU_PERIOD_NS, Datagram
 from protocols.ouster import IMU_PACKET_BYTES
 from protocols.pcap import PcapWriter, UdpDatagram
-from tcf_hil._io import name_process
+from tcf_hil._io import name_process, settle_heap
 
 __all__ = ["SLOTS", "FrameRing", "PcapTarget", "pcap_parts", "pcap_records", "produce",
            "release",
@@ -140,6 +140,7 @@ def _become_producer(run: Any, parent_end: Any) -> None:
     """The forked producer's process set up: its name, its signals, its priority and its
     threads."""
     name_process("tcf-lidar-frames")
+    settle_heap()
     # a terminal's Ctrl-C reaches the whole process group: the sender decides when to stop
     # (and the sender's own handlers, inherited through the fork, are not this process's)
     signal.signal(signal.SIGINT, signal.SIG_IGN)

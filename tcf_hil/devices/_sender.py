@@ -36,7 +36,7 @@ from typing import Any
 
 from emulators.harvester import RunClock
 from emulators.lidar import Datagram, PacedSender, Route, SendStats
-from tcf_hil._io import name_process
+from tcf_hil._io import name_process, settle_heap
 
 __all__ = ["SenderProcess", "send_frames"]
 
@@ -230,6 +230,7 @@ def _sender_main(proc: SenderProcess, conn: Any, ctl_rx: Any, parent_ends: list[
     """The sender process: the pacing loop (:func:`send_frames`) with its callbacks sent up
     the pipe, then the end report."""
     name_process("tcf-lidar-send")
+    settle_heap()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run's process decides when to stop
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     for end in parent_ends:  # the fork's copies of the run's ends: a dead run breaks pipes

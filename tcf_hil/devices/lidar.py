@@ -54,6 +54,7 @@ from tcf_hil._io import (
     atomic_path,
     ensure_dir,
     name_process,
+    settle_heap,
     write_bytes_atomic,
     write_json_atomic,
 )
@@ -98,6 +99,7 @@ def _render_ahead(run: LidarRun, writer: RenderWriter, upto: int, done: Any,
                   state: Any) -> None:
     """The renderer process of :meth:`LidarRun.render_ahead`."""
     name_process("tcf-render")
+    settle_heap()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the run decides when it stops
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     with contextlib.suppress(OSError):

@@ -44,6 +44,12 @@ _D = SicConfig.from_env()
               show_default=True, help="Seconds between publications.")
 @click.option("--idle", "idle_s", type=click.FloatRange(min=0.1), default=3.0,
               show_default=True, help="End of stream after this long without a packet.")
+@click.option("--finish", "finish_s", type=click.FloatRange(min=0), default=10.0,
+              show_default=True,
+              help="After SIGTERM or SIGINT: at most this many seconds finishing the forest "
+                   "(frames still waiting mapped, dirty tiles run) before the final forest "
+                   "is published and the program exits; tcf-hil run sends SIGKILL 15 s after "
+                   "its SIGTERM.")
 @click.option("--stand", "stand_s", type=click.FloatRange(min=0), default=5.0,
               show_default=True,
               help="End of the drive once the machine (its CAN pose) has stood still this "

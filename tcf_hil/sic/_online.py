@@ -87,6 +87,9 @@ class SicConfig:
     preset: str = "field"
     publish_s: float = 2.0
     idle_s: float = 3.0
+    # after SIGTERM/SIGINT, at most this long finishing the forest before the final one:
+    # `tcf-hil run` waits 15 s after its SIGTERM before SIGKILL (run/_sic.py SIGTERM_WAIT_S)
+    finish_s: float = 10.0
     # the machine standing still this long (pose time, s) after it moved: the drive is over
     # (longer than a multi-pass track's stop to change gear, 1 s in the presets)
     stand_s: float = 5.0
@@ -722,17 +725,25 @@ class OnboardSic:
         dirty tile finished, publishing as it goes (a bench that cannot wait still gets the
         most complete forest), then the final forest."""
         rx, track, smap, pub = live.rx, live.track, live.smap, live.pub
+        # signalled (the bench ending the run): finished within finish_s, what is left of
+        # the tiles published as it stands, so that the final forest comes before a SIGKILL
+        until = time.monotonic() + self.cfg.finish_s if self.stop.is_set() else math.inf
         for _t, columns in waiting:
+            if time.monotonic() >= until:
+                break
             if not self._map(columns, track, live.rays, smap, rx.stats):
                 rx.stats.frames_without_pose += 1
         if live.worker is not None:
             live.worker.drain(smap, progress=lambda: pub.publish(
                 self._document(smap, rx.stats, track, final=False)),
-                every_s=self.cfg.publish_s)
-        while smap.dirty_tiles() or smap.backlog:
-            smap.update(self.cfg.publish_s)
+                every_s=self.cfg.publish_s, until=until)
+        while (smap.dirty_tiles() or smap.backlog) and time.monotonic() < until:
+            smap.update(min(self.cfg.publish_s, max(0.0, until - time.monotonic())))
             if smap.dirty_tiles():
                 pub.publish(self._document(smap, rx.stats, track, final=False))
+        if time.monotonic() >= until:
+            _log(f"signalled: the forest finished for {self.cfg.finish_s:g} s, "
+                 f"{len(smap.dirty_tiles())} tiles left as they stand")
         pub.publish(self._document(smap, rx.stats, track, final=True))
 
     def _decode(self, item: tuple[int, NDArray[np.uint8]], fmt: Any, meta: SensorMetadata,

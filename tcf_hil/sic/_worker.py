@@ -217,14 +217,18 @@ class TileWorker:
         return not self.in_flight and not smap.backlog and not smap.dirty_tiles()
 
     def drain(self, smap: StemMap, timeout: float = math.inf,
-              progress: Callable[[], None] | None = None, every_s: float = 2.0) -> int:
+              progress: Callable[[], None] | None = None, every_s: float = 2.0,
+              until: float = math.inf) -> int:
         """Run until nothing is dirty or in flight, waiting at most ``timeout`` for each
         result, calling ``progress`` every ``every_s`` while runs are left (a SIC publishes
-        its forest so far); returns runs taken."""
+        its forest so far), or until ``time.monotonic()`` reaches ``until`` (what is in
+        flight then is left); returns runs taken."""
         n = 0
         waited = 0.0
         next_call = time.monotonic() + every_s
         while True:
+            if time.monotonic() >= until:
+                return n
             n += self.pump(smap, final=True)
             if not self.in_flight:
                 return n

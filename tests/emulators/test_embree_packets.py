@@ -1,8 +1,12 @@
 """Packets of rays (``rtcIntersect8``, emulators.embree.intersect_packet) answer each ray as
-``rtcIntersect1`` answers it alone, bit for bit: distance, primitive and the curves' |cos
-incidence|, on robust triangles with shared edges and vertices, round curves with their
-discs and joints, and the terrain grid; and the lidar emulator's fused kernels write the
-same packets with and without them (default and ideal sensor)."""
+``rtcIntersect1`` answers it alone: traced as incoherent packets (ray by ray inside Embree)
+bit for bit - distance, primitive and the curves' |cos incidence| - on robust triangles with
+shared edges and vertices, round curves with their discs and joints, and the terrain grid;
+traced as coherent packets (the default: the lidar's packets are a beam's neighbouring
+columns) to a few float32 units in the last place, the same hit or miss, another primitive
+only at a tie (a ray through an edge or vertex primitives share). And the lidar emulator's
+fused kernels write the same packets with coherent packets, incoherent ones and ray by ray
+(default and ideal sensor)."""
 
 from __future__ import annotations
 
@@ -48,15 +52,28 @@ def _packet_kernel():
 _CAST = None
 
 
-def _packets(ds, o, d):
+def _packets(ds, o, d, coherent: bool = False):
+    """The rays cast in packets, incoherent (Embree answers each lane as the ray alone)
+    unless ``coherent`` (the scene's own arguments, as the lidar's kernels cast)."""
     global _CAST
     if _CAST is None:
         _CAST = _packet_kernel()
     t = np.empty(len(o), np.float32)
     prim = np.empty(len(o), np.int32)
     cn = np.empty(len(o), np.float32)
-    _CAST(ds.handles, o, d, t, prim, cn)
+    flags = ds.packet_args.view(np.uint32)
+    own = int(flags[0])
+    flags[0] = own if coherent else 0  # RTC_RAY_QUERY_FLAG_INCOHERENT
+    try:
+        _CAST(ds.handles, o, d, t, prim, cn)
+    finally:
+        flags[0] = own
     return t, prim, cn
+
+
+def _ulps(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """How many float32 steps apart (finite, positive distances)."""
+    return np.abs(a.view(np.int32).astype(np.int64) - b.view(np.int32).astype(np.int64))
 
 
 def _scene(curves: bool, terrain: bool) -> Any:
@@ -130,13 +147,23 @@ def test_packets_answer_each_ray_as_it_is_answered_alone(seed: int, n: int, spre
     assert np.array_equal(p1, p8)
     if len(c1):
         assert c1.tobytes() == c8.tobytes()
+    # coherent packets: the same hits and misses, distances a few units in the last place
+    # apart (so where the primitive is another, the two are tied to those units)
+    tc, pc, cc = _packets(ds, o, d, coherent=True)
+    hit = np.isfinite(t1)
+    assert np.array_equal(hit, np.isfinite(tc)) and np.array_equal(hit, pc != -1)
+    assert (_ulps(t1[hit], tc[hit]) <= 4).all()
+    same = p1 == pc
+    if len(c1):
+        assert np.allclose(c1[same & hit], cc[same & hit], atol=1e-5)
 
 
 def test_ties_go_as_they_go_ray_by_ray() -> None:
     """Exact ties: a square of two triangles and a coincident copy of it (other indices),
     hit by axis-aligned rays with exact coordinates along the shared diagonal, through the
     corners and the edges, and across the whole square; each lane's primitive is the one
-    the ray alone gets."""
+    the ray alone gets (incoherent packets; coherent ones hit the square at the same
+    distance)."""
     from emulators.embree import DirectScene
 
     sq = np.array([[0, 5, 0], [1, 5, 0], [1, 5, 1], [0, 5, 1]], np.float32)
@@ -154,6 +181,8 @@ def test_ties_go_as_they_go_ray_by_ray() -> None:
     t8, p8, _ = _packets(ds, o, d)
     assert (p1 >= 0).all()  # every ray meets the square
     assert t1.tobytes() == t8.tobytes() and np.array_equal(p1, p8)
+    tc, pc, _ = _packets(ds, o, d, coherent=True)  # coherent: a tie may go the other way
+    assert (pc >= 0).all() and (_ulps(t1, tc) <= 4).all()
 
 
 def test_a_scene_with_crowns_casts_ray_by_ray() -> None:
@@ -169,9 +198,11 @@ def test_a_scene_with_crowns_casts_ray_by_ray() -> None:
     assert ds.handles[3] == 0
 
 
-def test_fused_frames_are_the_same_with_and_without_packets() -> None:
+def test_fused_frames_are_the_same_with_and_without_packets_coherent_or_not() -> None:
     """The lidar emulator's fused kernels (the physical sensor's centre rays, the ideal
-    sensor's answer) with packets and ray by ray: the same packets and stem ids."""
+    sensor's answer) with incoherent packets and ray by ray: the same packets and stem
+    ids; with coherent packets (the default) the same but for a pixel in thousands whose
+    distance, a few float32 units in the last place away, rounds to the next millimetre."""
     from emulators.lidar import Os0Emulator, ReturnModel, SensorModel
     from protocols.ouster import os0_64_metadata
     from tcf_hil.scenario import scenario_from_dict
@@ -194,17 +225,29 @@ def test_fused_frames_are_the_same_with_and_without_packets() -> None:
             pytest.skip("this Embree traces no native packets of 8 here")
         for sensor in (SensorModel(), None):  # the realistic sensor, the ideal
             frames = []
-            for packets in (True, False):
-                handles = ds.handles
-                if not packets:
-                    ds.handles = (*handles[:3], 0)
+            flags = ds.packet_args.view(np.uint32)
+            for how in ("coherent packets", "incoherent packets", "single rays"):
+                handles, coherent = ds.handles, int(flags[0])
+                if how == "single rays":
+                    ds.handles = (*handles[:3], 0, handles[4])
+                elif how == "incoherent packets":
+                    flags[0] = 0  # RTC_RAY_QUERY_FLAG_INCOHERENT
                 try:
                     emu = Os0Emulator(meta, scene, track, ReturnModel(), seed=3,
                                       start_ns=track.t0_ns, sensor=sensor, threads=2)
                     frames.append([emu.frame(k) for k in (4, 5)])
                 finally:
-                    ds.handles = handles
-            for a, b in zip(*frames, strict=True):
+                    ds.handles, flags[0] = handles, coherent
+            for a, b in zip(frames[1], frames[2], strict=True):  # incoherent: to the bit
                 assert np.array_equal(a.packets, b.packets)
                 assert np.array_equal(a.stem_id, b.stem_id)
+            for a, b in zip(frames[0], frames[2], strict=True):  # coherent: a few pixels'
+                # distance crosses a millimetre's rounding (or a tie goes the other way)
+                fa, fb = a.fields, b.fields
+                assert (a.stem_id != b.stem_id).mean() < 1e-3
+                for name in fa:
+                    assert (fa[name] != fb[name]).mean() < 1e-3
+                both = (fa["RANGE"] > 0) & (fb["RANGE"] > 0)
+                gap = np.abs(fa["RANGE"][both].astype(np.int64) - fb["RANGE"][both])
+                assert (gap <= 1).all()  # mm
             assert (frames[0][0].stem_id > 0).sum() > 100

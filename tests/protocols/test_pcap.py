@@ -79,6 +79,22 @@ def test_records_of_many_are_the_records_of_each(ds: list[UdpDatagram], mtu: int
     assert a._ip_id == b._ip_id
 
 
+def test_pieces_still_held_are_never_written_over() -> None:
+    """The writer fills the arrays of the last frame's records again only once nothing
+    holds their pieces: pieces kept across calls keep their bytes."""
+    ds = [UdpDatagram(1000 * i, "10.0.0.1", "10.0.0.2", 7502, 7502, bytes([i]) * 3000)
+          for i in range(8)]
+    w = PcapWriter()
+    first = w.records_parts(ds)
+    want = b"".join(first)
+    again = [UdpDatagram(d.timestamp_ns + 1, d.src_ip, d.dst_ip, d.src_port, d.dst_port,
+                         bytes([255 - d.payload[0]]) * 3000) for d in ds]
+    second = w.records_parts(again)
+    assert b"".join(first) == want
+    assert b"".join(second) != want
+    assert PcapWriter().records_many(ds) == want
+
+
 def test_records_of_many_refuse_what_records_refuse() -> None:
     d = UdpDatagram(-1, "10.0.0.1", "10.0.0.2", 7502, 7502, bytes(100))
     w = PcapWriter()

@@ -250,6 +250,18 @@ def test_the_compiled_answer_is_the_numpy_one_byte_for_byte(
     if answer_kernel() is None:
         pytest.skip("numba is not installed here: only the numpy path runs")
     scene, track = world
+    ds = scene.caster.direct_scene
+    if ds is not None:  # the same cast on both paths: packets traced ray by ray (Embree
+        ds.coherent = False  # answers each lane then as the numpy path's rays, to the bit)
+    try:
+        _compiled_and_numpy_agree(scene, track, profile, model)
+    finally:
+        if ds is not None:
+            ds.coherent = True
+
+
+def _compiled_and_numpy_agree(scene: Scene, track: Trajectory, profile: str,
+                              model: ReturnModel) -> None:
     meta = os0_64_metadata("1024x10", profile=profile)
     jit = Os0Emulator(meta, scene, track, model, seed=3, start_ns=track.t0_ns, threads=2)
     plain = Os0Emulator(meta, scene, track, model, seed=3, start_ns=track.t0_ns, threads=1)

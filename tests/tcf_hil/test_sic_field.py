@@ -345,9 +345,12 @@ class _Pass:
         return pos, np.tile(np.eye(3), (len(y), 1, 1))
 
 
-def _dbh_from_a_pass(dist: float, dbh: float, *, correct: bool) -> float | None:
+def _dbh_from_a_pass(dist: float, dbh: float, *, correct: bool,
+                     seeds: tuple[int, ...] = (3, 4, 5)) -> float | None:
     """The field fit's DBH of a 2 m stem at ``dist`` from the track, from 20 frames of a
-    1024x10 rev7 OS0-64 driving past it (returns within 0.5 m of the stem's centre height)."""
+    1024x10 rev7 OS0-64 driving past it (returns within 0.5 m of the stem's centre height),
+    one pass for each of ``seeds`` pooled (one pass's fit at 15 m varies by about 1 cm
+    with the sensor's noise draws)."""
     from emulators.lidar import SENSOR_PRESETS, Os0Emulator
     from protocols.ouster import beam_rays, os0_64_metadata
     from tests.emulators.test_physics import scene
@@ -355,11 +358,12 @@ def _dbh_from_a_pass(dist: float, dbh: float, *, correct: bool) -> float | None:
     meta = os0_64_metadata(mode="1024x10")
     length = min(dist, 10.0)
     sensor = dataclasses.replace(SENSOR_PRESETS["os0-64-rev7"], false_positive_rate=0.0)
-    emu = Os0Emulator(meta, scene(dist, dbh), _Pass(length), sensor=sensor, seed=3,
-                      threads=1)
     o, d = beam_rays(meta)
     xy, ww = [], []
-    for k in np.linspace(0, 20 * length - 1, 20).astype(int):
+    frames = np.linspace(0, 20 * length - 1, 20).astype(int)
+    emus = [Os0Emulator(meta, scene(dist, dbh), _Pass(length), sensor=sensor, seed=seed,
+                        threads=1) for seed in seeds]
+    for emu, k in ((emu, k) for emu in emus for k in frames):
         fr = emu.frame(int(k))
         rng = fr.fields["RANGE"]
         t = rng.astype(float) / 1000.0 - meta.lidar_origin_to_beam_origin_mm / 1000.0
@@ -380,8 +384,9 @@ def _dbh_from_a_pass(dist: float, dbh: float, *, correct: bool) -> float | None:
 @pytest.mark.parametrize("dist", [5.0, 10.0, 15.0])
 def test_the_footprint_correction_on_a_stem_seen_from_a_pass(dist: float) -> None:
     """README ("The reference onboard SIC"): the rev7 footprint widens a 30 cm stem by 5-15
-    cm in a plain circle fit (+2.6, +6.4, +9.4 cm at 5, 10, 15 m here); with the edge
-    returns kept out the DBH is within 2 cm (+0.5, +1.5, +1.8 cm)."""
+    cm in a plain circle fit (+2.5, +5.9, +10.5 cm at 5, 10, 15 m here, three passes
+    pooled); with the edge returns kept out the DBH is within 2 cm (+0.6, +1.1, +0.9 cm;
+    over four sets of three seeds +0.5..+0.6, +0.8..+1.4, -0.1..+1.6 cm)."""
     plain = _dbh_from_a_pass(dist, 0.3, correct=False)
     field = _dbh_from_a_pass(dist, 0.3, correct=True)
     print(f"{dist} m: plain {plain}, field {field}")

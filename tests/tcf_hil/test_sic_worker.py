@@ -142,3 +142,27 @@ def test_a_worker_reports_a_failed_tile_and_goes_on() -> None:
         assert len(w.errors) == 1 and "(9, 9)" in w.errors[0]
         assert w.proc.is_alive()
     assert len(smap.tiles[(0, 0)].stems) == 1
+
+
+def test_a_drain_with_a_deadline_returns_though_the_worker_is_stalled() -> None:
+    """A SIC told to stop (SIGTERM) finishes within its --finish time even where the
+    worker gets no CPU (here: stopped outright, as a niced process starved by a loaded
+    machine is in effect): what is in flight is left there."""
+    import signal
+    import time
+
+    prm = stem_params("field")
+    smap = StemMap(prm, voxel_m=0.01)
+    smap.defer_runs = True
+    smap.add(_cylinders([(2.0, 2.0)], np.random.default_rng(8)))
+    with TileWorker(prm) as w:
+        os.kill(w.proc.pid, signal.SIGSTOP)
+        try:
+            t0 = time.monotonic()
+            w.drain(smap, until=t0 + 1.0)
+            assert 0.9 <= time.monotonic() - t0 < 5.0
+            assert w.in_flight and not w.idle(smap)
+        finally:
+            os.kill(w.proc.pid, signal.SIGCONT)
+        w.drain(smap, timeout=120.0)  # let go, it finishes the tile
+        assert w.idle(smap) and not w.errors
