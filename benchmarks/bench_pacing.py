@@ -1,5 +1,8 @@
 """Live pacing of the emulated OS0-64: interval error p50/p99 and the pacing loop's CPU share,
-with SCHED_FIFO (where permitted) and with ordinary scheduling, runs interleaved.
+with SCHED_FIFO (where permitted) and with ordinary scheduling, runs interleaved with the
+machine's floor: a bare pacer waking at the mode's packet interval under SCHED_FIFO for as
+long as a run's frames last, sending nothing (``emulators.pacing.wake_floor``); a sender can
+be no more punctual than its wake-ups.
 
 Run: python benchmarks/bench_pacing.py [--scenario forest-x] [--mode 2048x10] [--frames 100]
      [--repeats 3]
@@ -11,6 +14,7 @@ import argparse
 import os
 import statistics
 
+from emulators.pacing import wake_floor
 from tcf_hil.devices.lidar import stream_lidar
 from tcf_hil.scenario import load_scenario
 
@@ -31,7 +35,14 @@ def main() -> None:
     a = ap.parse_args()
     scn = load_scenario(a.scenario)
     rows: dict[bool, list[tuple[float, float, float, bool]]] = {True: [], False: []}
+    cols, hz = (int(x) for x in a.mode.split("x"))
+    floor: list[tuple[float, float]] = []
     for _ in range(a.repeats):
+        errs = sorted(wake_floor(round(1e9 / (hz * cols / 16)), a.frames / hz))
+        floor.append((float(errs[len(errs) // 2] + 1),
+                      float(errs[min(len(errs) - 1, int(0.99 * len(errs)))] + 1)))
+        print(f"  floor: bare pacer p50 {floor[-1][0]:.0f} us, p99 {floor[-1][1]:.0f} us",
+              flush=True)
         for rt in (True, False):
             steal = _steal_ms()
             r = stream_lidar(scn, mode=a.mode, max_frames=a.frames, realtime=rt)
@@ -41,6 +52,9 @@ def main() -> None:
                   f"p99 {r.pacing_us[1]:.0f} us; hypervisor steal {steal:.0f} ms", flush=True)
     print(f"{a.scenario} {a.mode}, {a.frames} frames x {a.repeats} runs (medians)")
     print("scheduling | p50 us | p99 us | pacing loop CPU share")
+    print(f"floor (bare pacer, SCHED_FIFO asked) | "
+          f"{statistics.median(f[0] for f in floor):.0f} | "
+          f"{statistics.median(f[1] for f in floor):.0f} | -")
     for rt, rs in rows.items():
         name = ("SCHED_FIFO" if all(r[3] for r in rs) else "ordinary (FIFO not permitted)") \
             if rt else "ordinary"

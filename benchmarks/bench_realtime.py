@@ -2,7 +2,8 @@
 running, and measure what the program under test gets.
 
 Run: ``python benchmarks/bench_realtime.py [--scenes forest-v,forest-x,pine-thinning]
-[--modes 1024x10,2048x10] [--duration 30] [--repeat 2] [--sic reference|idle] [--json OUT]``
+[--modes 1024x10,2048x10] [--duration 30] [--repeat 2] [--sic reference|idle] [--floor 5]
+[--json OUT]``
 
 Per scene and mode:
 
@@ -17,7 +18,11 @@ Per scene and mode:
   producer, the sender, the live score), not the SIC's, per wall second, sampled from
   ``/proc``; the sender's own share; frames the producer handed over 1 ms late; and the
   hypervisor's steal during the track (ms per second, both vCPUs): on a virtual machine a
-  vCPU that is not running sends nothing, whatever the sender's priority.
+  vCPU that is not running sends nothing, whatever the sender's priority;
+- **floor** (before each run, ``--floor`` seconds): a bare pacer waking at the mode's packet
+  interval under SCHED_FIFO, sending nothing (``emulators.pacing.wake_floor``): its p99 and
+  its wake-ups 1 ms or more late per 10,000, what this machine allows any sender right then
+  (without the SIC's load: a bound from below).
 
 Medians over the repeats. The machine's other load counts: run it on a quiet machine.
 """
@@ -96,6 +101,18 @@ def _render(scene: str, mode: str) -> dict[str, Any]:
             "track_s": track_s, "mb_per_min": size / 1e6 / (track_s / 60)}
 
 
+def _floor(mode: str, seconds: float) -> dict[str, float]:
+    """:func:`emulators.pacing.wake_floor` at ``mode``'s packet interval (16 columns a
+    packet): p99 (us) and wake-ups 1 ms or more late per 10,000."""
+    from emulators.pacing import wake_floor
+
+    cols, hz = (int(x) for x in mode.split("x"))
+    errs = sorted(wake_floor(round(1e9 / (hz * cols / 16)), seconds))
+    late = sum(e >= 1000 for e in errs)
+    return {"floor_p99_us": float(errs[min(len(errs) - 1, int(0.99 * len(errs)))] + 1),
+            "floor_late_per_10k": 1e4 * late / len(errs)}
+
+
 def _run(scene: str, mode: str, duration: float, sic: str, out: Path) -> dict[str, Any]:
     cmd = [sys.executable, "-m", "tcf_hil.cli", "run", scene, "--mode", mode, "--duration",
            str(duration), "--grace", "120", "--out", str(out)]
@@ -147,18 +164,24 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--sic", default="reference", choices=["reference", "idle"])
     ap.add_argument("--json", default=None)
+    ap.add_argument("--floor", type=float, default=5.0,
+                    help="seconds of the bare pacer's wake-ups before each run (0: none)")
     a = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-rt-") as tmp:
         os.environ["TCF_HIL_CACHE"] = str(Path(tmp) / "cache")
         print(f"{'scene':14} {'mode':8} {'render x RT':>11} {'MB/min':>7} {'on 1st/next s':>13} "
               f"{'late>=1ms':>9} {'p50 us':>7} {'p99 us':>7} {'bench CPU':>9} {'sender':>6} "
-              f"{'lateFr':>6} {'steal':>6}", flush=True)
+              f"{'lateFr':>6} {'steal':>6} {'floor p99':>9} {'fl>=1ms':>7}", flush=True)
         for scene in a.scenes.split(","):
             for mode in a.modes.split(","):
                 r = _render(scene, mode)
-                runs = [_run(scene, mode, a.duration, a.sic, Path(tmp) / f"{scene}-{mode}-{i}")
-                        for i in range(a.repeat)]
+                runs = []
+                for i in range(a.repeat):
+                    fl = _floor(mode, a.floor) if a.floor > 0 else \
+                        {"floor_p99_us": float("nan"), "floor_late_per_10k": float("nan")}
+                    runs.append({**fl, **_run(scene, mode, a.duration, a.sic,
+                                              Path(tmp) / f"{scene}-{mode}-{i}")})
                 # the first run after a render keeps what later runs read (a --duration
                 # shorter than the track: its own end's standing machine): reported apart
                 first_on = runs[0]["to_power_on_s"]
@@ -167,7 +190,8 @@ def main() -> None:
                 med = {k: statistics.median(x[k] for x in runs)
                        for k in ("to_power_on_s", "late_1ms", "pacing_p50_us", "pacing_p99_us",
                                  "bench_cpu_share", "steal_ms_per_s", "sender_cpu_share",
-                                 "frames_late_from_producer")}
+                                 "frames_late_from_producer", "floor_p99_us",
+                                 "floor_late_per_10k")}
                 row = {"scene": scene, "mode": mode, **r, **med, "sic": a.sic,
                        "to_power_on_first_s": first_on, "to_power_on_later_s": later_on,
                        "duration_s": a.duration, "repeat": a.repeat,
@@ -177,7 +201,8 @@ def main() -> None:
                       f"{first_on:6.1f}/{later_on:6.1f} {med['late_1ms']:9.0f} "
                       f"{med['pacing_p50_us']:7.0f} {med['pacing_p99_us']:7.0f} "
                       f"{med['bench_cpu_share']:9.2f} {med['sender_cpu_share']:6.2f} "
-                      f"{med['frames_late_from_producer']:6.0f} {med['steal_ms_per_s']:6.1f}",
+                      f"{med['frames_late_from_producer']:6.0f} {med['steal_ms_per_s']:6.1f} "
+                      f"{med['floor_p99_us']:9.0f} {med['floor_late_per_10k']:7.1f}",
                       flush=True)
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))

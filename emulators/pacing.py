@@ -11,11 +11,13 @@ of microseconds without a busy loop holding a core.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import time
 from collections.abc import Callable
 from typing import Protocol
 
-__all__ = ["Pacer", "SimClockLike"]
+__all__ = ["Pacer", "SimClockLike", "steal_s", "wake_floor"]
 
 
 class SimClockLike(Protocol):
@@ -79,3 +81,46 @@ class Pacer:
         while (now := time.perf_counter_ns()) < due:
             time.sleep(0)
         return now - due
+
+
+def steal_s() -> float | None:
+    """The CPU time the hypervisor withheld from this virtual machine so far, all CPUs
+    together, seconds (the ``steal`` column of ``/proc/stat``: time a vCPU wanted to run
+    and the host ran something else; see proc(5)); None where there is no such count.
+
+    A vCPU the host does not run sends nothing, whatever its priority inside the guest: a
+    difference of two readings over a stream says how much of its lateness the machine
+    made."""
+    try:
+        with open("/proc/stat", "rb") as fh:
+            fields = fh.readline().split()
+    except OSError:
+        return None
+    if len(fields) < 9 or fields[0] != b"cpu":
+        return None
+    return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+
+
+def wake_floor(interval_ns: int, seconds: float, *, spin_ns: int = 200_000,
+               realtime: bool = True) -> list[int]:
+    """What the pacing alone gets from this machine now: a :class:`Pacer` waiting for an
+    event every ``interval_ns`` for ``seconds``, sending nothing, under SCHED_FIFO where
+    permitted (as the lidar sender); each wait's error in whole microseconds.
+
+    The floor under any stream's pacing on this machine: a sender can be no more punctual
+    than its own wake-ups (on a virtual machine, the host's scheduling shows here)."""
+    old: tuple[int, int] | None = None
+    if realtime and hasattr(os, "SCHED_FIFO"):
+        with contextlib.suppress(OSError):
+            old = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(
+                min(10, os.sched_get_priority_max(os.SCHED_FIFO))))
+    try:
+        pacer = Pacer(1.0, spin_ns=spin_ns)
+        n = max(1, int(seconds * 1e9 / interval_ns))
+        pacer.due(0)  # the first event is due now; the others keep their distance
+        return [abs(pacer.wait(k * interval_ns)) // 1000 for k in range(1, n + 1)]
+    finally:
+        if old is not None:
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(0, old[0], os.sched_param(old[1]))

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from emulators.pacing import Pacer, SimClockLike
+from emulators.pacing import Pacer, SimClockLike, steal_s
 
 __all__ = ["Datagram", "PacedSender", "Route", "SendStats"]
 
@@ -37,6 +37,7 @@ class Datagram:
     payload: bytes | memoryview
 
 
+LATE_FRAMES_KEPT = 50  # late frames described one by one (the manifest's lidar section)
 _HIST_US = 100_000  # pacing errors are kept as a 1 us histogram up to 100 ms (bounded memory)
 
 
@@ -54,10 +55,23 @@ class SendStats:
     #: frames the sender got 1 ms or more after their first packet was due (the frame
     #: source, not the pacing, made those packets late)
     late_frames: int = 0
+    #: the first of those (at most :data:`LATE_FRAMES_KEPT`): the frame's first packet's
+    #: simulation time (ns), how late it was when the frame came (us), and the stream's phase
+    late_frame_log: list[tuple[int, int, str]] = field(default_factory=list, repr=False)
+
+    def add_late_frame(self, t_ns: int, late_ns: int, phase: str) -> None:
+        """A frame that came ``late_ns`` after its first packet was due."""
+        self.late_frames += 1
+        if len(self.late_frame_log) < LATE_FRAMES_KEPT:
+            self.late_frame_log.append((t_ns, late_ns // 1000, phase))
 
     #: while not None, a second histogram as ``late_hist`` (a window of the stream, such as
     #: an always-on sensor's track: :meth:`open_window`)
     window_hist: list[int] | None = field(default=None, repr=False)
+    #: the hypervisor's steal over the window (ms per wall second, all CPUs together;
+    #: :func:`emulators.pacing.steal_s`; None: not known), set by :meth:`close_window`
+    steal_ms_per_s: float | None = None
+    _window_t0: tuple[float | None, float] | None = field(default=None, repr=False)
 
     def add_late(self, ns: int) -> None:
         b = min(abs(ns) // 1000, _HIST_US)
@@ -70,12 +84,20 @@ class SendStats:
         """Count the packets from here in :attr:`window_hist` too."""
         if self.window_hist is None:
             self.window_hist = [0] * (_HIST_US + 1)
+            self._window_t0 = (steal_s(), time.monotonic())
 
     def close_window(self) -> SendStats | None:
-        """The window's packets (its own :class:`SendStats`; None if none was opened); no
-        more are counted in it."""
+        """The window's packets (its own :class:`SendStats`, with the hypervisor's steal
+        over it; None if none was opened); no more are counted in it."""
         hist, self.window_hist = self.window_hist, None
-        return None if hist is None else SendStats(late_hist=hist, late_n=sum(hist))
+        if hist is None:
+            return None
+        out = SendStats(late_hist=hist, late_n=sum(hist))
+        t0, self._window_t0 = self._window_t0, None
+        steal, wall = steal_s(), time.monotonic()
+        if t0 is not None and t0[0] is not None and steal is not None and wall > t0[1]:
+            out.steal_ms_per_s = 1000.0 * (steal - t0[0]) / (wall - t0[1])
+        return out
 
     def pacing_us(self, since: list[int] | None = None) -> tuple[float, float]:
         """p50 and p99 of |actual - scheduled| send time, microseconds (1 us resolution:

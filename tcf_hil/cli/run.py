@@ -89,11 +89,33 @@ def _print_run(r: Any) -> None:
                  f"{m.replay_sent.get('can', 0)} CAN frames")
     console.print(f"{sent}, publications {r.publications} "
                   f"({r.invalid_publications} invalid), SIC exit code {r.sic_returncode}")
+    pacing = _pacing_line(m.lidar or {})
+    if pacing:
+        err_console.print(pacing)
     if r.message:
         err_console.print(f"[bold]{r.status}[/]: {r.message}")
     report = r.out / "report.html"
     console.print(f"run directory: {r.out}/" + (f"  report: {report}" if report.exists()
                                                else ""))
+
+
+def _pacing_line(lidar: dict[str, Any]) -> str | None:
+    """One line when track packets left 1 ms or more late: how many, and how much CPU time
+    the hypervisor withheld meanwhile (a vCPU the host does not run sends nothing)."""
+    late = lidar.get("track_packets_late_1ms") or 0
+    if not late:
+        return None
+    p99 = (lidar.get("track_pacing_us_p50_p99") or [0, 0])[1]
+    line = (f"lidar: {late} track packet(s) left 1 ms or more late (pacing p99 "
+            f"{p99:,.0f} us)")
+    steal = lidar.get("track_steal_ms_per_s")
+    producer = lidar.get("frames_late_from_producer") or 0
+    if producer:
+        line += f"; {producer} frame(s) came late from the frame producer"
+    if steal is not None and steal >= 1.0:
+        line += (f"; the hypervisor withheld {steal:.0f} ms/s of this machine's CPU "
+                 "meanwhile (steal: a vCPU the host does not run sends nothing)")
+    return line
 
 
 @click.command()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import math
 import multiprocessing as mp
 import os
 import signal
@@ -24,7 +25,7 @@ from protocols.ouster import IMU_PACKET_BYTES
 from protocols.pcap import PcapWriter, UdpDatagram
 from tcf_hil._io import name_process, settle_heap
 
-__all__ = ["SLOTS", "FrameRing", "PcapTarget", "pcap_parts", "pcap_records", "produce",
+__all__ = ["PRIME", "FrameRing", "PcapTarget", "pcap_parts", "pcap_records", "produce",
            "release",
            "slot_bytes"]
 
@@ -43,7 +44,22 @@ def pcap_parts(writer: PcapWriter, dgs: list[Datagram], sensor_ip: str, dest: st
                                              cast(bytes, d.payload)) for d in dgs])
 
 
-SLOTS = 4  # frames produced ahead of the pacing loop
+# How far ahead of the pacing loop the producer may run: a second of the sensor's frames.
+# The producer shares the CPUs with the program under test, and on a virtual machine with
+# the host: a producer that stalls for less than the ring's lead costs no packet its time.
+# With 4 slots (0.4 s at 10 Hz), such stalls handed up to 42 frames over late in a 30 s run
+# (README, "Benchmarks", 2026-12-01/02: with the hypervisor's steal at 4-87 ms/s).
+RING_AHEAD_S = 1.0
+MIN_SLOTS = 4
+RING_MAX_BYTES = 256 << 20  # the ring's shared memory at most (4096x5: 5 slots of 8.5 MB)
+PRIME = 3  # frames in hand before the first packet (the rest fill while the sensor stands)
+
+
+def ring_slots(run: Any) -> int:
+    """Frames produced ahead of the pacing loop for ``run``: :data:`RING_AHEAD_S` of its
+    frames, at least :data:`MIN_SLOTS`, within :data:`RING_MAX_BYTES`."""
+    want = math.ceil(RING_AHEAD_S * run.meta.frequency_hz)
+    return max(MIN_SLOTS, min(want, RING_MAX_BYTES // slot_bytes(run)))
 
 
 def slot_bytes(run: Any) -> int:
@@ -68,8 +84,10 @@ class PcapTarget:
 
 def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
              stop: Any, sent: Any, rec: PcapTarget | None = None,
-             parent_end: Any = None, air: tuple[Any, ...] | None = None) -> None:
-    """Producer process: writes each frame's datagrams into a shared-memory slot and sends
+             parent_end: Any = None, air: tuple[Any, ...] | None = None,
+             slots: int = MIN_SLOTS) -> None:
+    """Producer process: writes each frame's datagrams into one of ``slots`` shared-memory
+    slots and sends
     only (slot, [(t_ns, port, length)], fault events, phase) down the pipe, then ("done",
     None) after the last. ``air``: an always-on sensor's plan and its standing machines
     (:meth:`~tcf_hil.devices.lidar.LidarRun.on_air`: frames before the track, the track,
@@ -83,7 +101,7 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
     sink = _PcapSink(rec, sent) if rec is not None else None  # closed in the finally below
     # bookkeeping after each produced frame, back as far as the sender can be behind
     marks: collections.deque[tuple[int, tuple[np.ndarray, int, int]]] = collections.deque(
-        [(0, run.mark())], maxlen=SLOTS + 2)
+        [(0, run.mark())], maxlen=slots + 2)
     flush = sink.flush if sink is not None else (lambda: None)
     slot = produced = 0
     try:
@@ -117,7 +135,7 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
                 sink.keep(dgs, rf.labels, phase in ("before", "track"))
             produced += 1
             marks.append((produced, run.mark()))
-            slot = (slot + 1) % SLOTS
+            slot = (slot + 1) % slots
         else:
             conn.send(("done", None))
         while not stop.wait(0.05):  # the last frames are still going out
@@ -223,7 +241,8 @@ def release(dgs: list[Datagram]) -> None:
 class FrameRing:
     """The frames of a :class:`~tcf_hil.devices.lidar.LidarRun` made ahead in a forked
     producer process at a lower priority (:func:`produce`), each written into one of
-    :data:`SLOTS` shared-memory slots; only (slot, [(t_ns, port, length)]) crosses the pipe.
+    :func:`ring_slots` shared-memory slots; only (slot, [(t_ns, port, length)]) crosses the
+    pipe.
     The sender takes a frame's datagrams as views of its slot (:meth:`frame`), sends them,
     and hands the slot back (:meth:`sent`). With ``rec``, the producer writes the pcap of
     exactly the frames sent."""
@@ -235,9 +254,10 @@ class FrameRing:
         ctx = mp.get_context("fork")
         self.run = run
         self.slot_bytes = slot_bytes(run)
-        self.shm = SharedMemory(create=True, size=self.slot_bytes * SLOTS)
+        self.slots = ring_slots(run)
+        self.shm = SharedMemory(create=True, size=self.slot_bytes * self.slots)
         self._rx, tx = ctx.Pipe(duplex=False)
-        self._free = ctx.Semaphore(SLOTS)
+        self._free = ctx.Semaphore(self.slots)
         self._stop = ctx.Event()
         self._sent = ctx.RawValue("q", 0)  # frames finished by the sender, read by the producer
         # views of the slots being sent, oldest first (the next frame may be taken before
@@ -250,7 +270,7 @@ class FrameRing:
         try:
             self._child = ctx.Process(target=produce, args=(
                 run, tx, self._free, self.shm, self.slot_bytes, self._stop, self._sent, rec,
-                self._rx, air), name="lidar-frames", daemon=True)
+                self._rx, air, self.slots), name="lidar-frames", daemon=True)
             self._child.start()
         finally:
             tx.close()
@@ -271,7 +291,7 @@ class FrameRing:
     def prime(self, stop: threading.Event) -> collections.deque[tuple[str, Any]]:
         """Frames in hand before sending starts, so that the first ones are not late."""
         ready: collections.deque[tuple[str, Any]] = collections.deque()
-        while len(ready) < SLOTS - 1 and not stop.is_set():
+        while len(ready) < min(PRIME, self.slots - 1) and not stop.is_set():
             item = self.receive(0.05)
             if item is not None:
                 ready.append(item)
@@ -353,7 +373,7 @@ class FrameRing:
         self._stop.set()
         self.release_held()  # an interrupted send still holds views of the ring
         with contextlib.suppress(Exception):
-            for _ in range(SLOTS):
+            for _ in range(self.slots):
                 self._free.release()
         if self._child is not None:
             self._child.join(timeout=5.0)

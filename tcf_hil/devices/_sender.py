@@ -118,9 +118,10 @@ def send_frames(run: Any, ring: Any, ready: collections.deque[tuple[str, Any]],
             if kind == "done":
                 break
             dgs, meta, events, phase = body
-            if len(meta) and sender.speed > 0 and \
-                    time.perf_counter_ns() - sender.pacer.due(int(meta[0, 0])) >= _LATE_NS:
-                stats.late_frames += 1
+            if len(meta) and sender.speed > 0:
+                late = time.perf_counter_ns() - sender.pacer.due(int(meta[0, 0]))
+                if late >= _LATE_NS:
+                    stats.add_late_frame(int(meta[0, 0]), late, phase)
             if phase == "track" and counts["track"] == 0:
                 stats.open_window()
             if phase == "after" and not ended:

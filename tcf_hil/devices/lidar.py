@@ -68,11 +68,13 @@ from tcf_hil.devices._renderers import (
     render_part,
     widen_pipe,
 )
-from tcf_hil.devices._ring import SLOTS, FrameRing, PcapTarget
+from tcf_hil.devices._ring import FrameRing, PcapTarget
+from tcf_hil.devices._ring import ring_slots as ring_slots  # frames a live stream makes ahead
 from tcf_hil.devices._sender import SenderProcess
 from tcf_hil.devices._standing import OnAir, StandingEmulator, StandingPose
 from tcf_hil.errors import ConfigError
 from tcf_hil.recording.poses_csv import pose_rows
+from tcf_hil.recording.poses_csv import warm_up as warm_up_pose_rows
 from tcf_hil.recording.store import (
     RenderedFrame,
     RenderStore,
@@ -89,7 +91,6 @@ from tcf_hil.world.track import warm_up as warm_up_poses
 
 # where a run's frames come from (LidarRun; "ahead": a live run's, LiveTraffic)
 RENDER_MODES = ("auto", "fill", "stored", "live", "ahead")
-RING_SLOTS = SLOTS  # frames made ahead of the sender in a live stream (its frame ring)
 # Frames of the standing machine rendered once (1 s at 10 Hz) and sent again, restamped: its
 # range noise repeats each second (a real sensor's would not); the geometry does not change.
 STANDING_CYCLE = 10
@@ -135,9 +136,14 @@ class RecordResult:
     # frames the frame producer handed over 1 ms or more after their first packet was due
     # (late packets that the source, not the pacing, caused)
     frames_late_from_producer: int = 0
+    # the first of them: (simulation time of the first packet ns, how late us, phase)
+    late_frame_log: tuple[tuple[int, int, str], ...] = ()
     # an always-on sensor's track alone: p50/p99 pacing error (us), packets 1 ms or more late
     track_pacing_us: tuple[float, float] = (0.0, 0.0)
     track_late_1ms: int = 0
+    # the hypervisor's steal during the track (ms per second, all CPUs; None: not known):
+    # a vCPU the host does not run sends nothing (emulators.pacing.steal_s)
+    track_steal_ms_per_s: float | None = None
 
 
 def sensor_metadata(scn: Scenario, *, mode: str = "1024x10",
@@ -1014,6 +1020,11 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
         warm_up_poses()
         if run.stored is None or not run.stored.complete:
             run.emu  # noqa: B018  (the scene built before the fork: the producer shares it)
+    # The track's first frame is the producer's first with sensor_poses.csv rows: their
+    # kernel compiled there (importing numba: about a second on a loaded 2-core machine)
+    # came 0.2 s late, the ring's lead spent on it; in the producer before its first frame,
+    # the sensor's first frames came late instead. Here it delays power-on, not a packet.
+    warm_up_pose_rows()
     dest = run.meta.udp_dest
     stop = stop or threading.Event()
     out = Path(record) if record is not None else None
@@ -1047,10 +1058,12 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     window: SendStats | None = report["window"]
     if window is not None:  # the track alone (standing frames around it)
         track = {"track_pacing_us": window.pacing_us(),
-                 "track_late_1ms": window.late_over_us(1000)}
+                 "track_late_1ms": window.late_over_us(1000),
+                 "track_steal_ms_per_s": window.steal_ms_per_s}
     return run.result(out, frames=report["on_wire"], pacing_us=stats.pacing_us(),
                       refused=stats.refused, realtime=stats.realtime,
                       frames_late_from_producer=stats.late_frames,
+                      late_frame_log=tuple(stats.late_frame_log),
                       sender_cpu_share=stats.cpu_s / stats.wall_s if stats.wall_s else 0.0,
                       **track)
 

@@ -194,6 +194,13 @@ def pose_rows(t_ns: NDArray[np.int64], values: NDArray[np.float64],
     return _array_rows(t, v, decimals)
 
 
+def warm_up() -> None:
+    """Compile :func:`pose_rows`' kernel now (numba, or its on-disk cache; importing numba
+    first): about a second on a loaded 2-core machine, which a live stream's frame producer
+    spends before its first frame rather than at the track's first."""
+    pose_rows(np.zeros(1, np.int64), np.zeros((1, 7)), (6, 6, 6, 9, 9, 9, 9))
+
+
 def _array_rows(t: NDArray[np.int64], v: NDArray[np.float64], decimals: tuple[int, ...]
                 ) -> str:
     n = len(t)

@@ -322,14 +322,14 @@ class LiveTraffic:
         producer has not made (``lead_s`` before the track's start: those standing frames
         and the track are recorded on one time line), unless the standing time ran out
         first (then no step: the track starts at its own time)."""
-        from tcf_hil.devices.lidar import RING_SLOTS
+        from tcf_hil.devices.lidar import ring_slots
 
         run, speed, clock, air = self.run, self.speed, self.clock, self.air
         assert clock is not None and air is not None
         period, t0 = run.period_ns, run.track.t0_ns
         most = (t0 - air.power_on_ns) // period
         now = max(0, math.ceil((clock.now_ns() - air.power_on_ns) / period))
-        step = now + RING_SLOTS + 2  # (the producer is at most the ring ahead of the clock)
+        step = now + ring_slots(run) + 2  # (the producer is at most the ring ahead of the clock)
         at = step + math.ceil(self.lead_s * speed * 1e9 / period)
         if at < most:
             clock.step(clock.origin_monotonic_ns + round(step * period / speed),
@@ -441,8 +441,11 @@ class LiveTraffic:
                               "sender_cpu_share": r.sender_cpu_share, "refused": r.refused,
                               "track_pacing_us_p50_p99": list(r.track_pacing_us),
                               "track_packets_late_1ms": r.track_late_1ms,
+                              "track_steal_ms_per_s": r.track_steal_ms_per_s,
                               "sender_realtime": r.realtime,
                               "frames_late_from_producer": r.frames_late_from_producer,
+                              "late_frames": [{"t_ns": t, "late_us": us, "phase": ph}
+                                              for t, us, ph in r.late_frame_log],
                               "render": {"mode": self.render, "key": self.run.render_key,
                                          "from_store": self.run.stored is not None,
                                          "rendered_ahead": self.run.ahead is not None},

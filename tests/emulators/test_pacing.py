@@ -4,6 +4,7 @@ there is one, speed 0 never waits, and a wait never ends before its due time."""
 
 from __future__ import annotations
 
+import os
 import time
 
 import pytest
@@ -11,7 +12,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from emulators.harvester import SimClock
-from emulators.pacing import Pacer
+from emulators.lidar import SendStats
+from emulators.pacing import Pacer, steal_s, wake_floor
 
 
 @given(st.lists(st.integers(0, 10**12), min_size=1, max_size=30),
@@ -73,3 +75,45 @@ def test_idle_work_runs_only_while_a_wait_is_long_enough() -> None:
     assert 3 <= len(left) <= 9
     assert late >= 0
     assert p.wait(t0 + 10_000_001, lambda: pytest.fail("no time to spare: not called")) >= 0
+
+
+def test_the_hypervisors_steal_is_read_and_never_goes_back() -> None:
+    a = steal_s()
+    if a is None:  # not Linux, or a /proc without the column
+        pytest.skip("no steal count on this machine")
+    time.sleep(0.05)
+    b = steal_s()
+    assert b is not None and 0.0 <= a <= b
+
+
+def test_a_window_of_the_stream_reports_the_steal_over_it() -> None:
+    s = SendStats()
+    s.open_window()
+    s.add_late(5_000)
+    time.sleep(0.05)
+    w = s.close_window()
+    assert w is not None and w.late_n == 1 and w.late_over_us(5) == 1
+    if steal_s() is None:
+        assert w.steal_ms_per_s is None
+    else:  # both CPUs together: never more than a second a second per CPU
+        assert w.steal_ms_per_s is not None
+        assert 0.0 <= w.steal_ms_per_s <= 1000.0 * (os.cpu_count() or 1)
+    assert s.close_window() is None  # closed: nothing more counted in it
+
+
+def test_the_bare_pacers_floor_is_one_error_per_wake_up() -> None:
+    t0 = time.perf_counter()
+    errs = wake_floor(2_000_000, 0.1, realtime=False)  # every 2 ms for 0.1 s
+    assert len(errs) == 50 and all(e >= 0 for e in errs)
+    assert time.perf_counter() - t0 >= 0.1  # it waited for each: never early
+
+
+def test_late_frames_are_counted_and_the_first_ones_described() -> None:
+    from emulators.lidar._stream import LATE_FRAMES_KEPT
+
+    s = SendStats()
+    for k in range(LATE_FRAMES_KEPT + 5):
+        s.add_late_frame(k * 100_000_000, 2_500_000 + k, "track" if k else "before")
+    assert s.late_frames == LATE_FRAMES_KEPT + 5
+    assert len(s.late_frame_log) == LATE_FRAMES_KEPT
+    assert s.late_frame_log[0] == (0, 2500, "before") and s.late_frame_log[1][2] == "track"

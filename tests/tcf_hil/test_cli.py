@@ -247,3 +247,16 @@ def test_library_chatter_stays_off_the_terminal(tmp_path: Path) -> None:
     assert p.returncode == 0, p.stderr
     assert split[0] >= 10  # python-can did meet split frames
     assert "incomplete message" not in p.stderr and "incomplete message" not in p.stdout
+
+
+def test_a_run_with_late_track_packets_says_so_with_the_machines_steal() -> None:
+    from tcf_hil.cli.run import _pacing_line
+
+    assert _pacing_line({}) is None
+    assert _pacing_line({"track_packets_late_1ms": 0, "track_steal_ms_per_s": 90.0}) is None
+    line = _pacing_line({"track_packets_late_1ms": 12, "track_pacing_us_p50_p99": [11, 2742],
+                         "track_steal_ms_per_s": 87.0, "frames_late_from_producer": 2})
+    assert line is not None and "12 track packet(s)" in line and "2,742 us" in line
+    assert "2 frame(s) came late from the frame producer" in line and "87 ms/s" in line
+    quiet = _pacing_line({"track_packets_late_1ms": 3, "track_steal_ms_per_s": 0.2})
+    assert quiet is not None and "steal" not in quiet and "producer" not in quiet

@@ -496,6 +496,25 @@ def test_the_class_from_the_stem_curve(shape: str, cls: str) -> None:
 
 
 # ------------------------------------------------------------- a live natural stand
+def pine_thinning_corner(path: Path, half_m: float) -> Path:
+    """A 0.16 ha corner of ``pine-thinning`` (its 2,200 stems/ha: 352 on 40 x 40 m) as a
+    scenario file at ``path``, the track ``half_m`` each side of the plot's centre line."""
+    from tcf_hil.scenario import (
+        load_scenario,
+        scenario_from_dict,
+        scenario_to_dict,
+        scenario_to_toml,
+    )
+
+    d = scenario_to_dict(load_scenario("pine-thinning"))
+    d["name"] = "pine-thinning-corner"
+    d["plot"]["size_m"] = [40.0, 40.0]
+    d["stems"]["count"] = 352
+    d["track"]["start_m"], d["track"]["end_m"] = [0.0, -half_m, 2.0], [0.0, half_m, 2.0]
+    path.write_text(scenario_to_toml(scenario_from_dict(d)))
+    return path
+
+
 @pytest.mark.slow  # about 3 minutes: .ci/run's second lane
 def test_a_live_run_of_a_natural_stand_scores_above_the_floor(tmp_path: Path) -> None:
     """A regression guard, not the aim: a 0.16 ha corner of ``pine-thinning`` (2,200 stems/ha,
@@ -510,20 +529,7 @@ def test_a_live_run_of_a_natural_stand_scores_above_the_floor(tmp_path: Path) ->
     import subprocess
     import sys
 
-    from tcf_hil.scenario import (
-        load_scenario,
-        scenario_from_dict,
-        scenario_to_dict,
-        scenario_to_toml,
-    )
-
-    d = scenario_to_dict(load_scenario("pine-thinning"))
-    d["name"] = "pine-thinning-corner"
-    d["plot"]["size_m"] = [40.0, 40.0]
-    d["stems"]["count"] = 352
-    d["track"]["start_m"], d["track"]["end_m"] = [0.0, -12.0, 2.0], [0.0, 12.0, 2.0]
-    toml = tmp_path / "corner.toml"
-    toml.write_text(scenario_to_toml(scenario_from_dict(d)))
+    toml = pine_thinning_corner(tmp_path / "corner.toml", 12.0)
     out = tmp_path / "run"
     p = subprocess.run([sys.executable, "-m", "tcf_hil.cli", "run", str(toml), "--mode",
                         "1024x10", "--speed", "0.5", "--sic",
