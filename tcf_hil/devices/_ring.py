@@ -171,8 +171,11 @@ def _become_producer(run: Any, parent_end: Any) -> None:
     # at nice 19 beside the reference SIC and its stem worker on 2 cores, it got too little
     # to keep the ring full (pine-thinning 1024x10: 15 frames handed over late, a stall of
     # over 100 ms). (Before the sender had a process of its own, reading at the ordinary
-    # priority cost the SIC frames at 2048x10.)
-    casts = run.stored is None or not run.stored.complete
+    # priority cost the SIC frames at 2048x10.) A render still being made ahead (by workers
+    # of its own, at nice 19) is only read here too: at nice 19 beside a program that keeps a
+    # core busy, this producer shared the other core with the render workers and handed the
+    # track over later and later (232, 607, 990 ms ... a 2048x10 natural stand, 2026-12-03).
+    casts = run.stored is None
     with contextlib.suppress(OSError):
         os.nice(19 if casts else 0)
     with contextlib.suppress(Exception):  # one core stays free for the pacing loop
