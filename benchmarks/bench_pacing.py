@@ -11,19 +11,16 @@ Run: python benchmarks/bench_pacing.py [--scenario forest-x] [--mode 2048x10] [-
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 
-from emulators.pacing import wake_floor
+from emulators.pacing import steal_s, wake_floor
 from tcf_hil.devices.lidar import stream_lidar
 from tcf_hil.scenario import load_scenario
 
 
 def _steal_ms() -> float:
     """CPU time the hypervisor gave to others while this VM wanted it (all CPUs), ms."""
-    with open("/proc/stat") as fh:
-        fields = fh.readline().split()
-    return int(fields[8]) * 1000 / os.sysconf("SC_CLK_TCK") if len(fields) > 8 else 0.0
+    return 1000.0 * (steal_s() or 0.0)
 
 
 def main() -> None:

@@ -76,9 +76,9 @@ def _bench_cpu(root: int, sic: set[int]) -> float:
 def _steal_s() -> float:
     """CPU seconds the hypervisor gave to others while this VM's CPUs wanted them (all
     CPUs, ``/proc/stat``): a vCPU not running is a packet late whatever the sender does."""
-    with open("/proc/stat") as fh:
-        f = fh.readline().split()
-    return int(f[8]) / TICK if len(f) > 8 else 0.0
+    from emulators.pacing import steal_s
+
+    return steal_s() or 0.0
 
 
 def _render(scene: str, mode: str) -> dict[str, Any]:

@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
-__all__ = ["Pacer", "SimClockLike", "steal_s", "wake_floor"]
+__all__ = ["Pacer", "SimClockLike", "enter_fifo", "leave_fifo", "steal_s", "wake_floor"]
 
 
 class SimClockLike(Protocol):
@@ -109,18 +109,32 @@ def wake_floor(interval_ns: int, seconds: float, *, spin_ns: int = 200_000,
 
     The floor under any stream's pacing on this machine: a sender can be no more punctual
     than its own wake-ups (on a virtual machine, the host's scheduling shows here)."""
-    old: tuple[int, int] | None = None
-    if realtime and hasattr(os, "SCHED_FIFO"):
-        with contextlib.suppress(OSError):
-            old = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(
-                min(10, os.sched_get_priority_max(os.SCHED_FIFO))))
+    old = enter_fifo() if realtime else None
     try:
         pacer = Pacer(1.0, spin_ns=spin_ns)
         n = max(1, int(seconds * 1e9 / interval_ns))
         pacer.due(0)  # the first event is due now; the others keep their distance
         return [abs(pacer.wait(k * interval_ns)) // 1000 for k in range(1, n + 1)]
     finally:
-        if old is not None:
-            with contextlib.suppress(OSError):
-                os.sched_setscheduler(0, old[0], os.sched_param(old[1]))
+        leave_fifo(old)
+
+
+def enter_fifo() -> tuple[int, int] | None:
+    """This thread under SCHED_FIFO (priority 10 or the most allowed); its old policy and
+    priority, or None where that is not permitted (nothing changed)."""
+    if not hasattr(os, "SCHED_FIFO"):
+        return None
+    try:
+        old = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(
+            min(10, os.sched_get_priority_max(os.SCHED_FIFO))))
+    except (OSError, AttributeError):
+        return None
+    return old
+
+
+def leave_fifo(old: tuple[int, int] | None) -> None:
+    """Back to the policy :func:`enter_fifo` returned (None: nothing to undo)."""
+    if old is not None:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, old[0], os.sched_param(old[1]))

@@ -12,9 +12,7 @@ the stream: the error is counted and sending goes on.
 
 from __future__ import annotations
 
-import contextlib
 import errno
-import os
 import socket
 import time
 from collections.abc import Callable, Iterable
@@ -23,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from emulators.pacing import Pacer, SimClockLike, steal_s
+from emulators.pacing import Pacer, SimClockLike, enter_fifo, leave_fifo, steal_s
 
 __all__ = ["Datagram", "PacedSender", "Route", "SendStats"]
 
@@ -201,23 +199,18 @@ class PacedSender:
         self.speed = self.pacer.speed
 
     def _enter_realtime(self) -> None:
-        if not self._want_rt or self._old_sched is not None or not hasattr(os, "SCHED_FIFO"):
+        if not self._want_rt or self._old_sched is not None:
             return
-        try:
-            old = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(
-                min(10, os.sched_get_priority_max(os.SCHED_FIFO))))
-        except (OSError, AttributeError):
+        old = enter_fifo()
+        if old is None:
             return  # not permitted here: ordinary scheduling
         self._old_sched = old
         self.stats.realtime = True
         self.spin_ns = self.pacer.spin_ns = (self._spin_us or 200) * 1000
 
     def _leave_realtime(self) -> None:
-        if self._old_sched is not None:
-            with contextlib.suppress(OSError):
-                os.sched_setscheduler(0, self._old_sched[0], os.sched_param(self._old_sched[1]))
-            self._old_sched = None
+        leave_fifo(self._old_sched)
+        self._old_sched = None
 
     def close(self) -> None:
         self._leave_realtime()
