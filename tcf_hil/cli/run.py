@@ -235,12 +235,15 @@ def _print_side_by_side(a: Any, b: Any, preset: str) -> None:
 @click.option("--render", type=click.Choice(["auto", "stored", "ahead", "live"]),
               default="auto", show_default=True,
               help="Where the frames come from: auto streams the render store's frames "
-                   "where tcf-hil render stored this run's (the bench then only paces and "
-                   "copies), else renders each frame a few frames ahead of its time; stored "
-                   "renders the whole track into the store first (with progress) and "
-                   "streams from it; ahead renders into the store in a process of its own "
-                   "while the run streams from it, after a lead computed from its rate; live "
-                   "always renders as it goes. The bytes are the same either way.")
+                   "where tcf-hil render (or an earlier run) stored this run's (the bench "
+                   "then only paces and copies), else renders ahead (below); stored renders "
+                   "the whole track into the store first (with progress) and streams from "
+                   "it; ahead renders into the store in a process of its own, below the "
+                   "program's priority, while the run streams from it, after a lead "
+                   "computed from its rate so that the track never waits for a frame (the "
+                   "next run of the scene streams from the store at once); live always "
+                   "renders as it goes, in the frame producer, a few frames ahead (for a "
+                   "scene that changes during a run). The bytes are the same either way.")
 @_recording_options
 @click.option("--truth", type=click.Path(dir_okay=False, exists=True, path_type=Path),
               default=None, help="With --replay: the ground truth to score against, a "

@@ -88,7 +88,8 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
              slots: int = MIN_SLOTS) -> None:
     """Producer process: writes each frame's datagrams into one of ``slots`` shared-memory
     slots and sends
-    only (slot, [(t_ns, port, length)], fault events, phase) down the pipe, then ("done",
+    only (slot, [(t_ns, port, length)], fault events, phase, the time it was handed over:
+    CLOCK_MONOTONIC, one clock for every process) down the pipe, then ("done",
     None) after the last. ``air``: an always-on sensor's plan and its standing machines
     (:meth:`~tcf_hil.devices.lidar.LidarRun.on_air`: frames before the track, the track,
     and after it until stopped; the pcap keeps those before and the track), else the
@@ -128,7 +129,7 @@ def produce(run: Any, conn: Any, free: Any, shm: Any, slot_bytes: int,
             meta = np.array([(d.t_ns, d.port, len(d.payload)) for d in dgs],
                             dtype=np.int64).reshape(-1, 3)
             conn.send(("frame", (slot, meta, run.last_events if phase == "track" else [],
-                                 phase)))
+                                 phase, time.perf_counter_ns())))
             if sink is not None:  # exactly what goes out, at its simulation time; the
                 # rest is sent, not kept (standing before the clock stepped onto the track's
                 # time line, and after the track)

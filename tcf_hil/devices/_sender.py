@@ -66,8 +66,11 @@ def send_frames(run: Any, ring: Any, ready: collections.deque[tuple[str, Any]],
     from the ring ahead, and a frame's bookkeeping (its slot handed back, its fault events
     and progress reported as it goes out) waits in a queue of short tasks; both run between
     packets when the next one is far enough off (:meth:`emulators.pacing.Pacer.wait`'s
-    ``idle``). A frame whose first packet is 1 ms overdue when the stream reaches it counts
-    in ``late_frames`` (the producer, not the pacing, made it late)."""
+    ``idle``). A frame the producer handed over 1 ms or more after its first packet was due
+    counts in ``late_frames`` (the producer, not the pacing, made it late). The hand-over
+    time, not the moment the stream reaches the frame: a sender held up before it (by the
+    hypervisor, say) reaches a frame long in hand late, and that is the pacing's lateness,
+    counted in the packets' histogram."""
     tasks: collections.deque[Callable[[], Any]] = collections.deque()
     staged: collections.deque[tuple[str, Any]] = collections.deque()  # frames with views
     last_poll = [0]
@@ -78,8 +81,8 @@ def send_frames(run: Any, ring: Any, ready: collections.deque[tuple[str, Any]],
 
     def stage(item: tuple[str, Any]) -> None:
         if item[0] == "frame":
-            slot, meta, events, phase = item[1]
-            item = ("frame", (ring.frame_stream(slot, meta), meta, events, phase))
+            slot, meta, events, phase, handed = item[1]
+            item = ("frame", (ring.frame_stream(slot, meta), meta, events, phase, handed))
         else:
             closed[0] = True
         staged.append(item)
@@ -117,9 +120,9 @@ def send_frames(run: Any, ring: Any, ready: collections.deque[tuple[str, Any]],
                 return
             if kind == "done":
                 break
-            dgs, meta, events, phase = body
+            dgs, meta, events, phase, handed = body
             if len(meta) and sender.speed > 0:
-                late = time.perf_counter_ns() - sender.pacer.due(int(meta[0, 0]))
+                late = handed - sender.pacer.due(int(meta[0, 0]))
                 if late >= _LATE_NS:
                     stats.add_late_frame(int(meta[0, 0]), late, phase)
             if phase == "track" and counts["track"] == 0:

@@ -151,10 +151,13 @@ class LiveTraffic:
         need = run.meta.frequency_hz * self.speed
         if run.stored is None and self.render == "stored":
             self._render_first(run)
-        elif run.stored is None and self.render == "ahead":
+        elif run.stored is None and self.render in ("ahead", "auto"):
             # rendered ahead into the store in a process of its own, below the SIC's
-            # priority, and read from there (on 2 cores beside the reference SIC this lost
-            # frames at the SIC's receiver: see the README; auto renders in the producer)
+            # priority, and read from there by a producer at the program's priority. auto
+            # did render in the producer (at nice 19, a few frames ahead): beside the field
+            # SIC and its stem worker on 2 cores that producer fell up to 0.7 s behind (Forest
+            # V 1024x10, 676 of 1000 frames late, steal 3.5 ms/s); rendered ahead, none late
+            # (2026-12-03; README "Real time")
             ahead = run.render_ahead()
             if ahead is not None:
                 self._lead(run, ahead)

@@ -1,0 +1,93 @@
+"""The live sender's count of frames late from the producer (``send_frames``): a frame
+counts when it reached the sender late, not when the sender, held up on the frame before,
+reached it late. Real packets over loopback; the ring is a stand-in producer whose frames
+come at set times."""
+
+from __future__ import annotations
+
+import collections
+import socket
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from emulators.lidar import Datagram, PacedSender
+from tcf_hil.devices._sender import send_frames
+
+PERIOD_NS = 20_000_000  # a frame every 20 ms of simulation time, 4 packets each
+
+
+class _Run:
+    def __init__(self, port: int, frames: int) -> None:
+        self.frames = frames
+        self.meta = type("Meta", (), {"udp_port_lidar": port})()
+
+
+class _Ring:
+    """Frames ``0..n-1`` (all track), each handed over (put in the pipe) at ``come(k)``
+    (perf_counter_ns), as the frame producer stamps them."""
+
+    def __init__(self, n: int, port: int, come: Any) -> None:
+        self.n, self.port, self.come, self.k = n, port, come, 0
+
+    def receive(self, timeout: float) -> tuple[str, Any] | None:
+        if self.k >= self.n:
+            return ("done", None)
+        wait = (self.come(self.k) - time.perf_counter_ns()) / 1e9
+        if wait > timeout:
+            time.sleep(timeout)
+            return None
+        if wait > 0:
+            time.sleep(wait)
+        k, self.k = self.k, self.k + 1
+        t = k * PERIOD_NS + np.arange(4) * (PERIOD_NS // 4)
+        meta = np.stack([t, np.full(4, self.port)], axis=1)
+        return ("frame", (k, meta, [], "track", self.come(k)))  # in the pipe since
+
+    def frame_stream(self, slot: int, meta: np.ndarray) -> list[Datagram]:
+        return [Datagram(int(t), int(p), b"x" * 32) for t, p in meta]
+
+    def sent(self) -> None:
+        pass
+
+
+def _send(come: Any, progress: Any, n: int = 6) -> PacedSender:
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    port = rx.getsockname()[1]
+    try:
+        sender = PacedSender(realtime=False)
+        err, _, handled, _ = send_frames(_Run(port, n), _Ring(n, port, come),
+                                         collections.deque(), sender, threading.Event(),
+                                         None, progress)
+        assert err is None and handled == n
+        return sender
+    finally:
+        rx.close()
+
+
+def test_a_frame_the_producer_hands_over_late_counts() -> None:
+    t0 = time.perf_counter_ns()
+    # frame 3 comes 60 ms after the stream began, 0 about 20 ms before it was due: 3 was due
+    # 60 ms after 0, so it comes about 20 ms late; the others are early
+    sender = _send(lambda k: t0 + (80_000_000 if k == 3 else 0), None)
+    assert sender.stats.late_frames == 1
+    (t_ns, late_us, phase), = sender.stats.late_frame_log
+    assert t_ns == 3 * PERIOD_NS and phase == "track" and late_us >= 1000
+
+
+def test_a_sender_held_up_does_not_blame_the_producer() -> None:
+    # every frame in the ring from the start; the bookkeeping after frame 1 holds the sender
+    # up for 60 ms (as a hypervisor that runs another guest would): frames 2 and 3, long in
+    # hand, go out late, and that is the packets' lateness, not the producer's
+    def progress(done: int, n: int) -> None:
+        if done == 2:
+            time.sleep(0.06)
+
+    t0 = time.perf_counter_ns()
+    sender = _send(lambda k: t0, progress)
+    assert sender.stats.late_frames == 0
+    hist = sender.stats.late_hist
+    assert sum(hist[1000:]) >= 1  # packets did leave 1 ms or more late
