@@ -161,7 +161,8 @@ class LiveTraffic:
             ahead = run.render_ahead()
             if ahead is not None:
                 self._lead(run, ahead)
-        rendered = "" if self.standing[1].from_store else (
+        # (rendering ahead said its own rate, the track's: the standing cycle's is not it)
+        rendered = "" if self.standing[1].from_store or run.ahead is not None else (
             f" (the scene renders at {rate / need:.1f}x real time here)")
         self.announce(f"frames: {self._source(run)}{rendered}")
         self.run = run
