@@ -137,7 +137,7 @@ def demo(out: Path | None, seed: int | None, preset: str, compare: bool) -> None
     printed side by side: what the bench is for. Writes ./runs/<UTC time stamp>/ (or --out):
     lidar.pcap, can.log, metadata.json, ground_truth.json, visibility.json, sic/,
     manifest.json, score.json, report.html, and the replay's run directory compare-paper/.
-    About five and a half minutes the first time (the first 40 s render the track ahead
+    About five minutes the first time (the first 20-odd seconds render the track ahead
     into the render store; a later demo of the same seed streams from it).
     """
     from tcf_hil.run import replay_run, run_bridge, sic_reference_command

@@ -613,6 +613,42 @@ class LidarRun:
                 continue
             yield self._compact(k, sf, sensor.meta.init_id, poses)
 
+    def render_head(self, enough: Callable[[int, float], bool], workers: int,
+                    upto: int | None = None) -> int:
+        """A head start for :meth:`render_ahead`: this run's first frames rendered into the
+        store by ``workers`` forked processes at once (:meth:`_render_parallel`), here and
+        now, while nothing else runs yet, until ``enough(frames stored, frames a second so
+        far)`` or ``upto`` (default: the run's) are stored; the renderer of
+        :meth:`render_ahead` resumes from there. Frames stored now (0: none to render here:
+        stored already, another process writes it, fault plans or noise in frame order, one
+        worker, or too few frames for two blocks)."""
+        key, doc = self.render_key, self.render_doc()
+        upto = self.frames if upto is None else upto
+        if (self.store is None or key is None or doc is None or workers < 2
+                or not self.parallel_render() or mp.current_process().daemon):
+            return 0
+        writer = self.store.writer(key, doc, self.track_frames, wait=False)
+        if writer is None:
+            return 0
+        start = writer.frames
+        if upto - start < 2 * RENDER_BLOCK:
+            writer.close()
+            return 0
+        t0 = time.monotonic()
+        try:
+            blocks = self._render_parallel(start, workers, end=upto)
+            with contextlib.closing(blocks):  # (its workers stop at once)
+                for k, packed in blocks:
+                    writer.append_packed(k, packed)
+                    d = k + 1 - start
+                    if enough(k + 1, d / max(time.monotonic() - t0, 1e-9)):
+                        break
+            if writer.frames >= self.track_frames:
+                writer.complete()
+            return writer.frames - start
+        finally:
+            writer.close()
+
     def render_ahead(self, upto: int | None = None) -> RenderAhead | None:
         """Render this run's frames up to ``upto`` (default: the run's) into the store in a
         process of its own (:class:`RenderAhead`), from where a render cut short stopped,

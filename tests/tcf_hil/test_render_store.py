@@ -166,6 +166,43 @@ def test_a_render_by_two_workers_is_the_render_in_order(tmp_path: Path) -> None:
     assert again.stored is not None and again.stored.complete
 
 
+def test_a_head_start_by_two_workers_then_one_renderer_is_the_render_in_order(
+        tmp_path: Path) -> None:
+    """A live run with nothing stored renders its first frames with every core before the
+    program starts (``render_head``, until ``enough``), then one renderer of its own carries
+    on from there (``render_ahead``): the store holds the one-process render's bytes."""
+    scn = _blocks()
+    one, two = RenderStore(tmp_path / "one"), RenderStore(tmp_path / "two")
+    a = LidarRun(scn, mode="512x10", store=one, render="stored")
+    a.render_into_store(workers=1)
+    b = LidarRun(scn, mode="512x10", store=two, render="auto")
+    assert b.stored is None and b.frames == a.track_frames >= 20
+    asked: list[tuple[int, float]] = []
+
+    def enough(d: int, rate: float) -> bool:
+        asked.append((d, rate))
+        return d >= 12
+
+    assert b.render_head(enough, workers=2) == 12  # (mid block: the workers stop at once)
+    assert [d for d, _ in asked] == list(range(1, 13)) and all(r > 0 for _, r in asked)
+    assert not two.entries()[0]["complete"] and two.entries()[0]["frames"] == 12
+    ahead = b.render_ahead()
+    assert ahead is not None
+    ahead.process.join(120)
+    assert ahead.state.value == 1 and int(ahead.done.value) == a.track_frames
+    key = a.render_key
+    assert key is not None and key == b.render_key
+    for name in ("frames.bin", "frames.idx"):
+        assert (one.path(key) / name).read_bytes() == (two.path(key) / name).read_bytes()
+    assert b.stored is not None
+    b.stored.close()
+    # nothing to start where the render is complete, or with one worker
+    c = LidarRun(scn, mode="512x10", store=two, render="auto")
+    assert c.render_head(enough, workers=2) == 0
+    d = LidarRun(scn, mode="512x10", store=RenderStore(tmp_path / "three"), render="auto")
+    assert d.render_head(enough, workers=1) == 0
+
+
 def test_a_pcap_by_two_renderers_is_the_pcap_in_order(tmp_path: Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """``tcf-hil lidar pcap``'s default on a machine of several CPUs: blocks of frames made
