@@ -41,6 +41,9 @@ if TYPE_CHECKING:
 RUN_T0_NS = 60_000_000_000
 # the fault events that strike a frame out, wholly or in part (emulators.faults)
 LOSSES = frozenset({"udp_loss", "udp_burst_loss", "lidar_dropout"})
+# a render ahead's head start (every core, before the program starts) goes on to the track's
+# last frame where the rest takes at most this long (or as long as the head start so far)
+HEAD_ALL_S = 30.0
 
 
 class _LateClock:
@@ -85,7 +88,8 @@ class LiveTraffic:
                  backend: str = "auto", record_lidar: bool = True,
                  progress: Any = None, announce: Announce = quiet,
                  render: str = "auto", standing_s: float = 30.0,
-                 standing_after_s: float | None = None) -> None:
+                 standing_after_s: float | None = None,
+                 halt: threading.Event | None = None) -> None:
         if lead_s * speed * 1e9 >= RUN_T0_NS:
             raise ValueError(f"lead {lead_s} s at speed {speed} reaches before simulation "
                              "time 0")
@@ -102,6 +106,9 @@ class LiveTraffic:
         self.air: Any = None
         self.standing_before = 0  # frames the machine stood before the track
         self.progress, self.announce = progress, announce
+        # the run's stop (a first Ctrl-C): ends a render ahead's head start or lead at once
+        # (the frames stored so far stay: a later run resumes the render)
+        self.halt = halt if halt is not None else threading.Event()
         self.node_id = scn.harvester.node_id
         self.late = _LateClock(speed)  # set once the SIC listens (the sender waits for it)
         self.end_stream = threading.Event()
@@ -159,7 +166,7 @@ class LiveTraffic:
             # V 1024x10, 676 of 1000 frames late, steal 3.5 ms/s); rendered ahead, none late
             # (2026-12-03; README "Real time")
             self._head_start(run)
-            ahead = run.render_ahead()
+            ahead = run.render_ahead() if not self.halt.is_set() else None
             if ahead is not None:
                 self._lead(run, ahead)
         # (rendering ahead said its own rate, the track's: the standing cycle's is not it)
@@ -183,8 +190,10 @@ class LiveTraffic:
         """Before the SIC starts the machine is the bench's: the first frames rendered with
         every core this process may use (:meth:`LidarRun.render_head`), until the one
         renderer that carries on beside the program (:meth:`_lead`: the same sum, one
-        process's rate taken as the workers' over their number) is far enough behind them;
-        on 2 cores about half the lead one renderer alone would take."""
+        process's rate taken as the workers' over their number) is far enough behind them,
+        and on to the last frame where the rest takes no longer than the head start has, or
+        :data:`HEAD_ALL_S` (so that on a small machine nothing renders beside the program at
+        all)."""
         workers = len(os.sched_getaffinity(0))
         n, need = run.frames, run.meta.frequency_hz * self.speed
         f = self._share()
@@ -193,16 +202,28 @@ class LiveTraffic:
         def enough(d: int, rate: float) -> bool:
             want = n - f * (rate / workers) * (n / need + self.lead_s)
             now = time.monotonic()
-            if d >= want or d >= n:
+            if self.halt.is_set():
+                return True
+            if d >= n:
+                self.announce(f"rendering ahead with {workers} processes: all {n} frames "
+                              f"stored ({rate / need:.2f}x real time) in {now - t0:.0f} s")
+                return True
+            # far enough ahead; but where the rest takes no longer than the head start
+            # so far, or HEAD_ALL_S, it is made too: then nothing renders beside the program
+            # at all (on 2 cores the one renderer carrying on beside the reference SIC at
+            # Forest II 1024x10, speed 2, with the host withholding 0.2 s a second, left the
+            # SIC dropping 248 of 500 frames, then 41 with 3 s of frames left to render)
+            if d >= want and (n - d) / rate > max(now - t0, HEAD_ALL_S):
                 self.announce(f"rendering ahead with {workers} processes: {d}/{n} frames "
                               f"stored ({rate / need:.2f}x real time) in "
                               f"{now - t0:.0f} s; one renderer carries on")
                 return True
             if now - said[0] >= 5.0:
                 said[0] = now
+                eta = ((n - d) if d >= want else (want - d)) / rate
                 self.announce(f"rendering ahead with {workers} processes: {d}/{n} frames "
                               f"stored ({rate / need:.2f}x real time); the track can start "
-                              f"in about {(want - d) / rate:.0f} s")
+                              f"in about {eta:.0f} s")
             return False
 
         run.render_head(enough, workers)  # (all of it stored: render_ahead opens it)
@@ -224,7 +245,7 @@ class LiveTraffic:
         said = t0
         while True:
             d, now = int(ahead.done.value), time.monotonic()
-            if d >= n or not ahead.running():
+            if d >= n or not ahead.running() or self.halt.is_set():
                 return
             el = now - t0
             if el >= 1.0 and d > d0:

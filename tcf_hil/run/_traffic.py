@@ -46,7 +46,7 @@ def run_bridge(scn: Scenario, sic: str, out: Path, *, mode: str = "2048x10",
                            lead_s=lead_s, duration_s=duration_s, backend=backend,
                            record_lidar=record_lidar, progress=progress, announce=announce,
                            render=render, standing_s=ready_s + lead_s + 2.0,
-                           standing_after_s=grace_s + 10.0)
+                           standing_after_s=grace_s + 10.0, halt=stop)
     return RunSession(traffic, sic, out, shell=shell, can=can, sensor_ip=sensor_ip,
                       grace_s=grace_s, ready_s=ready_s, stop=stop, announce=announce,
                       eval_cfg=eval_cfg, on_start=on_start, watch=watch).run()
