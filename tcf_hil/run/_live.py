@@ -180,11 +180,14 @@ class LiveTraffic:
         write_bytes_atomic(out / "metadata.json", run.meta.dumps().encode())
         return run.meta, out / "metadata.json"
 
-    def _share(self) -> float:
-        """The share of its rate alone that one renderer keeps beside the program under
-        test (:meth:`_lead`)."""
+    def _want(self, run: Any, rate: float) -> float:
+        """The frames that must be stored before the track may start, one renderer making
+        ``rate`` frames a second alone (:meth:`_lead`'s sum: it keeps a share f of that
+        beside the program under test)."""
         cores = os.cpu_count() or 1
-        return 0.85 * 0.5 * max(0.5, (cores - 1) / cores)
+        f = 0.85 * 0.5 * max(0.5, (cores - 1) / cores)
+        n, need = run.frames, run.meta.frequency_hz * self.speed
+        return n - f * rate * (n / need + self.lead_s)
 
     def _head_start(self, run: Any) -> None:
         """Before the SIC starts the machine is the bench's: the first frames rendered with
@@ -196,11 +199,10 @@ class LiveTraffic:
         all)."""
         workers = len(os.sched_getaffinity(0))
         n, need = run.frames, run.meta.frequency_hz * self.speed
-        f = self._share()
         t0, said = time.monotonic(), [time.monotonic()]
 
         def enough(d: int, rate: float) -> bool:
-            want = n - f * (rate / workers) * (n / need + self.lead_s)
+            want = self._want(run, rate / workers)
             now = time.monotonic()
             if self.halt.is_set():
                 return True
@@ -239,7 +241,6 @@ class LiveTraffic:
         with the reference SIC and its stem worker at Forest II 1024x10 and speed 2, the
         track still waited for frames with the factor at 0.43; it is 0.21 here). Says how
         far it is every few seconds."""
-        f = self._share()
         n, need = run.frames, run.meta.frequency_hz * self.speed
         t0, d0 = time.monotonic(), int(ahead.done.value)
         said = t0
@@ -250,7 +251,7 @@ class LiveTraffic:
             el = now - t0
             if el >= 1.0 and d > d0:
                 rate = (d - d0) / el
-                want = n - f * rate * (n / need + self.lead_s)
+                want = self._want(run, rate)
                 if d >= want:
                     self.announce(f"rendering ahead: {d}/{n} frames stored "
                                   f"({rate / need:.2f}x real time); the track can start")
