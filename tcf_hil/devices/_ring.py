@@ -55,10 +55,13 @@ RING_MAX_BYTES = 256 << 20  # the ring's shared memory at most (4096x5: 5 slots 
 PRIME = 3  # frames in hand before the first packet (the rest fill while the sensor stands)
 
 
-def ring_slots(run: Any) -> int:
-    """Frames produced ahead of the pacing loop for ``run``: :data:`RING_AHEAD_S` of its
-    frames, at least :data:`MIN_SLOTS`, within :data:`RING_MAX_BYTES`."""
-    want = math.ceil(RING_AHEAD_S * run.meta.frequency_hz)
+def ring_slots(run: Any, speed: float = 1.0) -> int:
+    """Frames produced ahead of the pacing loop for ``run`` sent at ``speed``:
+    :data:`RING_AHEAD_S` of wall time's frames (at ``--speed 2`` twice the frames; a stall
+    of the producer is wall time, whatever the speed; ``speed`` 0, as fast as possible: a
+    second of the sensor's frames), at least :data:`MIN_SLOTS`, within
+    :data:`RING_MAX_BYTES`."""
+    want = math.ceil(RING_AHEAD_S * run.meta.frequency_hz * max(1.0, speed))
     return max(MIN_SLOTS, min(want, RING_MAX_BYTES // slot_bytes(run)))
 
 
@@ -251,14 +254,14 @@ class FrameRing:
     and hands the slot back (:meth:`sent`). With ``rec``, the producer writes the pcap of
     exactly the frames sent."""
 
-    def __init__(self, run: Any, rec: PcapTarget | None, air: tuple[Any, ...] | None = None
-                 ) -> None:
+    def __init__(self, run: Any, rec: PcapTarget | None, air: tuple[Any, ...] | None = None,
+                 speed: float = 1.0) -> None:
         from multiprocessing.shared_memory import SharedMemory
 
         ctx = mp.get_context("fork")
         self.run = run
         self.slot_bytes = slot_bytes(run)
-        self.slots = ring_slots(run)
+        self.slots = ring_slots(run, speed)
         self.shm = SharedMemory(create=True, size=self.slot_bytes * self.slots)
         self._rx, tx = ctx.Pipe(duplex=False)
         self._free = ctx.Semaphore(self.slots)

@@ -1069,7 +1069,7 @@ def stream_lidar(scn: Scenario, *, sensor_ip: str = "127.0.0.1", dest: str = "12
     with contextlib.ExitStack() as outputs:  # the pcap renamed into place only if all
         try:
             rec = _pcap_target(out, pcap, pcap_in_place, outputs, sensor_ip, dest)  # succeeds
-            ring = FrameRing(run, rec, air)
+            ring = FrameRing(run, rec, air, speed)
             # the pacing loop in a process of its own (tcf_hil.devices._sender): it does not
             # share an interpreter lock with the run's CAN node, HTTP API and recorder
             sender = SenderProcess(run, ring, sensor_ip, dest, speed=speed, realtime=realtime,

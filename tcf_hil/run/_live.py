@@ -12,6 +12,7 @@ machine stands where it stopped until the run ends (those frames are sent, not r
 
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing as mp
 import os
@@ -44,6 +45,10 @@ LOSSES = frozenset({"udp_loss", "udp_burst_loss", "lidar_dropout"})
 # a render ahead's head start (every core, before the program starts) goes on to the track's
 # last frame where the rest takes at most this long (or as long as the head start so far)
 HEAD_ALL_S = 30.0
+
+
+class _HaltedError(Exception):
+    """A first Ctrl-C while the whole track renders into the store (``--render stored``)."""
 
 
 class _LateClock:
@@ -172,7 +177,11 @@ class LiveTraffic:
         # (rendering ahead said its own rate, the track's: the standing cycle's is not it)
         rendered = "" if self.standing[1].from_store or run.stored is not None else (
             f" (the scene renders at {rate / need:.1f}x real time here)")
-        self.announce(f"frames: {self._source(run)}{rendered}")
+        if self.halt.is_set() and run.stored is None:  # stopped while rendering
+            self.announce("rendering stopped: the frames stored stay (the next run of this "
+                          "scene resumes from them)")
+        else:
+            self.announce(f"frames: {self._source(run)}{rendered}")
         self.run = run
         self.can_faults = world.faults.can if world.faults is not None else None
         if world.faults is not None:
@@ -272,13 +281,16 @@ class LiveTraffic:
         step = max(1, total // 10)
 
         def say(done: int, n: int) -> None:
+            if self.halt.is_set():  # a first Ctrl-C: what is stored stays (resumed later)
+                raise _HaltedError
             if done % step == 0 or done == n:
                 wall = time.perf_counter() - t0
                 rate = done / run.meta.frequency_hz / wall if wall else 0.0
                 self.announce(f"rendering into the store: {done}/{n} frames "
                               f"({rate:.2f}x real time)")
 
-        run.render_into_store(progress=say, workers=len(os.sched_getaffinity(0)))
+        with contextlib.suppress(_HaltedError):
+            run.render_into_store(progress=say, workers=len(os.sched_getaffinity(0)))
 
     @staticmethod
     def _source(run: Any) -> str:
@@ -389,7 +401,8 @@ class LiveTraffic:
         period, t0 = run.period_ns, run.track.t0_ns
         most = (t0 - air.power_on_ns) // period
         now = max(0, math.ceil((clock.now_ns() - air.power_on_ns) / period))
-        step = now + ring_slots(run) + 2  # (the producer is at most the ring ahead of the clock)
+        # (the producer is at most the ring ahead of the clock)
+        step = now + ring_slots(run, speed) + 2
         at = step + math.ceil(self.lead_s * speed * 1e9 / period)
         if at < most:
             clock.step(clock.origin_monotonic_ns + round(step * period / speed),

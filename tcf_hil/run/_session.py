@@ -323,6 +323,11 @@ class RunSession:
             st.server = PublishServer(st.inbox).start()
         st.live = _Live(None, self.traffic, st.inbox, self.out)  # (no one watching: nothing)
         redirect = follow_redirects(st.route, st.redirects, self.t_mono0, self.announce)
+        if self.stop.is_set():  # stopped while the traffic was bound (a render before the
+            # track, say): no bus, no sensor, and no program started only to be stopped
+            st.status, st.message = RunStatus.INTERRUPTED, "stopped by the user"
+            self._close(st)
+            return self._result(st, manifest)
         try:
             with open_bus(self.can, announce=self.announce) as spec, \
                     contextlib.ExitStack() as apis:
@@ -344,6 +349,9 @@ class RunSession:
                 raise
         finally:
             self._close(st)
+        return self._result(st, manifest)
+
+    def _result(self, st: _RunState, manifest: Manifest) -> RunResult:
         if st.inbox is None:
             return RunResult(self.out, st.status, st.message, None, manifest, None, 0, 0)
         assert self.out is not None
@@ -483,7 +491,9 @@ class RunSession:
         elif status == RunStatus.COMPLETE and rc not in (0, None):
             status = RunStatus.SIC_FAILED
             message = f"the SIC exited with code {rc} (see {out / 'sic' / 'stderr.log'})"
-        if not inbox.valid:
+        if proc is None and status == RunStatus.INTERRUPTED:
+            message += " before the SIC started"
+        elif not inbox.valid:
             message = (message + "; " if message else "") + (
                 f"no valid forest published ({len(inbox.invalid)} invalid, "
                 f"{inbox.non_json_lines} non-JSON stdout lines; see {out / 'sic'})")

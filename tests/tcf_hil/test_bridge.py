@@ -499,3 +499,37 @@ def test_a_sic_that_cannot_start_is_a_sic_failure_not_a_crash(tmp_path: Path) ->
     man = json.loads((out / "manifest.json").read_text())
     assert man["status"] == "sic-failed"
     assert json.loads((out / "score.json").read_text())["status"] == "sic-failed"
+
+
+def test_a_first_ctrl_c_while_the_track_renders_ends_the_run_before_the_sic(tmp_path: Path
+                                                                            ) -> None:
+    """`--render stored` renders the whole track before the sensor exists: a first Ctrl-C
+    then ends the render at once (the frames stored stay, for the next run to resume), and
+    the program under test is never started only to be stopped; the run is interrupted."""
+    from tcf_hil.recording.store import RenderStore
+
+    marker = tmp_path / "started"
+    out, cache = tmp_path / "run", tmp_path / "cache"
+    env = dict(ENV, TCF_HIL_CACHE=str(cache))
+    proc = subprocess.Popen(
+        [*TCF, "run", "forest-ii", "--mode", "512x10", "--render", "stored", "--out", str(out),
+         "--sic", f"{{python}} -c \"open({str(marker)!r}, 'w')\""],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    assert proc.stdout is not None
+    said: list[str] = []
+    for line in proc.stdout:  # until the render is under way
+        said.append(line)
+        if "rendering into the store:" in line:
+            break
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    rest, _ = proc.communicate(timeout=120)
+    text = "".join(said) + rest
+    assert time.monotonic() - t0 < 30, text  # not the whole render (nor a second Ctrl-C)
+    assert proc.returncode == 130, text
+    assert not marker.exists(), text  # the SIC was never started
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["status"] == "interrupted", man
+    assert "Traceback" not in text, text
+    (entry,) = RenderStore(cache).entries()
+    assert 0 < entry["frames"] < entry["frames_total"] and not entry["complete"], entry

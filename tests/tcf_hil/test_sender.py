@@ -91,3 +91,17 @@ def test_a_sender_held_up_does_not_blame_the_producer() -> None:
     assert sender.stats.late_frames == 0
     hist = sender.stats.late_hist
     assert sum(hist[1000:]) >= 1  # packets did leave 1 ms or more late
+
+
+def test_the_ring_holds_a_second_of_wall_time_at_any_speed() -> None:
+    """A stall of the frame producer is wall time: at ``--speed 2`` the ring holds twice the
+    frames (a second of them at 1x was half a second at 2x); never less than a second of the
+    sensor's frames (slower speeds, 0: as fast as possible); within its memory cap."""
+    from tcf_hil.devices._ring import RING_MAX_BYTES, ring_slots, slot_bytes
+    from tcf_hil.devices.lidar import LidarRun
+    from tcf_hil.scenario import load_scenario
+
+    run = LidarRun(load_scenario("forest-ii"), mode="512x10")
+    assert [ring_slots(run, s) for s in (1.0, 2.0, 0.5, 0.0, 2.5)] == [10, 20, 10, 10, 25]
+    big = LidarRun(load_scenario("forest-ii"), mode="2048x10")
+    assert ring_slots(big, 20.0) * slot_bytes(big) <= RING_MAX_BYTES < 200 * slot_bytes(big)
