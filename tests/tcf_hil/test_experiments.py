@@ -125,6 +125,7 @@ def test_local_workers_share_the_cpus_and_the_costliest_cells_go_first(
     assert cost("forest-v", SAMPLED) < cost("forest-v", "512x10")
 
 
+@pytest.mark.slow  # the second lane (.ci/run): out of the fast lane's ten minutes
 def test_a_failing_sic_fails_its_cell_only_and_a_rerun_retries_it(tmp_path: Path) -> None:
     """On a running scheduler by its address (dask://HOST:PORT), as on a real cluster."""
     from dask.distributed import LocalCluster
@@ -245,6 +246,7 @@ def test_every_results_column_is_documented_in_the_readme() -> None:
     assert documented == list(COLUMN_NAMES)
 
 
+@pytest.mark.slow  # the second lane (.ci/run): out of the fast lane's ten minutes
 def test_cli_paper_writes_tables_figures_and_refuses_bad_forests(tmp_path: Path) -> None:
     """In a terminal: the running cell's frames and simulation time, then its score."""
     rc, screen = run_in_terminal([*TCF, "experiment", "paper", "--forests", "I", "--modes",
@@ -286,6 +288,7 @@ def test_bench_quick(tmp_path: Path) -> None:
     assert (tmp_path / "pareto.png").read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.slow  # the second lane (.ci/run): out of the fast lane's ten minutes
 def test_bench_footprint_axis(tmp_path: Path) -> None:
     """off / adaptive / full x samples per FWHM: supersampled pixels, the returns' error against the
     exact surfaces and the DBH bias, beside an ideal sensor's."""

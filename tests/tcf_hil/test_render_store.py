@@ -231,6 +231,7 @@ def test_a_pcap_by_two_renderers_is_the_pcap_in_order(tmp_path: Path,
         (two.frames, two.packets, two.returns, two.stems_seen)
 
 
+@pytest.mark.slow  # the second lane (.ci/run): out of the fast lane's ten minutes
 def test_a_render_by_dask_workers_is_the_render_in_order(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
