@@ -101,6 +101,18 @@ def test_a_window_of_the_stream_reports_the_steal_over_it() -> None:
     assert s.close_window() is None  # closed: nothing more counted in it
 
 
+def test_a_window_made_ready_ahead_counts_only_from_its_opening() -> None:
+    s = SendStats()
+    s.ready_window()  # (ahead: a window opens between two packets 49 us apart)
+    s.add_late(7_000)  # before the window opens: not in it
+    assert s.window_hist is None
+    s.open_window()
+    s.add_late(3_000)
+    w = s.close_window()
+    assert w is not None and w.late_n == 1 and w.late_over_us(3) == 1
+    assert w.late_over_us(7) == 0 and s.late_n == 2
+
+
 def test_the_bare_pacers_floor_is_one_error_per_wake_up() -> None:
     t0 = time.perf_counter()
     errs = wake_floor(2_000_000, 0.1, realtime=False)  # every 2 ms for 0.1 s

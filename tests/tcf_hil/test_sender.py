@@ -105,3 +105,43 @@ def test_the_ring_holds_a_second_of_wall_time_at_any_speed() -> None:
     assert [ring_slots(run, s) for s in (1.0, 2.0, 0.5, 0.0, 2.5)] == [10, 20, 10, 10, 25]
     big = LidarRun(load_scenario("forest-ii"), mode="2048x10")
     assert ring_slots(big, 20.0) * slot_bytes(big) <= RING_MAX_BYTES < 200 * slot_bytes(big)
+
+
+def test_the_next_frame_is_made_ready_before_the_last_packet_and_a_slot_goes_back_after_it(
+        ) -> None:
+    """Between a frame's last packet and the next frame's first there are 49 us at 2048x10:
+    the next frame is taken and its first datagram made before the current frame's last
+    packet leaves (it was after, and on a loaded machine that packet left 100-300 us late
+    every frame); a frame's slot goes back to the producer only after its last packet left."""
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    port = rx.getsockname()[1]
+    t0 = time.perf_counter_ns()
+    made: list[tuple[int, int, int]] = []  # (frame, datagram, packets sent then)
+    slots_back: list[int] = []  # packets sent when each slot went back
+    sender = PacedSender(realtime=False)
+
+    class Ring(_Ring):
+        def frame_stream(self, slot: int, meta: np.ndarray) -> Any:
+            def views() -> Any:
+                for i, (t, p) in enumerate(meta):
+                    made.append((slot, i, sender.stats.sent))
+                    yield Datagram(int(t), int(p), b"x" * 32)
+            return views()
+
+        def sent(self) -> None:
+            slots_back.append(sender.stats.sent)
+
+    try:
+        err, _, handled, _ = send_frames(_Run(port, 5), Ring(5, port, lambda k: t0),
+                                         collections.deque(), sender, threading.Event(),
+                                         None, None)
+    finally:
+        rx.close()
+        sender.close()
+    assert err is None and handled == 5 and sender.stats.sent == 20
+    firsts = {k: sent for k, i, sent in made if i == 0}
+    for k in range(1, 5):  # frame k's first datagram made before frame k-1's last (4k-1) left
+        assert firsts[k] <= 4 * k - 1, (k, firsts[k])
+    assert slots_back == sorted(slots_back) and len(slots_back) == 5
+    assert all(back >= 4 * (k + 1) for k, back in enumerate(slots_back)), slots_back
