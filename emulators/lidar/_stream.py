@@ -72,6 +72,7 @@ class SendStats:
     _window_t0: tuple[float | None, float] | None = field(default=None, repr=False)
     _window_ready: tuple[list[int], tuple[float | None, float]] | None = field(
         default=None, repr=False)
+    _window_ended: list[int] | None = field(default=None, repr=False)
 
     def add_late(self, ns: int) -> None:
         b = min(abs(ns) // 1000, _HIST_US)
@@ -94,10 +95,20 @@ class SendStats:
             assert self._window_ready is not None
             (self.window_hist, self._window_t0), self._window_ready = self._window_ready, None
 
+    def end_window(self) -> None:
+        """No more packets counted in the window, at once (between two packets);
+        :meth:`close_window` reports it later (a sum of 100,001 counts and a reading of
+        ``/proc/stat``)."""
+        if self.window_hist is not None:
+            self._window_ended, self.window_hist = self.window_hist, None
+
     def close_window(self) -> SendStats | None:
         """The window's packets (its own :class:`SendStats`, with the hypervisor's steal
-        over it; None if none was opened); no more are counted in it."""
+        over it, until now; None if none was opened); no more are counted in it."""
         hist, self.window_hist = self.window_hist, None
+        if hist is None:
+            hist, self._window_ended = self._window_ended, None
+        self._window_ready = None
         if hist is None:
             return None
         out = SendStats(late_hist=hist, late_n=sum(hist))

@@ -113,23 +113,21 @@ def send_frames(run: Any, ring: Any, ready: collections.deque[tuple[str, Any]],
             return item
         dgs, meta, events, phase, handed = item[1]
         dgs, n = iter(dgs), len(meta)
+        late = None  # (counted when the frame goes out: a stop may keep it back)
         if n and sender.speed > 0:
-            late = handed - sender.pacer.due(int(meta[0, 0]))
-            if late >= _LATE_NS:
-                stats.add_late_frame(int(meta[0, 0]), late, phase)
-        reports = []
-        for ev in events:
-            if ev["kind"] == "lidar_reinit":  # the sidecars: the new identity
-                run.meta = run.meta.with_changes(init_id=ev["init_id"])
-            if on_fault is not None:
-                reports.append(functools.partial(on_fault, ev))
+            late_ns = handed - sender.pacer.due(int(meta[0, 0]))
+            if late_ns >= _LATE_NS:
+                late = (int(meta[0, 0]), late_ns, phase)
+        reports = [functools.partial(on_fault, ev) for ev in events] \
+            if on_fault is not None else []
+        reinit = [ev["init_id"] for ev in events if ev["kind"] == "lidar_reinit"]
         on_wire = bool(n) and bool((meta[:, 1] == run.meta.udp_port_lidar).any())
         if phase == "track" and not opened[0]:
             stats.ready_window()
         # the frame's datagram maker (and with it its list of 138 packets) is let go in
         # gone(), between packets: freed where the stream moves to the next frame, it made
         # that frame's first packet tens of microseconds late
-        return "frame", (dgs, next(dgs) if n else None, n, phase, reports,
+        return "frame", (dgs, next(dgs) if n else None, n, phase, (late, reports, reinit),
                          functools.partial(gone, phase == "track", on_wire, [dgs]))
 
     def gone(track: bool, on_wire: bool, maker: list[Any]) -> None:
@@ -142,17 +140,23 @@ def send_frames(run: Any, ring: Any, ready: collections.deque[tuple[str, Any]],
             if progress:
                 progress(counts["track"], run.frames)
 
+    def close_window() -> None:
+        out["window"] = stats.close_window()
+
     def take(block: bool) -> tuple[str, Any] | None:
         """The next frame (or the producer's end) made ready; None: stopped, or (``block``
         False) no frame in hand."""
         while not stop.is_set():
             if staged:
                 return prepare(staged.popleft())
+            if ready:  # (primed before the stream started)
+                stage(ready.popleft())
+                continue
             if not block:
                 return None
             while tasks:  # nothing in hand: the bookkeeping, then wait for a frame
                 tasks.popleft()()
-            item = ready.popleft() if ready else ring.receive(1.0)
+            item = ring.receive(1.0)
             if item is not None:
                 stage(item)
         return None
@@ -174,16 +178,22 @@ def send_frames(run: Any, ring: Any, ready: collections.deque[tuple[str, Any]],
                 return
             if kind == "done":
                 break
-            dgs, first, n, phase, reports, done = body
+            dgs, first, n, phase, (late, reports, reinit), done = body
             if phase == "track" and not opened[0]:
                 opened[0] = True
                 stats.open_window()
             if phase == "after" and not ended:
                 ended = True
-                out["window"] = stats.close_window()
+                stats.end_window()
+                tasks.append(close_window)
                 if on_track_end is not None:
                     tasks.append(on_track_end)
-            tasks.extend(reports)  # reported as the frame they struck goes out
+            if late is not None:
+                stats.add_late_frame(*late)
+            if reports:
+                tasks.extend(reports)  # reported as the frame they struck goes out
+            for init_id in reinit:  # the sidecars: the new identity
+                run.meta = run.meta.with_changes(init_id=init_id)
             nxt = None
             if n:
                 if n > 1:

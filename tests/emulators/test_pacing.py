@@ -113,6 +113,17 @@ def test_a_window_made_ready_ahead_counts_only_from_its_opening() -> None:
     assert w.late_over_us(7) == 0 and s.late_n == 2
 
 
+def test_a_window_ended_between_packets_is_reported_later() -> None:
+    s = SendStats()
+    s.open_window()
+    s.add_late(2_000)
+    s.end_window()  # (between two packets: nothing but a swap)
+    s.add_late(9_000)  # after the window: not in it
+    w = s.close_window()
+    assert w is not None and w.late_n == 1 and w.late_over_us(2) == 1
+    assert w.late_over_us(9) == 0 and s.close_window() is None
+
+
 def test_the_bare_pacers_floor_is_one_error_per_wake_up() -> None:
     t0 = time.perf_counter()
     errs = wake_floor(2_000_000, 0.1, realtime=False)  # every 2 ms for 0.1 s

@@ -132,10 +132,11 @@ def test_the_next_frame_is_made_ready_before_the_last_packet_and_a_slot_goes_bac
         def sent(self) -> None:
             slots_back.append(sender.stats.sent)
 
+    ring = Ring(5, port, lambda k: t0)
+    ready = collections.deque(ring.receive(0) for _ in range(6))  # primed: 5 frames, done
     try:
-        err, _, handled, _ = send_frames(_Run(port, 5), Ring(5, port, lambda k: t0),
-                                         collections.deque(), sender, threading.Event(),
-                                         None, None)
+        err, _, handled, _ = send_frames(_Run(port, 5), ring, ready, sender,
+                                         threading.Event(), None, None)
     finally:
         rx.close()
         sender.close()
