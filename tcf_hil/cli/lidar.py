@@ -199,3 +199,71 @@ def _stream(scn: Any, stop: Any, sensor_address: str, http_port: int | None,
                          record=record, stop=stop, mode=mode, profile=profile, seed=seed,
                          max_frames=frames, udp_port_lidar=lidar_port,
                          udp_port_imu=imu_port))
+
+
+@lidar.command("timing")
+@mode_option("2048x10", help="The mode whose packet interval the pacer keeps (2048x10: "
+                             "781 us).")
+@click.option("--seconds", type=click.FloatRange(min=0.5, max=3600), default=10.0,
+              show_default=True, help="How long the pacer wakes.")
+@click.option("--json", "as_json", is_flag=True, help="One JSON object instead of the table.")
+def lidar_timing(mode: str, seconds: float, as_json: bool) -> None:
+    """What this machine lets the live sender do: a bare pacer's wake-ups.
+
+    \b
+    The live sender's own wait (SCHED_FIFO where permitted) wakes at the mode's packet
+    interval for --seconds, sending nothing; the table gives how late its wake-ups came
+    (p50, p99, the most, how many 1 ms or more) and what decides them: the hypervisor's
+    steal meanwhile, the kernel's preemption model, the CPU idle driver. No sender is more
+    punctual than its own wake-ups: where this shows wake-ups 1 ms late, a run's packets
+    1 ms late are the machine's, not the bench's. Run it on a quiet machine, and beside a
+    run (from a second terminal) to see what the run's load does to it.
+
+    \b
+    Exit status 0 when the floor meets the sender's aims (no wake-up 1 ms late, p99 within
+    100 us), 3 when it does not.
+    """
+    import json
+
+    from rich.table import Table
+
+    from tcf_hil.cli._shared import ExitStatus, finish
+    from tcf_hil.devices.timing import P99_AIM_US, machine_timing
+
+    err_console.print(f"a bare pacer at {mode}'s packet interval for {seconds:g} s ...")
+    t = machine_timing(mode, seconds)
+    if as_json:
+        click.echo(json.dumps(t.to_dict()))
+    else:
+        tab = Table(title=f"wake-ups every {t.interval_us:.0f} us ({mode}), {t.wakes} in "
+                          f"{t.seconds:g} s", show_header=False)
+        tab.add_column("")
+        tab.add_column("", justify="right")
+        steal = "not known" if t.steal_ms_per_s is None else f"{t.steal_ms_per_s:.1f} ms/s"
+        rows = [("late p50 / p99", f"{t.p50_us} / {t.p99_us} us"),
+                ("late at most", f"{t.max_us:,} us"),
+                ("1 ms or more late", f"{t.late_1ms} ({t.late_per_10k:.1f} per 10k)"),
+                ("scheduling", "SCHED_FIFO" if t.realtime
+                 else "ordinary (SCHED_FIFO not permitted)"),
+                ("hypervisor's steal", steal if t.hypervisor else f"{steal} (no hypervisor)"),
+                ("kernel", f"{t.kernel}, {t.preemption}" + (
+                    f" (preempt={t.preemption_now})" if t.preemption_now else "")),
+                ("CPU idle driver", t.cpuidle_driver or "none"),
+                ("CPUs", str(t.cpus))]
+        for k, v in rows:
+            tab.add_row(k, v)
+        console.print(tab)
+        if t.meets_aims:
+            console.print("meets the sender's aims: no wake-up 1 ms late, p99 within "
+                          f"{P99_AIM_US} us")
+        else:
+            why = []
+            if t.hypervisor:
+                why.append("a virtual machine: a vCPU the host does not run wakes late "
+                           "whatever its priority inside (steal counts only part of it)")
+            if not t.realtime:
+                why.append("no SCHED_FIFO (root, or CAP_SYS_NICE, or an rtprio limit)")
+            console.print(f"misses the sender's aims (no wake-up 1 ms late, p99 within "
+                          f"{P99_AIM_US} us): a run's late packets on this machine are at "
+                          "least these" + (f"; {'; '.join(why)}" if why else ""))
+    finish(ExitStatus.OK if t.meets_aims else ExitStatus.FAILED)

@@ -101,7 +101,8 @@ def _print_run(r: Any) -> None:
 
 def _pacing_line(lidar: dict[str, Any]) -> str | None:
     """One line when track packets left 1 ms or more late: how many, and how much CPU time
-    the hypervisor withheld meanwhile (a vCPU the host does not run sends nothing)."""
+    the hypervisor withheld meanwhile (a vCPU the host does not run sends nothing); where no
+    frame came late from the producer, where to see the machine's own floor."""
     late = lidar.get("track_packets_late_1ms") or 0
     if not late:
         return None
@@ -115,6 +116,8 @@ def _pacing_line(lidar: dict[str, Any]) -> str | None:
     if steal is not None and steal >= 1.0:
         line += (f"; the hypervisor withheld {steal:.0f} ms/s of this machine's CPU "
                  "meanwhile (steal: a vCPU the host does not run sends nothing)")
+    if not producer:  # the pacing's, then: what the machine allows any sender
+        line += "; `tcf-hil lidar timing` shows what this machine allows any sender"
     return line
 
 

@@ -258,5 +258,32 @@ def test_a_run_with_late_track_packets_says_so_with_the_machines_steal() -> None
                          "track_steal_ms_per_s": 87.0, "frames_late_from_producer": 2})
     assert line is not None and "12 track packet(s)" in line and "2,742 us" in line
     assert "2 frame(s) came late from the frame producer" in line and "87 ms/s" in line
+    assert "lidar timing" not in line  # (frames came late: the producer's part first)
     quiet = _pacing_line({"track_packets_late_1ms": 3, "track_steal_ms_per_s": 0.2})
     assert quiet is not None and "steal" not in quiet and "producer" not in quiet
+    assert "`tcf-hil lidar timing` shows what this machine allows" in quiet
+
+
+def test_lidar_timing_measures_the_bare_pacer_and_names_the_machine() -> None:
+    """The real pacer for a second: one JSON object with its wake-ups and the machine's
+    facts; the exit status says whether the floor met the sender's aims."""
+    import json
+
+    from click.testing import CliRunner
+
+    from tcf_hil.cli import cli
+    from tcf_hil.devices.timing import packet_interval_ns
+
+    assert packet_interval_ns("2048x10") == 781_250 and packet_interval_ns("512x20") == 1_562_500
+    r = CliRunner().invoke(cli, ["lidar", "timing", "--mode", "1024x20", "--seconds", "1",
+                                 "--json"])
+    t = json.loads(r.stdout.strip().splitlines()[-1])
+    assert t["wakes"] == 1280 and t["interval_us"] == 781.25  # 1 s at 1280 packets a second
+    assert 0 <= t["p50_us"] <= t["p99_us"] <= t["max_us"]
+    assert t["late_1ms"] <= t["wakes"] and t["cpus"] >= 1 and t["kernel"]
+    assert t["preemption"] in ("PREEMPT_RT", "PREEMPT_DYNAMIC", "PREEMPT", "none")
+    assert r.exit_code == (0 if t["meets_aims"] else 3)
+    assert t["meets_aims"] == (t["late_1ms"] == 0 and t["p99_us"] <= 100)
+    table = CliRunner().invoke(cli, ["lidar", "timing", "--seconds", "0.5"])
+    assert "1 ms or more late" in table.stdout and "kernel" in table.stdout
+    assert ("meets the sender's aims" in table.stdout) == (table.exit_code == 0)
