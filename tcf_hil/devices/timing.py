@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["MachineTiming", "machine_timing", "packet_interval_ns"]
+__all__ = ["MachineTiming", "machine_facts", "machine_timing", "packet_interval_ns"]
 
 # the live sender's aims (issue "Real time on any scene"): no packet 1 ms late, p99 <= 100 us
 LATE_US = 1000
@@ -116,6 +116,19 @@ def _hypervisor() -> bool:
                for line in text.splitlines())
 
 
+def machine_facts() -> dict[str, Any]:
+    """What decides a sender's wake-ups here, read without measuring: the CPUs this process
+    may use, the kernel's release and preemption (build, model in effect), the CPU idle
+    driver and whether a hypervisor is under it (a run's manifest keeps them beside its
+    pacing figures)."""
+    build, now = _preemption()
+    return {"cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+            else os.cpu_count() or 1,
+            "kernel": platform.release(), "preemption": build, "preemption_now": now,
+            "cpuidle_driver": _read("/sys/devices/system/cpu/cpuidle/current_driver"),
+            "hypervisor": _hypervisor()}
+
+
 def machine_timing(mode: str = "2048x10", seconds: float = 10.0) -> MachineTiming:
     """The bare pacer at ``mode``'s packet interval for ``seconds``, and the machine's facts
     (blocks that long)."""
@@ -130,15 +143,9 @@ def machine_timing(mode: str = "2048x10", seconds: float = 10.0) -> MachineTimin
     wall = time.monotonic() - t0
     s1 = steal_s()
     n = len(errs)
-    build, now = _preemption()
     return MachineTiming(
         mode=mode, interval_us=interval / 1000, seconds=seconds, wakes=n,
         p50_us=errs[n // 2], p99_us=errs[min(n - 1, int(0.99 * n))], max_us=errs[-1],
         late_1ms=sum(e >= LATE_US for e in errs), realtime=realtime,
         steal_ms_per_s=(1000 * (s1 - s0) / wall if s0 is not None and s1 is not None
-                        else None),
-        cpus=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-        else os.cpu_count() or 1,
-        kernel=platform.release(), preemption=build, preemption_now=now,
-        cpuidle_driver=_read("/sys/devices/system/cpu/cpuidle/current_driver"),
-        hypervisor=_hypervisor())
+                        else None), **machine_facts())

@@ -27,6 +27,7 @@ from tcf_hil._io import write_bytes_atomic
 from tcf_hil.devices.endpoints import SensorHost
 from tcf_hil.devices.faults import FaultLog
 from tcf_hil.devices.harvester import HarvesterModel, run_harvester
+from tcf_hil.devices.timing import machine_facts
 from tcf_hil.recording.store import RenderStore
 from tcf_hil.run._figures import LiveFigures
 from tcf_hil.run._manifest import Manifest, SicRecord
@@ -516,6 +517,8 @@ class LiveTraffic:
                               "track_packets_late_1ms": r.track_late_1ms,
                               "track_steal_ms_per_s": r.track_steal_ms_per_s,
                               "sender_realtime": r.realtime,
+                              # what decides the sender's wake-ups here (tcf-hil lidar timing)
+                              "machine": machine_facts(),
                               "frames_late_from_producer": r.frames_late_from_producer,
                               "late_frames": [{"t_ns": t, "late_us": us, "phase": ph}
                                               for t, us, ph in r.late_frame_log],

@@ -418,6 +418,8 @@ def test_render_then_run_streams_the_stored_bytes_as_a_user_types_it(tmp_path: P
         assert man["lidar"]["frames_sent"] == 20
         steal = man["lidar"]["track_steal_ms_per_s"]  # /proc/stat's steal over the track
         assert steal is None or 0.0 <= steal <= 2000.0  # both CPUs: at most 2 s a second
+        machine = man["lidar"]["machine"]  # what decides the sender's wake-ups here
+        assert machine["cpus"] >= 1 and machine["kernel"] and "hypervisor" in machine
         runs[render] = out
     for name in ("lidar.pcap", "lidar_labels.bin", "sensor_poses.csv"):
         assert (runs["auto"] / name).read_bytes() == (runs["live"] / name).read_bytes(), name
