@@ -264,6 +264,7 @@ def lidar_timing(mode: str, seconds: float, as_json: bool) -> None:
             if not t.realtime:
                 why.append("no SCHED_FIFO (root, or CAP_SYS_NICE, or an rtprio limit)")
             console.print(f"misses the sender's aims (no wake-up 1 ms late, p99 within "
-                          f"{P99_AIM_US} us): a run's late packets on this machine are at "
-                          "least these" + (f"; {'; '.join(why)}" if why else ""))
+                          f"{P99_AIM_US} us): no sender here is more punctual than this, "
+                          "so a run's packets late by as much are the machine's"
+                          + (f"; {'; '.join(why)}" if why else ""))
     finish(ExitStatus.OK if t.meets_aims else ExitStatus.FAILED)
