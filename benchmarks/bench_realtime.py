@@ -104,13 +104,10 @@ def _render(scene: str, mode: str) -> dict[str, Any]:
 def _floor(mode: str, seconds: float) -> dict[str, float]:
     """:func:`emulators.pacing.wake_floor` at ``mode``'s packet interval (16 columns a
     packet): p99 (us) and wake-ups 1 ms or more late per 10,000."""
-    from emulators.pacing import wake_floor
+    from tcf_hil.devices.timing import machine_timing
 
-    cols, hz = (int(x) for x in mode.split("x"))
-    errs = sorted(wake_floor(round(1e9 / (hz * cols / 16)), seconds))
-    late = sum(e >= 1000 for e in errs)
-    return {"floor_p99_us": float(errs[min(len(errs) - 1, int(0.99 * len(errs)))] + 1),
-            "floor_late_per_10k": 1e4 * late / len(errs)}
+    t = machine_timing(mode, seconds)  # (what tcf-hil lidar timing measures)
+    return {"floor_p99_us": float(t.p99_us + 1), "floor_late_per_10k": t.late_per_10k}
 
 
 def _run(scene: str, mode: str, duration: float, sic: str, out: Path) -> dict[str, Any]:

@@ -36,8 +36,11 @@ P99_AIM_US = 100
 def packet_interval_ns(mode: str) -> int:
     """The time between two lidar packets of ``mode`` ("2048x10": 16 columns a packet, 128
     packets a frame, 10 frames a second: 781,250 ns)."""
-    cols, hz = (int(x) for x in mode.split("x"))
-    return round(1e9 / (hz * cols / 16))
+    from protocols.ouster import PacketFormat, parse_mode
+
+    cols, hz = parse_mode(mode)
+    fmt = PacketFormat.create("RNG19_RFL8_SIG16_NIR16", columns_per_frame=cols)
+    return round(1e9 / (hz * fmt.columns_per_frame / fmt.columns_per_packet))
 
 
 @dataclass(frozen=True)
