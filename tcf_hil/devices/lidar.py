@@ -241,7 +241,9 @@ class LidarRun:
         self.lidar_faults = plans.lidar if plans else None
         self.last_events: list[FaultEvent] = []
         self.last_sent = False
-        self.faults_on = faults
+        # the faults injected: a scenario without fault plans renders the same bytes with
+        # faults on or off, so a live run and an offline cell share its render
+        self.faults_on = plans is not None
         self._doc: dict[str, Any] | None = None
         self._key: str | None = None
         self.store = store if render != "live" else None
@@ -309,7 +311,10 @@ class LidarRun:
         meta = dataclasses.asdict(self._meta0)  # (as made: a re-initialisation changes it)
         for name in ("udp_dest", "udp_port_lidar", "udp_port_imu", "extra"):
             meta.pop(name, None)  # not in the bytes: where they go
-        doc = {"scenario": scenario_to_dict(self.world.scenario), "seed": self.forest.seed,
+        scenario = scenario_to_dict(self.world.scenario)
+        if not self.faults_on:
+            scenario.pop("faults", None)  # not injected: not in the bytes
+        doc = {"scenario": scenario, "seed": self.forest.seed,
                 "backend": self.backend, "t0_ns": self.track.t0_ns,
                 "frames": self.track_frames, "first_frame_id": self.first_frame_id,
                 "faults": self.faults_on, "model": None if self.model is None

@@ -95,6 +95,10 @@ def test_the_key_follows_what_decides_the_bytes(tmp_path: Path) -> None:
     assert k != LidarRun(scn, mode="1024x10").render_key
     assert k != LidarRun(scn, mode="512x10", seed=scn.seed + 1).render_key
     assert k != LidarRun(_short(faults=True), mode="512x10").render_key
+    # faults off (an offline cell) or on (a run) render a scene without fault plans alike
+    assert k == LidarRun(scn, mode="512x10", faults=False).render_key
+    assert (LidarRun(_short(faults=True), mode="512x10", faults=False).render_key
+            == k)
     assert render_key({"a": 1}) != render_key({"a": 2})
 
 
