@@ -60,10 +60,12 @@ def render_cmd(scenario_name: str, mode: str, profile: str, seed: int | None, ba
     A run of the same scenario, seed, mode, profile, sensor and faults (tcf-hil run, which
     defaults to 2048x10 as this command) then streams every frame from the store at the
     sensor's cadence: the bench only paces and copies, the program under test gets the
-    machine, and every such run sends the same bytes. A render cut short (Ctrl-C) keeps its
-    whole frames; the next render goes on from there. The store is shown and freed with
-    tcf-hil cache (its root: $TCF_HIL_CACHE, else ~/.cache/tcf-hil; at most
-    $TCF_HIL_CACHE_MAX_GB, default 20, least recently used renders go first).
+    machine, and every such run sends the same bytes. The reference SIC's cells of tcf-hil
+    experiment read the same render (of a scene without fault plans: a cell injects none).
+    A render cut short (Ctrl-C) keeps its whole frames; the next render goes on from there.
+    The store is shown and freed with tcf-hil cache (its root: $TCF_HIL_CACHE, else
+    ~/.cache/tcf-hil; at most $TCF_HIL_CACHE_MAX_GB, default 20, least recently used renders
+    go first).
 
     \b
     Example:
